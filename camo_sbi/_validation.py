@@ -1,0 +1,111 @@
+"""Input checks shared by every public entry point.
+
+Every check raises ``ValueError`` or ``TypeError`` whose message starts with the
+name of the offending argument, never an ``assert``.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+import torch
+
+__all__ = [
+    "as_tensor",
+    "check_finite",
+    "check_positive_int",
+    "check_positive_float",
+    "check_theta",
+    "numpy_generator",
+    "torch_generator",
+]
+
+
+def as_tensor(x, name: str, *, dtype=None, device=None) -> torch.Tensor:
+    """Convert ``x`` (tensor, array, list) to a floating tensor; TypeError naming ``name``."""
+    if isinstance(x, torch.Tensor):
+        t = x
+    elif isinstance(x, (np.ndarray, list, tuple, numbers.Real)):
+        try:
+            t = torch.as_tensor(np.asarray(x, dtype=np.float64))
+        except (TypeError, ValueError) as exc:
+            raise TypeError(f"{name}: cannot convert to a float tensor ({exc})") from exc
+    else:
+        raise TypeError(f"{name}: expected a torch.Tensor or array-like, got {type(x).__name__}")
+    if not (t.is_floating_point()):
+        t = t.to(torch.get_default_dtype() if dtype is None else dtype)
+    if dtype is not None or device is not None:
+        t = t.to(dtype=dtype or t.dtype, device=device or t.device)
+    return t
+
+
+def check_finite(t: torch.Tensor, name: str) -> torch.Tensor:
+    """Raise ValueError naming ``name`` if ``t`` holds NaN or inf."""
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name}: contains NaN or inf values")
+    return t
+
+
+def check_positive_int(x, name: str, *, minimum: int = 1) -> int:
+    """Validate an integer >= ``minimum`` (bools rejected)."""
+    if isinstance(x, bool) or not isinstance(x, numbers.Integral):
+        raise TypeError(f"{name}: expected an integer, got {type(x).__name__}")
+    if int(x) < minimum:
+        raise ValueError(f"{name}: must be >= {minimum}, got {x}")
+    return int(x)
+
+
+def check_positive_float(x, name: str, *, allow_zero: bool = False) -> float:
+    """Validate a finite real > 0 (or >= 0 with ``allow_zero``)."""
+    if isinstance(x, bool) or not isinstance(x, numbers.Real):
+        raise TypeError(f"{name}: expected a real number, got {type(x).__name__}")
+    v = float(x)
+    if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
+        raise ValueError(f"{name}: must be {'>= 0' if allow_zero else '> 0'} and finite, got {x}")
+    return v
+
+
+def check_theta(theta: torch.Tensor, n_joints: int, name: str = "theta") -> torch.Tensor:
+    """Validate a batch of limit vectors laid out ``[lo_1, hi_1, ..., lo_n, hi_n]``.
+
+    theta: (B, 2n) or (2n,) -> returned as (B, 2n).
+    Raises ValueError naming ``name`` on a wrong shape, NaN/inf or ``lo > hi``.
+    """
+    if theta.dim() == 1:
+        theta = theta.unsqueeze(0)
+    if theta.dim() != 2 or theta.shape[1] != 2 * n_joints:
+        raise ValueError(
+            f"{name}: expected shape (B, {2 * n_joints}) laid out [lo_1, hi_1, ..., lo_n, hi_n], "
+            f"got {tuple(theta.shape)}"
+        )
+    check_finite(theta, name)
+    lo, hi = theta[:, 0::2], theta[:, 1::2]
+    bad = lo > hi
+    if bool(bad.any()):
+        b, j = (int(v) for v in torch.nonzero(bad)[0])
+        raise ValueError(
+            f"{name}: lower limit exceeds upper limit (sample {b}, joint {j}: "
+            f"lo={float(lo[b, j]):.4g} > hi={float(hi[b, j]):.4g})"
+        )
+    return theta
+
+
+def numpy_generator(seed_or_gen, name: str = "seed") -> np.random.Generator:
+    """An explicit numpy Generator from an int seed or a Generator (never global state)."""
+    if isinstance(seed_or_gen, np.random.Generator):
+        return seed_or_gen
+    if isinstance(seed_or_gen, bool) or not isinstance(seed_or_gen, numbers.Integral):
+        raise TypeError(f"{name}: expected an int seed or numpy.random.Generator, got {type(seed_or_gen).__name__}")
+    return np.random.default_rng(int(seed_or_gen))
+
+
+def torch_generator(seed_or_gen, name: str = "seed", device="cpu") -> torch.Generator:
+    """An explicit torch Generator from an int seed or a Generator (never global state)."""
+    if isinstance(seed_or_gen, torch.Generator):
+        return seed_or_gen
+    if isinstance(seed_or_gen, bool) or not isinstance(seed_or_gen, numbers.Integral):
+        raise TypeError(f"{name}: expected an int seed or torch.Generator, got {type(seed_or_gen).__name__}")
+    g = torch.Generator(device=device)
+    g.manual_seed(int(seed_or_gen))
+    return g
