@@ -20,7 +20,7 @@ from camo_sbi._validation import check_positive_int
 from camo_sbi.inference.budget import CountingSimulator
 from camo_sbi.inference.result import PosteriorResult
 
-__all__ = ["METHODS", "MethodSpec", "get_method", "make_config", "run_method"]
+__all__ = ["METHODS", "MethodSpec", "get_method", "make_config", "run_method", "run_method_sequence"]
 
 
 @dataclass(frozen=True)
@@ -35,6 +35,10 @@ class MethodSpec:
     def load(self) -> tuple[Callable, type]:
         mod = importlib.import_module(self.module)
         return getattr(mod, self.run_name), getattr(mod, self.config_name)
+
+    def load_sequence(self) -> Callable | None:
+        """The module's continual ``run_sequence`` (results after each task), if it has one."""
+        return getattr(importlib.import_module(self.module), "run_sequence", None)
 
 
 METHODS: dict[str, MethodSpec] = {
@@ -91,3 +95,27 @@ def run_method(name: str, task, observations: Sequence | None = None, *, budget:
     wall = time.perf_counter() - t0
     return replace(result, method=name, n_simulations=counter.n_simulations, wall_time=wall,
                    n_tasks=len(observations))
+
+
+def run_method_sequence(name: str, task, observations: Sequence | None = None, *, budget: int,
+                        seed: int, config=None) -> list[PosteriorResult]:
+    """Results conditioned on the first 1, 2, ..., K observations.
+
+    Continual methods (a module-level ``run_sequence``) observe the tasks once; the others
+    are rerun from scratch for each k with a fresh counter capped at ``budget * k``. For a
+    continual method the k-th result's ``n_simulations`` is what the counter had counted
+    after task k, and its cap is ``budget * K``, ``budget * k`` used by then.
+    """
+    spec = get_method(name)
+    seq = spec.load_sequence()
+    cfg = make_config(name, config)
+    observations = tuple(task.observations if observations is None else observations)
+    if not observations:
+        raise ValueError("observations: at least one observed task is required")
+    budget = check_positive_int(budget, "budget")
+    if seq is None:
+        return [run_method(name, task, observations[: k + 1], budget=budget, seed=seed, config=cfg)
+                for k in range(len(observations))]
+    counter = CountingSimulator(task.simulator, budget * len(observations))
+    results = seq(task.with_simulator(counter), observations, budget=budget, seed=seed, config=cfg)
+    return [replace(r, method=name, n_tasks=k + 1) for k, r in enumerate(results)]
