@@ -1,0 +1,54 @@
+"""Ground-truth subjects: named restricted-limit profiles for each model."""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["PANDA_PROFILES", "build_model", "subject_names", "subject_theta"]
+
+# Panda profiles: {joint index: fraction of the range kept on each side of the start posture}.
+# Restricting a joint to a fraction f keeps lo = s - f (s - L), hi = s + f (U - s).
+PANDA_PROFILES: dict[str, dict[int, float]] = {
+    "shoulder_restricted": {0: 0.3, 1: 0.35},
+    "elbow_restricted": {2: 0.4, 3: 0.3},
+    "wrist_restricted": {4: 0.3, 5: 0.3, 6: 0.3},
+    "mixed_restricted": {0: 0.5, 1: 0.5, 3: 0.5, 5: 0.5},
+}
+
+
+def build_model(model: str):
+    """The simulator called ``model`` ("panda" or "human")."""
+    from camo_sbi.simulators import human, panda
+
+    if model == "panda":
+        return panda()
+    if model == "human":
+        return human()
+    raise ValueError(f"model: expected 'panda' or 'human', got {model!r}")
+
+
+def subject_names(model: str) -> list[str]:
+    if model == "panda":
+        return list(PANDA_PROFILES)
+    if model == "human":
+        from camo_sbi.simulators import IMPAIRED_PROFILES
+
+        return list(IMPAIRED_PROFILES)
+    raise ValueError(f"model: expected 'panda' or 'human', got {model!r}")
+
+
+def subject_theta(sim, model: str, name: str) -> torch.Tensor:
+    """(2n,) float64 true limits of subject ``name`` for ``model``."""
+    if model == "human":
+        from camo_sbi.simulators import impaired_limits
+
+        return torch.as_tensor(impaired_limits(sim, name), dtype=torch.float64)
+    if name not in PANDA_PROFILES:
+        raise ValueError(f"subject: unknown Panda profile {name!r}; known: {', '.join(PANDA_PROFILES)}")
+    b = sim.bounds.to(torch.float64)
+    s = sim.start.to(torch.float64)
+    lo, hi = b[:, 0].clone(), b[:, 1].clone()
+    for j, f in PANDA_PROFILES[name].items():
+        lo[j] = s[j] - f * (s[j] - b[j, 0])
+        hi[j] = s[j] + f * (b[j, 1] - s[j])
+    return torch.stack([lo, hi], dim=1).reshape(-1)
