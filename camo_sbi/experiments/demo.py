@@ -28,7 +28,7 @@ def main(args) -> int:
     theta = prior.sample(args.batch, args.seed)
     gen = torch.Generator().manual_seed(args.seed)
     goal = sample_goals(sim, sim.bounds, 1, gen)[0]
-    sim.simulate(theta[:2], goal)  # compile / warm up
+    sim.simulate(theta[:2].to(torch.float32), goal.to(torch.float32))  # compile / warm up
     t0 = time.perf_counter()
     traj = sim.simulate(theta.to(torch.float32), goal.to(torch.float32))
     dt = time.perf_counter() - t0

@@ -189,7 +189,10 @@ class Camo:
                     f"(best distance {float(dist[order[0]]):.4g}); keeping the best {cfg.fallback_keep}",
                     RuntimeWarning, stacklevel=2,
                 )
-                keep = order[: cfg.fallback_keep]
+                # pruned distances beyond epsilon are +inf: recompute the best k exactly
+                dist = dtw_distances(traj, sim_traj, sims.length, keep_best=cfg.fallback_keep)
+                keep = torch.argsort(dist, stable=True)[: cfg.fallback_keep]
+                t2 = time.perf_counter()
         else:
             keep = order[: cfg.keep_best]
         if not bool(torch.isfinite(dist[keep]).all()):

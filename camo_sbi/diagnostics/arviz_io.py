@@ -1,0 +1,629 @@
+"""ArviZ adapter: `PosteriorResult` <-> `arviz.InferenceData` (the only module importing arviz).
+
+Layout of the InferenceData built by :func:`to_inference_data`:
+
+* ``posterior``: variable ``limits`` with dims ``(chain, draw, joint, bound)``,
+  ``joint`` = the joint names, ``bound`` = ``["lower", "upper"]``. Independent
+  draws are stored as ONE chain (r_hat is therefore undefined). Weighted samples
+  are first resampled (multinomial, seeded), and ``attrs`` record it.
+* ``prior``: ``limits`` drawn from the prior (seeded), same dims (optional).
+* ``observed_data``: whatever arrays the caller passes (optional), stored as given
+  (no unit conversion).
+* ``constant_data``: ``estimate`` (the method's point estimate), ``true_limits``
+  (when known), ``prior_low`` / ``prior_high`` (a box prior's edges, when given).
+* ``attrs`` (on every group): method, budget, n_simulations, wall_time, n_tasks,
+  units, resampled, resample_seed, weights_ess, n_samples_original, and any
+  scalar extras of the result as ``extra_<key>``.
+
+The file written by :func:`save_netcdf` loads with plain ``arviz.from_netcdf``
+and ``arviz.summary`` prints rows like ``limits[shoulder_pan, lower]``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import numbers
+import os
+import tempfile
+import warnings
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import arviz as az
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+from scipy.stats import wasserstein_distance
+
+from camo_sbi._validation import check_positive_int, numpy_generator
+from camo_sbi.inference.result import PosteriorResult
+
+__all__ = [
+    "BOUNDS",
+    "VAR_NAME",
+    "to_inference_data",
+    "save_netcdf",
+    "load_netcdf",
+    "summary",
+    "truth_position",
+    "posterior_width",
+    "plot_posterior",
+    "plot_pair",
+    "plot_forest",
+    "compare_marginals",
+]
+
+VAR_NAME = "limits"
+BOUNDS = ("lower", "upper")
+_UNITS = ("rad", "deg")
+_DIMS = ["joint", "bound"]
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _check_joint_names(joint_names, n_joints: int) -> list[str]:
+    if isinstance(joint_names, str) or not isinstance(joint_names, Sequence):
+        raise TypeError(f"joint_names: expected a sequence of str, got {type(joint_names).__name__}")
+    names = list(joint_names)
+    if not all(isinstance(n, str) and n for n in names):
+        raise TypeError("joint_names: every name must be a non-empty str")
+    if len(names) != n_joints:
+        raise ValueError(f"joint_names: expected {n_joints} names (one per joint), got {len(names)}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"joint_names: names must be unique, got {names}")
+    return names
+
+
+def _to_numpy(x, name: str) -> np.ndarray:
+    if hasattr(x, "detach"):  # torch tensor, without importing torch here
+        x = x.detach().cpu().numpy()
+    try:
+        return np.asarray(x)
+    except Exception as exc:  # pragma: no cover - exotic inputs
+        raise TypeError(f"{name}: cannot convert to an array ({exc})") from exc
+
+
+def _theta_vector(x, name: str, dim: int) -> np.ndarray:
+    a = _to_numpy(x, name)
+    if not np.issubdtype(a.dtype, np.number):
+        raise TypeError(f"{name}: expected numbers, got dtype {a.dtype}")
+    a = a.astype(np.float64).reshape(-1) if a.ndim == 2 and a.shape[0] == 1 else a.astype(np.float64)
+    if a.shape != (dim,):
+        raise ValueError(f"{name}: expected shape ({dim},) laid out [lo_1, hi_1, ...], got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: contains NaN or inf values")
+    if np.any(a[0::2] > a[1::2]):
+        raise ValueError(f"{name}: lower limit exceeds upper limit")
+    return a
+
+
+def _seed_attr(seed) -> int | str:
+    numpy_generator(seed)  # validates the type
+    return int(seed) if isinstance(seed, numbers.Integral) else "numpy.random.Generator"
+
+
+def _attr_value(v):
+    """A netCDF-safe attribute value or None (bools -> int, numpy scalars -> python)."""
+    if isinstance(v, (bool, np.bool_)):
+        return int(v)
+    if isinstance(v, numbers.Integral):
+        return int(v)
+    if isinstance(v, numbers.Real):
+        return float(v)
+    if isinstance(v, str):
+        return v
+    return None
+
+
+@contextlib.contextmanager
+def _quiet_arviz():
+    """Silence arviz's single-chain shape warnings and constant-data KDE warnings."""
+    # arviz's logger is built outside logging's registry (arviz._log), so fetch it from the package.
+    logger = getattr(az, "_log", None) or logging.getLogger("arviz")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            warnings.simplefilter("ignore", RuntimeWarning)
+            warnings.filterwarnings("ignore", message=".*alias_mapping.*")
+            yield
+    finally:
+        logger.setLevel(level)
+
+
+def _check_idata(idata, name: str = "idata") -> az.InferenceData:
+    if not isinstance(idata, az.InferenceData):
+        raise TypeError(f"{name}: expected an arviz.InferenceData, got {type(idata).__name__}")
+    if "posterior" not in idata.groups() or VAR_NAME not in idata.posterior:
+        raise ValueError(f"{name}: needs a posterior group with variable {VAR_NAME!r}")
+    return idata
+
+
+def _draws(idata, group: str = "posterior") -> tuple[np.ndarray, list[str]]:
+    """(S, n, 2) stacked draws of ``limits`` and the joint names."""
+    da = getattr(idata, group)[VAR_NAME].transpose("chain", "draw", "joint", "bound")
+    vals = np.asarray(da.values, dtype=np.float64)
+    return vals.reshape(-1, vals.shape[2], vals.shape[3]), [str(j) for j in da["joint"].values]
+
+
+def _truth(idata) -> np.ndarray | None:
+    """(n, 2) true limits or None."""
+    if "constant_data" in idata.groups() and "true_limits" in idata.constant_data:
+        return np.asarray(idata.constant_data["true_limits"].transpose("joint", "bound").values, dtype=np.float64)
+    return None
+
+
+def _index(joints: list[str]) -> pd.MultiIndex:
+    return pd.MultiIndex.from_product([joints, list(BOUNDS)], names=["joint", "bound"])
+
+
+# --------------------------------------------------------------------------- conversion
+
+
+def to_inference_data(
+    result: PosteriorResult,
+    joint_names: Sequence[str],
+    *,
+    seed,
+    prior=None,
+    prior_draws: int = 1000,
+    true_theta=None,
+    observed: Mapping[str, object] | None = None,
+    observed_dims: Mapping[str, Sequence[str]] | None = None,
+    units: str = "rad",
+    budget: int | None = None,
+    n_resample: int | None = None,
+    attrs: Mapping[str, object] | None = None,
+) -> az.InferenceData:
+    """Convert a `PosteriorResult` to an `arviz.InferenceData` over named joint limits.
+
+    Args:
+        result: the posterior; samples (N, 2n) laid out [lo_1, hi_1, ..., lo_n, hi_n] in radians.
+        joint_names: n unique joint names (the ``joint`` coordinate).
+        seed: int or numpy Generator, used to resample weighted samples and draw the prior.
+        prior: optional prior with ``sample(n, seed) -> (n, 2n)`` (e.g. `BoxPrior`); its
+            ``low`` / ``high`` edges, when present, are stored in ``constant_data``.
+        prior_draws: number of prior draws for the ``prior`` group.
+        true_theta: optional (2n,) true limits, stored as ``constant_data.true_limits``.
+        observed: optional {name: array} (e.g. observed trajectories (n_tasks, T, n), goals
+            (n_tasks, 3)), stored as-is in ``observed_data`` (never unit-converted).
+        observed_dims: optional {name: dim names} for the arrays in ``observed``; a dim named
+            "joint" gets the joint names as coordinates.
+        units: "rad" (as is) or "deg" (limits, prior, truth and estimate converted).
+        budget: simulation budget granted to the method (default: ``result.extras["budget"]``).
+        n_resample: draws taken when resampling weighted samples (default: N).
+        attrs: extra scalar metadata (task, subject, ...) added to the attrs.
+
+    Returns:
+        InferenceData with groups posterior, constant_data and, when given, prior and
+        observed_data. Weighted samples are resampled with ``seed``; ``attrs["resampled"]``
+        is 1 and ``attrs["resample_seed"]`` the seed (or "numpy.random.Generator").
+    """
+    if not isinstance(result, PosteriorResult):
+        raise TypeError(f"result: expected a PosteriorResult, got {type(result).__name__}")
+    n = result.n_joints
+    dim = 2 * n
+    names = _check_joint_names(joint_names, n)
+    if units not in _UNITS:
+        raise ValueError(f"units: expected one of {_UNITS}, got {units!r}")
+    seed_attr = _seed_attr(seed)
+    rng = numpy_generator(seed)
+    if not np.all(np.isfinite(result.samples)):
+        raise ValueError("result: samples contain NaN or inf values")
+    scale = float(np.degrees(1.0)) if units == "deg" else 1.0
+
+    # posterior ----------------------------------------------------------------
+    samples = result.samples
+    n_orig = samples.shape[0]
+    w = result.weights
+    resampled = w is not None and not np.allclose(w, 1.0 / n_orig)
+    if n_resample is not None:
+        n_resample = check_positive_int(n_resample, "n_resample")
+    if resampled:
+        samples = result.resample(n_resample or n_orig, rng)
+        weights_ess = float(1.0 / np.sum(w**2))
+    else:
+        weights_ess = float(n_orig)
+    post = (samples * scale).reshape(1, samples.shape[0], n, 2)
+
+    coords = {"joint": names, "bound": list(BOUNDS)}
+    dims = {VAR_NAME: _DIMS, "estimate": _DIMS, "true_limits": _DIMS, "prior_low": _DIMS, "prior_high": _DIMS}
+
+    # prior --------------------------------------------------------------------
+    prior_dict = None
+    constant = {"estimate": (result.estimate * scale).reshape(n, 2)}
+    if prior is not None:
+        if not hasattr(prior, "sample"):
+            raise TypeError(f"prior: expected an object with sample(n, seed), got {type(prior).__name__}")
+        prior_draws = check_positive_int(prior_draws, "prior_draws")
+        pd_ = _to_numpy(prior.sample(int(prior_draws), rng), "prior").astype(np.float64)
+        if pd_.shape != (prior_draws, dim):
+            raise ValueError(f"prior: sample() returned shape {pd_.shape}, expected ({prior_draws}, {dim})")
+        prior_dict = {VAR_NAME: (pd_ * scale).reshape(1, prior_draws, n, 2)}
+        for edge in ("low", "high"):
+            if hasattr(prior, edge):
+                e = _to_numpy(getattr(prior, edge), f"prior.{edge}").astype(np.float64)
+                if e.shape == (dim,):
+                    constant[f"prior_{edge}"] = (e * scale).reshape(n, 2)
+    if true_theta is not None:
+        constant["true_limits"] = (_theta_vector(true_theta, "true_theta", dim) * scale).reshape(n, 2)
+
+    # observed -----------------------------------------------------------------
+    obs_dict = None
+    if observed is not None:
+        if not isinstance(observed, Mapping):
+            raise TypeError(f"observed: expected a dict of arrays, got {type(observed).__name__}")
+        obs_dict = {}
+        for k, v in observed.items():
+            if not isinstance(k, str) or not k:
+                raise TypeError(f"observed: keys must be non-empty str, got {k!r}")
+            if k in dims:
+                raise ValueError(f"observed: key {k!r} clashes with a reserved variable name")
+            a = _to_numpy(v, f"observed[{k!r}]")
+            if not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+                raise TypeError(f"observed[{k!r}]: expected a numeric array, got dtype {a.dtype}")
+            obs_dict[k] = a
+        for k, d in (observed_dims or {}).items():
+            if k not in obs_dict:
+                raise ValueError(f"observed_dims: {k!r} is not a key of observed")
+            d = list(d)
+            if len(d) != obs_dict[k].ndim:
+                raise ValueError(f"observed_dims: {k!r} has {obs_dict[k].ndim} dims, got names {d}")
+            if "joint" in d and obs_dict[k].shape[d.index("joint")] != n:
+                raise ValueError(f"observed_dims: {k!r} dim 'joint' must have length {n}")
+            if "bound" in d:
+                raise ValueError(f"observed_dims: {k!r} may not use the reserved dim 'bound'")
+            dims[k] = d
+
+    # attrs --------------------------------------------------------------------
+    meta = {
+        "method": str(result.method),
+        "n_simulations": int(result.n_simulations),
+        "wall_time": float(result.wall_time),
+        "n_tasks": int(result.n_tasks),
+        "units": units,
+        "resampled": int(resampled),
+        "resample_seed": seed_attr,
+        "weights_ess": weights_ess,
+        "n_samples_original": int(n_orig),
+        "inference_library": "camo_sbi",
+    }
+    b = budget if budget is not None else result.extras.get("budget")
+    if b is not None:
+        meta["budget"] = _attr_value(b) if _attr_value(b) is not None else str(b)
+    for k, v in result.extras.items():
+        av = _attr_value(v)
+        if av is not None and isinstance(k, str) and k != "budget":
+            meta[f"extra_{k}"] = av
+    for k, v in (attrs or {}).items():
+        av = _attr_value(v)
+        if av is None or not isinstance(k, str):
+            raise TypeError(f"attrs: {k!r} must map a str to an int/float/str/bool, got {type(v).__name__}")
+        meta[k] = av
+
+    with _quiet_arviz():
+        idata = az.from_dict(
+            posterior={VAR_NAME: post},
+            prior=prior_dict,
+            observed_data=obs_dict,
+            constant_data=constant,
+            coords=coords,
+            dims=dims,
+            attrs=meta,
+        )
+    for g in idata.groups():  # from_dict puts attrs on posterior only in some versions
+        getattr(idata, g).attrs.update(meta)
+    return idata
+
+
+# --------------------------------------------------------------------------- netCDF
+
+
+def save_netcdf(idata: az.InferenceData, path) -> Path:
+    """Write ``idata`` to ``path`` atomically (temp file in the same directory + os.replace)."""
+    _check_idata(idata)
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected str or PathLike, got {type(path).__name__}")
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise ValueError(f"path: directory {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        idata.to_netcdf(tmp, engine="h5netcdf")
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+    return path
+
+
+def load_netcdf(path) -> az.InferenceData:
+    """Read a netCDF written by :func:`save_netcdf` (or any arviz file) fully into memory."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected str or PathLike, got {type(path).__name__}")
+    if not Path(path).is_file():
+        raise ValueError(f"path: no such file {path}")
+    with az.rc_context({"data.load": "eager"}):
+        return az.from_netcdf(str(path), engine="h5netcdf")
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+def _check_prob(hdi_prob) -> float:
+    if isinstance(hdi_prob, bool) or not isinstance(hdi_prob, numbers.Real):
+        raise TypeError(f"hdi_prob: expected a float, got {type(hdi_prob).__name__}")
+    if not 0 < float(hdi_prob) < 1:
+        raise ValueError(f"hdi_prob: must lie in (0, 1), got {hdi_prob}")
+    return float(hdi_prob)
+
+
+def summary(idata: az.InferenceData, hdi_prob: float = 0.94) -> pd.DataFrame:
+    """Per joint limit: mean, sd, hdi, mcse and ess (arviz.summary); r_hat only with >1 chain.
+
+    Rows are named like ``limits[shoulder, lower]``; a ``truth`` column is added when
+    the true limits are stored. Fixed (zero-variance) limits show sd 0.
+    """
+    _check_idata(idata)
+    hdi_prob = _check_prob(hdi_prob)
+    with _quiet_arviz():
+        df = az.summary(idata, var_names=[VAR_NAME], hdi_prob=hdi_prob, kind="all")
+    if idata.posterior.sizes["chain"] < 2 and "r_hat" in df:
+        df = df.drop(columns="r_hat")
+    truth = _truth(idata)
+    if truth is not None:
+        _, joints = _draws(idata)
+        t = pd.Series(truth.reshape(-1), index=_index(joints))
+        df["truth"] = [t[(str(j), str(b))] for j, b in _row_coords(idata, df.index)]
+    return df
+
+
+def _row_coords(idata, index) -> list[tuple[str, str]]:
+    """(joint, bound) for each row label produced by az.summary (same order as stacking)."""
+    da = idata.posterior[VAR_NAME]
+    pairs = [(str(j), str(b)) for j in da["joint"].values for b in da["bound"].values]
+    if len(pairs) != len(index):  # pragma: no cover - defensive
+        raise ValueError("idata: unexpected summary layout")
+    return pairs
+
+
+def truth_position(idata: az.InferenceData) -> pd.DataFrame:
+    """The truth's quantile in each posterior marginal (mid-rank: ties count half).
+
+    Returns a DataFrame indexed by (joint, bound) with columns ``truth``, ``quantile``
+    (0 = below every draw, 1 = above every draw, ~U(0,1) over calibrated replications)
+    and ``zero_width`` (all draws equal: a fixed limit or a point estimate).
+    """
+    _check_idata(idata)
+    truth = _truth(idata)
+    if truth is None:
+        raise ValueError("idata: no true limits stored (pass true_theta to to_inference_data)")
+    draws, joints = _draws(idata)
+    below = (draws < truth).mean(axis=0)
+    ties = (draws == truth).mean(axis=0)
+    fixed = np.ptp(draws, axis=0) == 0
+    return pd.DataFrame(
+        {"truth": truth.reshape(-1), "quantile": (below + 0.5 * ties).reshape(-1), "zero_width": fixed.reshape(-1)},
+        index=_index(joints),
+    )
+
+
+def _hdi(draws: np.ndarray, prob: float) -> tuple[np.ndarray, np.ndarray]:
+    """Shortest interval holding ``prob`` of the (S, k) draws, per column."""
+    s = np.sort(draws, axis=0)
+    m = s.shape[0]
+    k = max(1, int(np.floor(prob * m)))
+    if k >= m:
+        return s[0], s[-1]
+    widths = s[k:] - s[: m - k]
+    i = np.argmin(widths, axis=0)
+    cols = np.arange(s.shape[1])
+    return s[i, cols], s[i + k, cols]
+
+
+def posterior_width(idata: az.InferenceData, hdi_prob: float = 0.94) -> pd.DataFrame:
+    """Posterior HDI width relative to the prior's width at the same probability.
+
+    ``relative_width`` near 1: the observations say nothing about that limit; near 0:
+    the limit is pinned down. Prior width is ``hdi_prob * (high - low)`` for a stored
+    box prior (exact for uniforms), else the HDI width of the prior draws. Fixed
+    coordinates (prior width 0) get NaN.
+
+    Returns a DataFrame indexed by (joint, bound) with columns hdi_lower, hdi_upper,
+    posterior_width, prior_width, relative_width.
+    """
+    _check_idata(idata)
+    hdi_prob = _check_prob(hdi_prob)
+    draws, joints = _draws(idata)
+    lo, hi = _hdi(draws.reshape(draws.shape[0], -1), hdi_prob)
+    post_w = hi - lo
+    cd = idata.constant_data if "constant_data" in idata.groups() else {}
+    if "prior_low" in cd and "prior_high" in cd:
+        pw = hdi_prob * (
+            cd["prior_high"].transpose("joint", "bound").values - cd["prior_low"].transpose("joint", "bound").values
+        ).reshape(-1)
+    elif "prior" in idata.groups() and VAR_NAME in idata.prior:
+        pdraws, _ = _draws(idata, "prior")
+        plo, phi = _hdi(pdraws.reshape(pdraws.shape[0], -1), hdi_prob)
+        pw = phi - plo
+    else:
+        raise ValueError("idata: no prior stored (pass prior to to_inference_data)")
+    pw = np.asarray(pw, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(pw > 0, post_w / np.where(pw > 0, pw, 1.0), np.nan)
+    return pd.DataFrame(
+        {"hdi_lower": lo, "hdi_upper": hi, "posterior_width": post_w, "prior_width": pw, "relative_width": rel},
+        index=_index(joints),
+    )
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def _select_joints(idata, joints) -> list[str]:
+    _, all_joints = _draws(idata)
+    if joints is None:
+        return all_joints
+    if isinstance(joints, str) or not isinstance(joints, Sequence):
+        raise TypeError(f"joints: expected a sequence of joint names, got {type(joints).__name__}")
+    unknown = [j for j in joints if j not in all_joints]
+    if unknown:
+        raise ValueError(f"joints: unknown joint names {unknown}; known: {all_joints}")
+    if not joints:
+        raise ValueError("joints: empty selection")
+    return list(joints)
+
+
+def plot_posterior(idata: az.InferenceData, *, joints: Sequence[str] | None = None,
+                   hdi_prob: float = 0.94, figsize=None) -> Figure:
+    """One panel per (joint, bound): arviz posterior density + HDI, truth as ``ref_val``.
+
+    Fixed (zero-variance) limits are drawn as a single vertical line with a note.
+    Returns a matplotlib Figure (not attached to pyplot; render with ``fig.savefig``).
+    """
+    _check_idata(idata)
+    hdi_prob = _check_prob(hdi_prob)
+    sel = _select_joints(idata, joints)
+    draws, all_joints = _draws(idata)
+    truth = _truth(idata)
+    units = idata.posterior.attrs.get("units", "")
+    fig = Figure(figsize=figsize or (8.0, 2.2 * len(sel)), layout="constrained")
+    axes = np.atleast_2d(fig.subplots(len(sel), 2, squeeze=False))
+    for r, j in enumerate(sel):
+        ji = all_joints.index(j)
+        for c, b in enumerate(BOUNDS):
+            ax = axes[r, c]
+            x = draws[:, ji, c]
+            tv = None if truth is None else float(truth[ji, c])
+            if np.ptp(x) == 0:
+                ax.axvline(x[0], color="C0", lw=2)
+                ax.set_title(f"{j}, {b} (fixed = {x[0]:.3g})", fontsize=9)
+                ax.set_yticks([])
+                pad = max(0.1, 0.05 * abs(float(x[0])))
+                ax.set_xlim(float(x[0]) - pad, float(x[0]) + pad)
+                ax.locator_params(axis="x", nbins=3)
+                if tv is not None:
+                    ax.axvline(tv, color="C1", ls="--", label=f"truth {tv:.3g}")
+                    ax.legend(fontsize=7)
+                continue
+            with _quiet_arviz():
+                az.plot_posterior(idata, var_names=[VAR_NAME], coords={"joint": [j], "bound": [b]},
+                                  hdi_prob=hdi_prob, ref_val=tv, ax=ax, textsize=8, show=False)
+            ax.set_title(f"{j}, {b}", fontsize=9)
+            ax.set_xlabel(units, fontsize=8)
+    fig.suptitle(f"{idata.posterior.attrs.get('method', 'posterior')}: joint limits"
+                 + (" (orange: truth)" if truth is not None else ""), fontsize=10)
+    return fig
+
+
+def plot_pair(idata: az.InferenceData, *, joints: Sequence[str] | None = None, max_joints: int = 3,
+              kind: str = "scatter", figsize=None) -> Figure:
+    """Pairwise scatter/kde of the free limits of a few joints, truth marked as crosses.
+
+    Args:
+        joints: joints to show (default: the first ``max_joints`` with a non-fixed limit).
+        kind: "scatter", "kde" or "hexbin" (arviz.plot_pair).
+    """
+    _check_idata(idata)
+    draws, all_joints = _draws(idata)
+    if joints is None:
+        free = [j for i, j in enumerate(all_joints) if np.ptp(draws[:, i, :], axis=0).max() > 0]
+        sel = free[:max_joints]
+    else:
+        sel = _select_joints(idata, joints)
+    cols = [(all_joints.index(j), c) for j in sel for c in range(2) if np.ptp(draws[:, all_joints.index(j), c]) > 0]
+    if len(cols) < 2:
+        raise ValueError("joints: need at least two non-fixed limits to draw a pair plot")
+    if kind not in ("scatter", "kde", "hexbin"):
+        raise ValueError(f"kind: expected 'scatter', 'kde' or 'hexbin', got {kind!r}")
+    labels = [f"{all_joints[i]}, {BOUNDS[c]}" for i, c in cols]
+    flat = {lab: draws[:, i, c][None, :] for lab, (i, c) in zip(labels, cols, strict=True)}
+    sub = az.from_dict(posterior=flat)
+    k = len(cols)
+    fig = Figure(figsize=figsize or (2.6 * (k - 1) + 1, 2.6 * (k - 1) + 1), layout="constrained")
+    axes = np.asarray(fig.subplots(k - 1, k - 1, squeeze=False))
+    truth = _truth(idata)
+    ref = None if truth is None else {lab: float(truth[i, c]) for lab, (i, c) in zip(labels, cols, strict=True)}
+    with _quiet_arviz():
+        az.plot_pair(sub, var_names=labels, kind=kind, ax=axes if k > 2 else axes[0, 0],
+                     reference_values=ref, textsize=8, show=False,
+                     scatter_kwargs={"alpha": 0.4, "s": 4} if kind == "scatter" else None)
+    fig.suptitle(f"{idata.posterior.attrs.get('method', 'posterior')}: pairwise limits", fontsize=10)
+    return fig
+
+
+def plot_forest(idatas: Sequence[az.InferenceData], model_names: Sequence[str], *,
+                joints: Sequence[str] | None = None, hdi_prob: float = 0.94,
+                truth: bool = True, figsize=None) -> Figure:
+    """Forest plot of the limits across methods (one row per model per limit).
+
+    With ``truth=True`` and true limits stored in the first InferenceData, the truth is
+    added as an extra model named "truth" (a point, zero-width interval).
+    """
+    if isinstance(idatas, az.InferenceData) or not isinstance(idatas, Sequence) or not idatas:
+        raise TypeError("idatas: expected a non-empty list of arviz.InferenceData")
+    for i, d in enumerate(idatas):
+        _check_idata(d, f"idatas[{i}]")
+    if isinstance(model_names, str) or not isinstance(model_names, Sequence):
+        raise TypeError(f"model_names: expected a list of str, got {type(model_names).__name__}")
+    names = [str(m) for m in model_names]
+    if len(names) != len(idatas):
+        raise ValueError(f"model_names: expected {len(idatas)} names, got {len(names)}")
+    hdi_prob = _check_prob(hdi_prob)
+    sel = _select_joints(idatas[0], joints)
+    data, labels = list(idatas), list(names)
+    t = _truth(idatas[0])
+    if truth and t is not None:
+        _, all_joints = _draws(idatas[0])
+        tv = np.broadcast_to(t, (4,) + t.shape)[None]  # (1 chain, 4 identical draws, n, 2)
+        with _quiet_arviz():
+            data.append(az.from_dict(posterior={VAR_NAME: np.array(tv)},
+                                     coords={"joint": all_joints, "bound": list(BOUNDS)},
+                                     dims={VAR_NAME: _DIMS}))
+        labels.append("truth")
+    fig = Figure(figsize=figsize or (7.0, 0.9 + 0.28 * len(sel) * 2 * len(data)), layout="constrained")
+    ax = fig.subplots()
+    with _quiet_arviz():
+        az.plot_forest(data, model_names=labels, var_names=[VAR_NAME], coords={"joint": sel},
+                       combined=True, hdi_prob=hdi_prob, ax=ax, textsize=8, show=False)
+    ax.set_title(f"joint limits, {hdi_prob:.0%} HDI per method", fontsize=10)
+    return fig
+
+
+# --------------------------------------------------------------------------- comparison
+
+
+def _marginal_inputs(x, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+    if isinstance(x, PosteriorResult):
+        return x.samples, x.weights
+    if isinstance(x, az.InferenceData):
+        _check_idata(x, name)
+        d, _ = _draws(x)
+        return d.reshape(d.shape[0], -1), None
+    raise TypeError(f"{name}: expected a PosteriorResult or arviz.InferenceData, got {type(x).__name__}")
+
+
+def compare_marginals(result_a, result_b, *, joint_names: Sequence[str] | None = None) -> pd.DataFrame:
+    """Wasserstein-1 distance between the marginals of two posteriors, per (joint, bound).
+
+    Accepts `PosteriorResult` (weights honoured) or InferenceData from `to_inference_data`
+    (units as stored). Returns a DataFrame indexed by (joint, bound) with column
+    ``wasserstein``; a 0 means identical marginals.
+    """
+    a, wa = _marginal_inputs(result_a, "result_a")
+    b, wb = _marginal_inputs(result_b, "result_b")
+    if a.shape[1] != b.shape[1]:
+        raise ValueError(f"result_b: dimension {b.shape[1]} differs from result_a's {a.shape[1]}")
+    n = a.shape[1] // 2
+    if joint_names is None:
+        joint_names = (_draws(result_a)[1] if isinstance(result_a, az.InferenceData)
+                       else [f"joint_{i}" for i in range(n)])
+    names = _check_joint_names(joint_names, n)
+    dist = [wasserstein_distance(a[:, k], b[:, k], wa, wb) for k in range(2 * n)]
+    return pd.DataFrame({"wasserstein": dist}, index=_index(names))

@@ -1,0 +1,372 @@
+"""`camo-sbi reproduce hrc`: the human-robot block-stacking experiment (paper section V-B, Fig. 5).
+
+Per run, a person with an impaired range of motion (``--subject``) works on random
+block-stacking trials (`camo_sbi.scenarios.block_stacking`). In training trials, seen one
+after another, the person picks the blocks they can reach and carry; each pick is one
+observed task (the reach from the start posture to the block, in joint space), as in
+the paper's code. ``--tasks`` picks are observed (``--task-unit trial``: the first
+``--tasks`` trials instead, however many picks they hold). After each observed task
+CAMO and the naive min/max baseline estimate the limits; each estimate predicts, for
+every block of ``--test-trials`` unseen trials, whether the person can take it (same
+reachability test as the truth), and precision / recall / F1 ("person" = positive) are
+recorded. The majority-class baseline (always the more frequent true label) is
+recorded alongside.
+
+Priors (both Latin hypercube, ``--samples`` draws per task, at most ``--keep-best`` kept):
+
+* strong: shoulder (flexion, abduction, rotation) and elbow flexion limits free, the
+  wrist (forearm pronation, wrist flexion, wrist deviation) AND the torso limits fixed
+  to the subject's true values. The paper: "only the shoulder joint limits and elbow
+  joint limits are allowed to vary and the wrist limits are fixed and known"; its code
+  also fixes the torso to the truth in every method.
+* weak: uniform over the full range of motion of all 9 joints.
+
+The naive baseline uses the same knowledge: fixed (known) joints take their known
+limits, the others the observed min/max. When nothing has been observed yet
+(``--task-unit trial`` only) an estimator allocates every block to the robot.
+
+Rows: run, prior, method, n_tasks, metric, value (metrics precision, recall, f1,
+accuracy) in ``<out>/results.csv``; the figure ``fig5_allocation.png``; with
+``--scene-png`` one picture per run of the first test trial under CAMO's final
+(strong-prior) allocation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+__all__ = [
+    "METRICS",
+    "PRIORS",
+    "STRONG_PRIOR_FIXED",
+    "add_arguments",
+    "add_render_arguments",
+    "collect_run",
+    "main",
+    "make_figure",
+    "make_prior",
+    "render_main",
+    "run_one",
+]
+
+PRIORS = ("strong", "weak")
+METHODS = ("camo", "naive")
+METRICS = ("precision", "recall", "f1", "accuracy")
+STRONG_PRIOR_FIXED = ("torso_flexion", "torso_rotation", "forearm_pronation", "wrist_flexion",
+                      "wrist_deviation")
+"""Joints whose limits the strong prior knows (fixed to the subject's true limits)."""
+TASK_UNITS = ("pick", "trial")
+
+
+def derive_seed(*parts: int) -> int:
+    """A 63-bit integer seed derived from ``parts`` (numpy SeedSequence)."""
+    return int(np.random.SeedSequence([int(v) for v in parts]).generate_state(2, np.uint64)[0] >> 1)
+
+
+def subject_names() -> list[str]:
+    from camo_sbi.simulators import IMPAIRED_PROFILES
+
+    return list(IMPAIRED_PROFILES)
+
+
+def make_prior(sim, true_theta, kind: str):
+    """The strong or weak `BoxPrior` (Latin hypercube) for a subject with ``true_theta``."""
+    from camo_sbi.inference.priors import BoxPrior
+
+    if kind == "weak":
+        return BoxPrior(sim.bounds, sim.start, sampling="lhs")
+    if kind != "strong":
+        raise ValueError(f"prior: expected one of {PRIORS}, got {kind!r}")
+    names = list(sim.joint_names)
+    lim = torch.as_tensor(true_theta, dtype=torch.float64).reshape(-1, 2)
+    fixed = {names.index(j): (float(lim[names.index(j), 0]), float(lim[names.index(j), 1]))
+             for j in STRONG_PRIOR_FIXED if j in names}
+    return BoxPrior(sim.bounds, sim.start, fixed=fixed, sampling="lhs")
+
+
+def naive_estimate(observations, prior) -> np.ndarray:
+    """(2n,) observed min/max per joint; the prior's fixed joints take their known limits."""
+    from camo_sbi.inference.naive import naive_limits
+
+    est = naive_limits([o.q for o in observations])
+    fixed = ~prior.free_mask.numpy()
+    est[fixed] = prior.low.numpy()[fixed]
+    return est
+
+
+# --------------------------------------------------------------------------------------
+# One run
+# --------------------------------------------------------------------------------------
+
+
+def collect_run(scene, true_theta, *, n_tasks: int, n_test: int, seed: int, task_unit: str = "pick",
+                max_trials: int | None = None):
+    """Training observations and test trials of one run.
+
+    Returns (observations, n_tasks_after, test_trials, y_true): the observed picks in
+    order; for each pick the number of tasks observed once it is seen (pick unit: 1, 2,
+    ...; trial unit: its trial's index + 1); the test trials; their (n_test, 4) labels.
+    """
+    rng = np.random.default_rng(seed)
+    max_trials = 50 * n_tasks if max_trials is None else max_trials
+    observations, task_of = [], []
+    trials = 0
+    while (len(observations) < n_tasks) if task_unit == "pick" else (trials < n_tasks):
+        if trials >= max_trials:
+            raise ValueError(
+                f"subject: only {len(observations)} blocks were reachable in {trials} trials; "
+                f"the person cannot provide {n_tasks} observed tasks")
+        scene.new_trial(rng)
+        trials += 1
+        _, obs = scene.observations(true_theta)
+        for o in obs:
+            if task_unit == "pick" and len(observations) == n_tasks:
+                break
+            observations.append(o)
+            task_of.append(len(observations) if task_unit == "pick" else trials)
+    test_trials = [scene.sample_trial(rng) for _ in range(n_test)]
+    y_true = scene.labels(true_theta, test_trials)
+    return observations, task_of, test_trials, y_true
+
+
+class _Predictor:
+    """Predicted allocations on fixed test trials, cached per limit vector."""
+
+    def __init__(self, scene, test_trials):
+        self.scene = scene
+        current = scene.current_trial()
+        grasp, tower = scene.trial_goals(test_trials)
+        scene.set_trial(current)
+        self.shape = grasp.shape[:2]
+        self.grasp, self.tower = grasp.reshape(-1, 3), tower.reshape(-1, 3)
+        self.cache: dict[bytes, np.ndarray] = {}
+
+    def __call__(self, thetas) -> list[np.ndarray]:
+        """Labels (n_test, 4) for each (2n,) limit vector (None -> all robot)."""
+        keys = [None if t is None else np.asarray(t, dtype=np.float64).tobytes() for t in thetas]
+        todo = list(dict.fromkeys(k for k in keys if k is not None and k not in self.cache))
+        if todo:
+            m = self.grasp.shape[0]
+            theta = torch.from_numpy(np.stack([np.frombuffer(k, dtype=np.float64) for k in todo]))
+            res = self.scene.reachability(theta.repeat_interleave(m, 0), self.grasp.repeat(len(todo), 1),
+                                          self.tower.repeat(len(todo), 1))
+            for i, k in enumerate(todo):
+                self.cache[k] = res.reachable[i * m:(i + 1) * m].reshape(self.shape)
+        return [np.zeros(self.shape, dtype=bool) if k is None else self.cache[k] for k in keys]
+
+
+def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]:
+    """Both priors x (CAMO, naive, majority) on one run; returns tidy rows and extras."""
+    from camo_sbi.inference.methods import run_method_sequence
+    from camo_sbi.scenarios.block_stacking import allocation_metrics
+    from camo_sbi.scenarios.reaching import ReachingTask
+    from camo_sbi.simulators import impaired_limits
+
+    true_theta = torch.as_tensor(impaired_limits(sim, subject), dtype=torch.float64)
+    observations, task_of, test_trials, y_true = collect_run(
+        scene, true_theta, n_tasks=args.tasks, n_test=args.test_trials, seed=derive_seed(args.seed, run),
+        task_unit=args.task_unit)
+    predictor = _Predictor(scene, test_trials)
+    grasp = predictor.grasp
+    camo_cfg = {"keep_best": args.keep_best, "epsilon": args.epsilon, "bandwidth": args.bandwidth,
+                "sampling": "lhs", "space": args.space}
+    estimates: dict[tuple[str, str], list] = {}
+    for pi, kind in enumerate(args.priors):
+        prior = make_prior(sim, true_theta, kind)
+        task = ReachingTask(
+            name="hrc", subject=subject, simulator=sim, prior=prior, observations=tuple(observations),
+            test_starts=sim.start.to(torch.float64).expand(grasp.shape[0], -1).clone(),
+            test_goals=grasp.clone(), true_theta=true_theta)
+        camo = run_method_sequence("camo", task, budget=args.samples, seed=derive_seed(args.seed, run, pi),
+                                   config=camo_cfg) if observations else []
+        naive = [naive_estimate(observations[: i + 1], prior) for i in range(len(observations))]
+        for method, ests in (("camo", [r.estimate for r in camo]), ("naive", naive)):
+            # the estimate after task k: the one after that task's last observation
+            per_task = []
+            for k in range(1, args.tasks + 1):
+                seen = [i for i, t in enumerate(task_of) if t <= k]
+                per_task.append(ests[seen[-1]] if seen else None)
+            estimates[(kind, method)] = per_task
+    keys = list(estimates)
+    flat = [t for k in keys for t in estimates[k]]
+    preds = predictor(flat)
+    rows = []
+
+    def add(kind, method, k, scores):
+        for metric in METRICS:
+            rows.append({"run": run, "subject": subject, "prior": kind, "method": method,
+                         "n_tasks": k, "metric": metric, "value": float(scores[metric])})
+
+    base = allocation_metrics(y_true, y_true)  # only its majority-baseline fields are used
+    majority = {metric: getattr(base, f"majority_{metric}") for metric in METRICS}
+    for ki, (kind, method) in enumerate(keys):
+        for k in range(args.tasks):
+            m = allocation_metrics(y_true, preds[ki * args.tasks + k])
+            add(kind, method, k + 1, {metric: getattr(m, metric) for metric in METRICS})
+    for kind in args.priors:
+        for k in range(args.tasks):
+            add(kind, "majority", k + 1, majority)
+    extras = {"y_true": y_true, "test_trials": test_trials, "estimates": estimates,
+              "predictions": dict(zip(keys, [preds[i * args.tasks:(i + 1) * args.tasks] for i in range(len(keys))])),
+              "true_theta": true_theta, "n_observations": len(observations)}
+    return rows, extras
+
+
+# --------------------------------------------------------------------------------------
+# Figure and CLI
+# --------------------------------------------------------------------------------------
+
+
+def make_figure(df, out: Path) -> Path:
+    """Paper Fig. 5: precision / recall / F1 vs observed tasks, one row of panels per prior."""
+    import matplotlib.pyplot as plt
+
+    from camo_sbi.experiments.plots import plot_lines, save_figure
+
+    priors = [p for p in PRIORS if p in set(df["prior"])]
+    metrics = ("precision", "recall", "f1")
+    fig, axes = plt.subplots(len(priors), len(metrics), figsize=(4.2 * len(metrics), 3.3 * len(priors)),
+                             squeeze=False, sharey=True)
+    for r, kind in enumerate(priors):
+        for c, metric in enumerate(metrics):
+            sub = df[(df["prior"] == kind) & (df["metric"] == metric)]
+            plot_lines(sub, ax=axes[r, c], ylabel=f"{kind} prior" if c == 0 else "",
+                       title=f"{metric} ({kind} prior)")
+            axes[r, c].set_ylim(-0.05, 1.05)
+    fig.suptitle("Block allocation to the person (mean, 95% CI over runs)")
+    path = out / "fig5_allocation.png"
+    save_figure(fig, path)
+    return path
+
+
+def _positive(name: str):
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"{name}: expected an integer, got {text!r}") from exc
+        if v < 1:
+            raise argparse.ArgumentTypeError(f"{name}: must be >= 1, got {v}")
+        return v
+    return parse
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--runs", type=_positive("--runs"), default=10, help="independent runs (paper: 10)")
+    p.add_argument("--tasks", type=_positive("--tasks"), default=10, help="observed training tasks per run")
+    p.add_argument("--task-unit", choices=TASK_UNITS, default="pick",
+                   help="what one observed task is: one picked block (paper code) or one whole trial")
+    p.add_argument("--test-trials", type=_positive("--test-trials"), default=20,
+                   help="unseen test trials (4 blocks each)")
+    p.add_argument("--samples", type=_positive("--samples"), default=5000, help="CAMO LHS draws per task")
+    p.add_argument("--keep-best", type=_positive("--keep-best"), default=500,
+                   help="CAMO keeps at most the k best draws per task")
+    p.add_argument("--epsilon", type=float, default=None, help="CAMO DTW acceptance threshold (default: none)")
+    p.add_argument("--bandwidth", type=float, default=0.005, help="CAMO kernel variance h [rad^2]")
+    p.add_argument("--space", choices=("joint", "cartesian"), default="joint", help="CAMO observation space")
+    p.add_argument("--priors", default=",".join(PRIORS), help="comma-separated subset of strong,weak")
+    p.add_argument("--subject", default="frozen_shoulder",
+                   help="ground-truth impairment profile (e.g. frozen_shoulder, elbow_flexion_contracture)")
+    p.add_argument("--scene-png", action="store_true", help="save a scene picture per run")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("runs/reproduce_hrc"))
+
+
+def _parse_priors(text) -> list[str]:
+    priors = [s.strip() for s in str(text).split(",") if s.strip()] if isinstance(text, str) else list(text)
+    bad = [s for s in priors if s not in PRIORS]
+    if bad or not priors:
+        raise ValueError(f"--priors: expected a comma-separated subset of {','.join(PRIORS)}, got {text!r}")
+    return priors
+
+
+def _check_subject(name: str) -> None:
+    known = subject_names()
+    if name not in known:
+        raise ValueError(f"--subject: unknown profile {name!r}; known: {', '.join(known)}")
+
+
+def _render_run(scene, sim, extras, path: Path) -> None:
+    from camo_sbi.scenarios.block_stacking import COLOURS, PERSON, ROBOT
+
+    trial = extras["test_trials"][0]
+    key = ("strong", "camo") if ("strong", "camo") in extras["predictions"] else next(iter(extras["predictions"]))
+    pred = extras["predictions"][key][-1][0]
+    truth = extras["y_true"][0]
+    scene.set_trial(trial)
+    wrong = [c for c, a, b in zip(COLOURS, pred, truth) if a != b]
+    title = (f"test trial 1, {key[1]} ({key[0]} prior) allocation; green: reachable with the true limits"
+             + (f"; wrong: {', '.join(wrong)}" if wrong else ""))
+    scene.render(path, {c: PERSON if a else ROBOT for c, a in zip(COLOURS, pred)},
+                 region_theta=extras["true_theta"], title=title)
+
+
+def main(args) -> int:
+    from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
+    from camo_sbi.scenarios.block_stacking import BlockStackingScene
+    from camo_sbi.simulators import human
+
+    args.priors = _parse_priors(args.priors)
+    _check_subject(args.subject)
+    for name in ("runs", "tasks", "test_trials", "samples", "keep_best"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
+    t0 = time.perf_counter()
+    sim = human()
+    out = Path(args.out)
+    store = ResultStore(out)
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
+    atomic_write_text(out / "config.json", json.dumps({"experiment": "reproduce hrc", **settings}, indent=2))
+    with BlockStackingScene(sim, seed=args.seed) as scene:
+        for run in tqdm(range(args.runs), desc=f"reproduce hrc ({args.subject})", unit="run"):
+            key = cell_key({"run": run, "subject": args.subject})
+            if store.done(key) and not args.scene_png:
+                continue
+            rows, extras = run_one(scene, sim, args.subject, run, args)
+            store.put(key, rows)
+            if args.scene_png:
+                _render_run(scene, sim, extras, out / f"scene_run{run:02d}.png")
+    df = store.write_table()
+    fig = make_figure(df, out)
+    wall = time.perf_counter() - t0
+    last = df[(df["n_tasks"] == df["n_tasks"].max()) & df["metric"].isin(["precision", "recall", "f1"])]
+    summary = last.groupby(["prior", "method", "metric"])["value"].mean().unstack("metric")
+    print(f"after {int(df['n_tasks'].max())} tasks (mean over {df['run'].nunique()} runs):")
+    print(summary.to_string(float_format=lambda v: f"{v:.3f}"))
+    print(f"table: {out / 'results.csv'}  figure: {fig}")
+    print(f"wall time: {wall:.1f} s")
+    return 0
+
+
+def add_render_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=Path("scene.png"), help="PNG path")
+    p.add_argument("--subject", default="frozen_shoulder", help="impairment profile of the person")
+    p.add_argument("--seed", type=int, default=0, help="layout seed")
+    p.add_argument("--width", type=_positive("--width"), default=800)
+    p.add_argument("--height", type=_positive("--height"), default=600)
+    p.add_argument("--no-region", action="store_true", help="do not tint the reachable tabletop region")
+
+
+def render_main(args) -> int:
+    """Render one random trial with the subject's true allocation and reachable region."""
+    from camo_sbi.scenarios.block_stacking import COLOURS, PERSON, ROBOT, BlockStackingScene
+    from camo_sbi.simulators import human, impaired_limits
+
+    _check_subject(args.subject)
+    sim = human()
+    theta = impaired_limits(sim, args.subject)
+    with BlockStackingScene(sim, seed=args.seed) as scene:
+        labels = scene.labels(theta)
+        path = scene.render(args.out, {c: PERSON if a else ROBOT for c, a in zip(COLOURS, labels)},
+                            region_theta=None if args.no_region else theta, width=args.width,
+                            height=args.height,
+                            title=f"{args.subject}: true allocation (white: person, black: robot)")
+    print(f"scene: {path}")
+    return 0

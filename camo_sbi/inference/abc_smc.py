@@ -1,0 +1,660 @@
+"""ABC-SMC (pyabc) on the joint posterior of every observed task; the only module importing pyabc.
+
+Target: the ABC posterior of theta given ALL observed tasks at once. One particle theta is
+simulated to every observed task's goal from that task's start, and its distance is the sum
+of the per-task exact DTW distances (observed vs simulated trajectory, in ``config.space``)::
+
+    d(theta) = sum_i DTW(tau_i^obs, tau_i(theta))
+
+pyabc supplies everything that makes the method ABC-SMC: the adaptive epsilon schedule
+(`pyabc.MedianEpsilon`, eps_t = weighted median of the previous population's distances),
+its default perturbation kernel (`pyabc.MultivariateNormalTransition`, a Gaussian KDE with
+Silverman's bandwidth), importance weights prior / proposal, the population bookkeeping
+and its SQL history.
+
+Batched sampling. pyabc evaluates one particle per model call; at ~1 ms of Python per
+simulate/DTW call that would dominate. `BatchedSampler` (a `pyabc.sampler.Sampler`) instead
+draws a batch of proposals from pyabc's own transition (rejecting, without simulating,
+proposals outside the prior box as pyabc does), simulates the batch with one ``simulate``
+call per task, computes its distances with one ``dtw_distances`` call per task, and accepts
+``d <= eps_t`` (pyabc's `UniformAcceptor`). Accepted particles are taken in proposal order
+up to the n-th acceptance, exactly as pyabc's `SingleCoreSampler` would, and weighted
+``prior(theta) / transition(theta)`` (the model-perturbation factor of a single model is a
+constant and cancels on normalisation). ``config.sampler = "single"`` runs pyabc's stock
+per-particle pipeline instead (one simulate call per particle and task), as a reference.
+
+Early rejection (``config.early_rejection``, default on): distances are non-negative, so a
+particle whose partial sum over the first tasks already exceeds eps_t is rejected without
+simulating the remaining tasks; each task's DTW is also pruned at the remaining allowance
+(`dtw_distances(epsilon=...)`). Accept/reject decisions are identical to the full
+computation; only rejected particles' recorded distances become lower bounds (pyabc's
+median epsilon only reads accepted ones). It lets ABC-SMC evaluate more particles with the
+same simulation budget.
+
+Budget. One particle costs one simulated trajectory per task evaluated, so a run on k
+tasks with ``budget`` per task may evaluate at most ``budget`` particles without early
+rejection. The sampler never starts a batch it could not pay for: when the remaining
+budget cannot finish the current population, the population is abandoned (pyabc stops
+with the last complete population; the partial one is reported in ``extras``). The first
+population samples the prior with eps_0 = inf (``initial_epsilon="inf"``), so it costs
+exactly ``population_size`` particles and eps_1 is the median of prior distances, which is
+pyabc's ``"from_sample"`` calibration without paying for a separate calibration sample.
+
+Seeding. pyabc draws from numpy's GLOBAL RNG. `run` seeds it inside `numpy_global_seed`,
+which restores the caller's state afterwards (pyabc leaks no global state), and uses a
+single-process sampler, so one seed gives identical populations.
+
+Parameters: only the prior's free coordinates are pyabc parameters, named
+``theta_{index:02d}`` (index into the full 2n vector); fixed coordinates are re-inserted
+with `BoxPrior.expand`. See `to_pyabc_prior`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from camo_sbi._validation import check_positive_float, check_positive_int
+from camo_sbi.inference.distances import dtw_distances
+from camo_sbi.inference.priors import BoxPrior
+from camo_sbi.inference.result import PosteriorResult
+
+
+def _import_pyabc():
+    """Import pyabc without its process-wide side effect: on import it sets
+    OMP_NUM_THREADS=1 when unset (affecting thread pools started later); restore that."""
+    omp = os.environ.get("OMP_NUM_THREADS")
+    try:
+        import pyabc
+        import pyabc.inference_util.inference_util
+        import pyabc.population
+        import pyabc.sampler
+    finally:
+        if omp is None:
+            os.environ.pop("OMP_NUM_THREADS", None)
+        else:
+            os.environ["OMP_NUM_THREADS"] = omp
+    return pyabc
+
+
+pyabc = _import_pyabc()
+Sampler = pyabc.sampler.Sampler
+Particle = pyabc.population.Particle
+_simulate_one_from_prior = pyabc.inference_util.inference_util._simulate_one_from_prior
+
+__all__ = [
+    "AbcSmcConfig",
+    "BatchedSampler",
+    "JointDistance",
+    "numpy_global_seed",
+    "parameter_names",
+    "run",
+    "to_pyabc_prior",
+]
+
+_SPACES = ("joint", "cartesian")
+_SAMPLERS = ("batched", "single")
+_ESTIMATORS = ("mean", "median", "best")
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+_DISTANCE_KEY = "d"
+# a batch proposes this fraction of the proposals expected to complete the population
+_BATCH_FILL = 0.75
+
+
+@dataclass(frozen=True)
+class AbcSmcConfig:
+    """ABC-SMC settings.
+
+    Attributes:
+        space: "joint" (q) or "cartesian" (end-effector) trajectories for the DTW distance.
+        population_size: particles per population (pyabc's ``population_size``); must not
+            exceed the run's per-task budget (the first population costs exactly this).
+        max_populations: pyabc's ``max_nr_populations``.
+        min_epsilon: stop once eps_t <= min_epsilon (pyabc's ``minimum_epsilon``).
+        min_acceptance_rate: stop when a population's acceptance rate drops below this.
+        initial_epsilon: "inf" (first population = prior sample, see module docstring) or
+            "from_sample" (pyabc's calibration sample, which costs one extra population).
+        median_multiplier: eps_t = multiplier * weighted median (pyabc's MedianEpsilon).
+        early_rejection: stop simulating a particle's remaining tasks once its partial
+            distance exceeds eps_t (exact; see module docstring).
+        sampler: "batched" (`BatchedSampler`) or "single" (pyabc's per-particle pipeline).
+        min_batch_size, max_batch_size: proposals simulated per batch; the batch is sized
+            to the expected number of proposals still needed (running acceptance rate).
+        estimator: point estimate from the last population: "mean" (weighted mean),
+            "median" (coordinate-wise weighted median) or "best" (smallest distance).
+        sim_dtype: "float32" or "float64" for the simulations (CAMO's default: float32).
+        log_level: level of pyabc's "ABC" logger during the run ("INFO" shows generations).
+        workdir: None -> the pyabc history lives in a temporary directory removed after
+            the run; else the directory (created) receiving ``abc_smc_k{k}_seed{seed}.db``.
+    """
+
+    space: str = "joint"
+    population_size: int = 100
+    max_populations: int = 20
+    min_epsilon: float = 0.0
+    min_acceptance_rate: float = 0.0
+    initial_epsilon: str = "inf"
+    median_multiplier: float = 1.0
+    early_rejection: bool = True
+    sampler: str = "batched"
+    min_batch_size: int = 8
+    max_batch_size: int = 4096
+    estimator: str = "mean"
+    sim_dtype: str = "float32"
+    log_level: str = "WARNING"
+    workdir: str | os.PathLike | None = None
+
+    def __post_init__(self):
+        if self.space not in _SPACES:
+            raise ValueError(f"space: expected one of {_SPACES}, got {self.space!r}")
+        check_positive_int(self.population_size, "population_size", minimum=2)
+        check_positive_int(self.max_populations, "max_populations")
+        check_positive_float(self.min_epsilon, "min_epsilon", allow_zero=True)
+        check_positive_float(self.min_acceptance_rate, "min_acceptance_rate", allow_zero=True)
+        if self.min_acceptance_rate >= 1:
+            raise ValueError(f"min_acceptance_rate: must be < 1, got {self.min_acceptance_rate}")
+        if self.initial_epsilon not in ("inf", "from_sample"):
+            raise ValueError(
+                f"initial_epsilon: expected 'inf' or 'from_sample', got {self.initial_epsilon!r}"
+            )
+        check_positive_float(self.median_multiplier, "median_multiplier")
+        if not isinstance(self.early_rejection, bool):
+            raise TypeError(f"early_rejection: expected a bool, got {type(self.early_rejection).__name__}")
+        if self.sampler not in _SAMPLERS:
+            raise ValueError(f"sampler: expected one of {_SAMPLERS}, got {self.sampler!r}")
+        check_positive_int(self.min_batch_size, "min_batch_size")
+        check_positive_int(self.max_batch_size, "max_batch_size")
+        if self.max_batch_size < self.min_batch_size:
+            raise ValueError(
+                f"max_batch_size: must be >= min_batch_size ({self.min_batch_size}), got {self.max_batch_size}"
+            )
+        if self.estimator not in _ESTIMATORS:
+            raise ValueError(f"estimator: expected one of {_ESTIMATORS}, got {self.estimator!r}")
+        if self.sim_dtype not in _DTYPES:
+            raise ValueError(f"sim_dtype: expected one of {tuple(_DTYPES)}, got {self.sim_dtype!r}")
+        if self.log_level not in ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"):
+            raise ValueError(f"log_level: expected a logging level name, got {self.log_level!r}")
+        if self.workdir is not None and not isinstance(self.workdir, (str, os.PathLike)):
+            raise TypeError(f"workdir: expected a path or None, got {type(self.workdir).__name__}")
+
+
+# ----------------------------------------------------------------------------------------------
+# prior conversion and seeding
+# ----------------------------------------------------------------------------------------------
+
+
+def parameter_names(prior: BoxPrior) -> list[str]:
+    """pyabc parameter names of the prior's free coordinates, in theta order.
+
+    ``theta_{i:02d}`` with i the index into the full (2n,) vector, so that pyabc's
+    alphabetical column order equals theta order.
+    """
+    return [f"theta_{i:02d}" for i in torch.nonzero(prior.free_mask).flatten().tolist()]
+
+
+def to_pyabc_prior(prior: BoxPrior) -> pyabc.Distribution:
+    """The box prior's free coordinates as a `pyabc.Distribution` of independent uniforms.
+
+    scipy's (hence pyabc's) ``RV("uniform", loc, scale)`` is uniform on [loc, loc + scale]:
+    ``scale`` is the WIDTH ``high - low``, not the upper bound. Fixed (zero-width)
+    coordinates are not pyabc parameters; `BoxPrior.expand` re-inserts them.
+    """
+    if not isinstance(prior, BoxPrior):
+        raise TypeError(f"prior: expected a BoxPrior, got {type(prior).__name__}")
+    if prior.n_free == 0:
+        raise ValueError("prior: every coordinate is fixed; there is nothing to infer")
+    low = prior.low[prior.free_mask].tolist()
+    high = prior.high[prior.free_mask].tolist()
+    return pyabc.Distribution(
+        **{name: pyabc.RV("uniform", lo, hi - lo) for name, lo, hi in zip(parameter_names(prior), low, high, strict=True)}
+    )
+
+
+@contextlib.contextmanager
+def _quiet_pyabc(level: str):
+    """pyabc's "ABC" logger at ``level`` for the block (pyabc sets it to INFO on import)."""
+    logger = logging.getLogger("ABC")
+    old = logger.level
+    logger.setLevel(level)
+    try:
+        with warnings.catch_warnings():
+            # pyabc compares eps_1 with eps_0 = inf (inf - inf) when checking min_eps_diff
+            warnings.filterwarnings("ignore", message="invalid value encountered in scalar subtract",
+                                    category=RuntimeWarning)
+            yield
+    finally:
+        logger.setLevel(old)
+
+
+@contextlib.contextmanager
+def numpy_global_seed(seed: int):
+    """Seed numpy's global RNG for the block and restore the caller's state afterwards.
+
+    The state is derived with ``SeedSequence(seed)`` (any non-negative int works).
+    """
+    seed = check_positive_int(seed, "seed", minimum=0)
+    saved = np.random.get_state()
+    np.random.set_state(np.random.RandomState(np.random.MT19937(np.random.SeedSequence(seed))).get_state())
+    try:
+        yield
+    finally:
+        np.random.set_state(saved)
+
+
+# ----------------------------------------------------------------------------------------------
+# the batched joint distance (the "model")
+# ----------------------------------------------------------------------------------------------
+
+
+class JointDistance:
+    """Sum over observed tasks of the DTW distance, for a batch of free-coordinate vectors.
+
+    Args:
+        simulator: the (budget-counting) simulator.
+        prior: `BoxPrior` (for `expand`).
+        observations: the observed tasks.
+        space: "joint" or "cartesian".
+        dtype: simulation dtype.
+        budget: simulated trajectories this object may request in total; it never requests
+            more (``remaining``).
+    """
+
+    def __init__(self, simulator, prior: BoxPrior, observations, *, space: str, dtype, budget: int):
+        self.simulator, self.prior, self.space, self.dtype = simulator, prior, space, dtype
+        self.budget = int(budget)
+        self.n_simulations = 0
+        self.time_simulate = 0.0
+        self.time_distance = 0.0
+        self.n_particles = 0
+        n = prior.n_joints
+        self._tasks = []
+        for i, obs in enumerate(observations):
+            start = torch.as_tensor(obs.start, dtype=torch.float64).cpu()
+            goal = torch.as_tensor(obs.goal, dtype=torch.float64).cpu()
+            traj = torch.as_tensor(obs.trajectory(space), dtype=torch.float64).cpu()
+            if start.shape != (n,) or goal.shape != (3,) or traj.dim() != 2 or traj.shape[0] < 1:
+                raise ValueError(
+                    f"observations: task {i} has start {tuple(start.shape)}, goal {tuple(goal.shape)}, "
+                    f"trajectory {tuple(traj.shape)}; expected ({n},), (3,), (L, D)"
+                )
+            self._tasks.append((start, goal, traj))
+
+    @property
+    def n_tasks(self) -> int:
+        return len(self._tasks)
+
+    @property
+    def remaining(self) -> int:
+        """Simulations still allowed (also bounded by a counting wrapper's own ``remaining``)."""
+        left = self.budget - self.n_simulations
+        other = getattr(self.simulator, "remaining", None)
+        if isinstance(other, int):
+            left = min(left, other)
+        return max(left, 0)
+
+    def __call__(self, free_theta: np.ndarray, eps: float = math.inf) -> tuple[np.ndarray, np.ndarray]:
+        """Distances of ``free_theta`` (B, n_free).
+
+        Returns (distance (B,), complete (B,) bool). With a finite ``eps`` the evaluation of a
+        particle stops once its partial sum exceeds eps (complete False; its distance is then a
+        lower bound > eps, possibly inf). The caller must ensure ``B * n_tasks <= remaining``.
+        """
+        theta = self.prior.expand(torch.as_tensor(free_theta, dtype=torch.float64))
+        B = theta.shape[0]
+        total = np.zeros(B)
+        alive = np.ones(B, dtype=bool)
+        for start, goal, traj in self._tasks:
+            idx = np.flatnonzero(alive)
+            if idx.size == 0:
+                break
+            th = theta[torch.from_numpy(idx)]
+            # the observed start bounds the limits (as CAMO and `predict` do)
+            th[:, 0::2] = torch.minimum(th[:, 0::2], start)
+            th[:, 1::2] = torch.maximum(th[:, 1::2], start)
+            t0 = time.perf_counter()
+            sims = self.simulator.simulate(th.to(self.dtype), goal=goal.to(self.dtype), start=start.to(self.dtype))
+            self.n_simulations += int(idx.size)
+            t1 = time.perf_counter()
+            x = sims.q if self.space == "joint" else sims.ee
+            allowance = None
+            if math.isfinite(eps):
+                # DTW >= epsilon comes back as inf: nextafter makes that "> allowance"
+                allowance = float(np.nextafter(max(eps - float(total[idx].min()), 0.0), np.inf))
+            d = dtw_distances(traj, x, sims.length, epsilon=allowance).numpy()
+            self.time_simulate += t1 - t0
+            self.time_distance += time.perf_counter() - t1
+            total[idx] += d
+            if math.isfinite(eps):
+                alive &= total <= eps
+        self.n_particles += B
+        complete = alive | ~math.isfinite(eps)
+        return total, complete
+
+    def single(self, parameter) -> dict:
+        """pyabc model for ``sampler="single"``: one particle, all tasks, sum stat {"d": distance}."""
+        names = sorted(parameter.keys())
+        if self.n_tasks > self.remaining:
+            raise _OutOfBudget
+        d, _ = self(np.array([[parameter[k] for k in names]]))
+        return {_DISTANCE_KEY: float(d[0])}
+
+
+class _OutOfBudget(Exception):
+    """Raised by `JointDistance.single` when a particle would exceed the budget."""
+
+
+def _distance_from_sumstat(x: dict, x_0: dict) -> float:  # noqa: ARG001
+    """pyabc distance: the model output already is the distance to the observations."""
+    return float(x[_DISTANCE_KEY])
+
+
+# ----------------------------------------------------------------------------------------------
+# samplers
+# ----------------------------------------------------------------------------------------------
+
+
+class BatchedSampler(Sampler):
+    """A single-process pyabc sampler that simulates and scores proposals in batches.
+
+    Args:
+        distance: `JointDistance` (holds the budget).
+        names: pyabc parameter names (free coordinates, theta order).
+        low, high: (n_free,) box of the prior.
+        early_rejection, min_batch_size, max_batch_size: see `AbcSmcConfig`.
+    """
+
+    def __init__(self, distance: JointDistance, names: list[str], low: np.ndarray, high: np.ndarray, *,
+                 early_rejection: bool = True, min_batch_size: int = 8, max_batch_size: int = 4096):
+        super().__init__()
+        self.distance, self.names = distance, list(names)
+        self.low, self.high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+        self._log_prior = -float(np.log(self.high - self.low).sum())
+        self.early_rejection = early_rejection
+        self.min_batch_size, self.max_batch_size = min_batch_size, max_batch_size
+        self._rate = 1.0
+        self.log: list[dict] = []  # one entry per sample_until_n_accepted call
+        self.time_proposal = 0.0
+        self.time_weights = 0.0
+
+    def _propose(self, b: int, transition) -> np.ndarray:
+        """(b, d) proposals inside the box: the prior, or pyabc's transition with rejection."""
+        d = len(self.names)
+        if transition is None:
+            return self.low + np.random.uniform(size=(b, d)) * (self.high - self.low)
+        out, have, rounds = [], 0, 0
+        while have < b:
+            draw = transition.rvs(size=max(b - have, 8))[self.names].to_numpy()
+            ok = np.all((draw >= self.low) & (draw <= self.high), axis=1)
+            out.append(draw[ok][: b - have])
+            have += int(ok.sum())
+            rounds += 1
+            if rounds == 1000:
+                warnings.warn("abc-smc: the transition proposes mostly outside the prior box",
+                              RuntimeWarning, stacklevel=2)
+        return np.concatenate(out)[:b]
+
+    def sample_until_n_accepted(self, n, simulate_one, t, *, max_eval=np.inf, all_accepted=False,
+                                ana_vars=None):  # noqa: ARG002
+        kw = getattr(simulate_one, "keywords", None)
+        if kw is None:
+            raise TypeError("simulate_one: BatchedSampler needs pyabc's functools.partial simulate function")
+        calibration = getattr(simulate_one, "func", None) is _simulate_one_from_prior
+        if calibration:
+            eps, transition = math.inf, None
+        else:
+            eps = float(kw["eps"](t))
+            transition = None if t == 0 else kw["transitions"][0]
+            if len(kw["models"]) != 1:
+                raise ValueError("models: BatchedSampler supports exactly one model")
+        sample = self._create_empty_sample()
+        n_eval = 0  # pyabc's count: evaluations up to the n-th acceptance
+        n_prop = 0  # everything simulated (includes the surplus after the n-th acceptance)
+        n_acc = 0  # every acceptance, surplus included (acceptance-rate estimate)
+        sims_before = self.distance.n_simulations
+        k = self.distance.n_tasks
+        # expected acceptance rate: 1 when everything is accepted, else the previous
+        # population's; batches aim at a fraction of the expected need, since proposals
+        # simulated after the n-th acceptance are wasted budget
+        rate = 1.0 if calibration or not math.isfinite(eps) else self._rate
+        ok = True
+        while sample.n_accepted < n:
+            need = n - sample.n_accepted
+            b = math.ceil(need / rate * (1.0 if rate >= 1.0 else _BATCH_FILL))
+            b = min(max(b, self.min_batch_size), self.max_batch_size)
+            b = min(b, self.distance.remaining // k)
+            if math.isfinite(max_eval):
+                b = min(b, int(max_eval) - n_eval)
+            if b <= 0:
+                ok = False
+                break
+            t0 = time.perf_counter()
+            theta = self._propose(b, transition)
+            self.time_proposal += time.perf_counter() - t0
+            d, _ = self.distance(theta, eps if self.early_rejection else math.inf)
+            acc_idx = np.flatnonzero(d <= eps)
+            take = acc_idx[:need]
+            last = int(take[-1]) + 1 if take.size == need else b
+            n_eval += last
+            n_prop += b
+            n_acc += int(acc_idx.size)
+            rate = n_acc / n_prop if n_acc else rate / 4
+            rate = min(max(rate, 1e-4), 1.0)
+            t0 = time.perf_counter()
+            if transition is None:
+                w = np.ones(take.size)
+            else:
+                dens = np.asarray(transition.pdf(pd.DataFrame(theta[take], columns=self.names)),
+                                  dtype=np.float64).reshape(-1)
+                w = math.exp(self._log_prior) / dens
+            self.time_weights += time.perf_counter() - t0
+            accepted_rows = dict(zip(take.tolist(), w.tolist(), strict=True))
+            for i in range(last):
+                if i in accepted_rows:
+                    sample.append(self._particle(theta[i], d[i], accepted_rows[i], True))
+                elif sample.record_rejected:
+                    sample.append(self._particle(theta[i], d[i], 0.0, False))
+        # after an eps = inf population the median epsilon accepts about half
+        self._rate = rate if math.isfinite(eps) else 0.5
+        self.nr_evaluations_ = n_eval
+        self.log.append({
+            "t": int(t), "calibration": calibration, "eps": eps, "ok": ok, "accepted": sample.n_accepted,
+            "evaluations": n_eval, "proposals": n_prop,
+            "simulations": self.distance.n_simulations - sims_before,
+        })
+        if not ok:
+            sample.ok = False
+        return sample
+
+    def _particle(self, theta_row, dist, weight, accepted) -> Particle:
+        return Particle(
+            m=0,
+            parameter=pyabc.Parameter(dict(zip(self.names, (float(v) for v in theta_row), strict=True))),
+            weight=float(weight),
+            sum_stat={_DISTANCE_KEY: float(dist)},
+            distance=float(dist),
+            accepted=bool(accepted),
+            proposal_id=0,
+            preliminary=False,
+        )
+
+
+class BudgetedSingleCoreSampler(Sampler):
+    """pyabc's SingleCoreSampler (one model call per particle) that stops at the budget."""
+
+    def __init__(self, distance: JointDistance):
+        super().__init__()
+        self.distance = distance
+        self.log: list[dict] = []
+
+    def sample_until_n_accepted(self, n, simulate_one, t, *, max_eval=np.inf, all_accepted=False,
+                                ana_vars=None):  # noqa: ARG002
+        sample = self._create_empty_sample()
+        n_eval, ok = 0, True
+        sims_before = self.distance.n_simulations
+        while sample.n_accepted < n:
+            if n_eval >= max_eval:
+                ok = False
+                break
+            try:
+                particle = simulate_one()
+            except _OutOfBudget:
+                ok = False
+                break
+            sample.append(particle)
+            n_eval += 1
+        self.nr_evaluations_ = n_eval
+        self.log.append({
+            "t": int(t), "ok": ok, "accepted": sample.n_accepted, "evaluations": n_eval,
+            "proposals": n_eval, "simulations": self.distance.n_simulations - sims_before,
+        })
+        if not ok:
+            sample.ok = False
+        return sample
+
+
+# ----------------------------------------------------------------------------------------------
+# run
+# ----------------------------------------------------------------------------------------------
+
+
+def _weighted_median(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Coordinate-wise weighted median of x (N, D) with weights w (N,)."""
+    out = np.empty(x.shape[1])
+    for j in range(x.shape[1]):
+        order = np.argsort(x[:, j], kind="stable")
+        cw = np.cumsum(w[order])
+        out[j] = x[order[np.searchsorted(cw, 0.5 * cw[-1])], j]
+    return out
+
+
+def run(task, observations, *, budget: int, seed: int, config: AbcSmcConfig | None = None) -> PosteriorResult:
+    """ABC-SMC on the joint posterior given ``observations``, within ``budget`` per task.
+
+    Returns the last complete population (free coordinates expanded to (N, 2n)) with its
+    importance weights; ``estimate`` per ``config.estimator``. ``extras``: ``epsilons``,
+    ``acceptance_rates``, ``n_evaluations``, ``n_populations``, per-generation sampler log,
+    ``aborted_population`` (True if the budget ran out mid-population), timings
+    (``time_simulate``, ``time_distance``, ``time_total``, ``overhead_per_particle``),
+    ``db`` (history path when ``config.workdir`` is set).
+    """
+    config = AbcSmcConfig() if config is None else config
+    if not isinstance(config, AbcSmcConfig):
+        raise TypeError(f"config: expected AbcSmcConfig, got {type(config).__name__}")
+    budget = check_positive_int(budget, "budget")
+    seed = check_positive_int(seed, "seed", minimum=0)
+    observations = tuple(observations)
+    if not observations:
+        raise ValueError("observations: at least one observed task is required")
+    prior = task.prior
+    if not isinstance(prior, BoxPrior):
+        raise TypeError(f"task.prior: expected a BoxPrior, got {type(prior).__name__}")
+    n_pop = config.population_size
+    if config.initial_epsilon == "from_sample":
+        n_pop = 2 * n_pop  # calibration sample + a first population at ~50% acceptance
+    if n_pop > budget:
+        raise ValueError(
+            f"budget: {budget} simulations per task cannot pay for a first population of "
+            f"{config.population_size} particles (initial_epsilon={config.initial_epsilon!r}); "
+            f"lower population_size or raise the budget"
+        )
+    k = len(observations)
+    t_start = time.perf_counter()
+    distance = JointDistance(task.simulator, prior, observations, space=config.space,
+                             dtype=_DTYPES[config.sim_dtype], budget=budget * k)
+    names = parameter_names(prior)
+    pyabc_prior = to_pyabc_prior(prior)
+    low = prior.low[prior.free_mask].numpy()
+    high = prior.high[prior.free_mask].numpy()
+    if config.sampler == "batched":
+        sampler = BatchedSampler(distance, names, low, high, early_rejection=config.early_rejection,
+                                 min_batch_size=config.min_batch_size, max_batch_size=config.max_batch_size)
+    else:
+        sampler = BudgetedSingleCoreSampler(distance)
+    eps = pyabc.MedianEpsilon(
+        initial_epsilon=math.inf if config.initial_epsilon == "inf" else "from_sample",
+        median_multiplier=config.median_multiplier,
+    )
+
+    with contextlib.ExitStack() as stack:
+        if config.workdir is None:
+            rundir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="camo_abc_smc_")))
+        else:
+            rundir = Path(config.workdir)
+            rundir.mkdir(parents=True, exist_ok=True)
+        db_path = rundir / f"abc_smc_k{k}_seed{seed}.db"
+        if db_path.exists():
+            db_path.unlink()
+        stack.enter_context(numpy_global_seed(seed))
+        stack.enter_context(_quiet_pyabc(config.log_level))
+        abc = pyabc.ABCSMC(
+            models=distance.single,
+            parameter_priors=pyabc_prior,
+            distance_function=_distance_from_sumstat,
+            population_size=config.population_size,
+            eps=eps,
+            sampler=sampler,
+        )
+        abc.new("sqlite:///" + str(db_path), {_DISTANCE_KEY: 0.0})
+        history = abc.run(
+            minimum_epsilon=config.min_epsilon,
+            max_nr_populations=config.max_populations,
+            min_acceptance_rate=config.min_acceptance_rate,
+        )
+        if history.n_populations == 0:
+            raise RuntimeError("abc-smc: no population completed within the budget")
+        population = history.get_population(t=history.max_t)
+        pops = history.get_all_populations()
+        del history, abc
+    t_total = time.perf_counter() - t_start
+
+    particles = population.particles
+    free = np.array([[p.parameter[name] for name in names] for p in particles], dtype=np.float64)
+    w = np.array([p.weight for p in particles], dtype=np.float64)
+    dist = np.array([p.distance for p in particles], dtype=np.float64)
+    samples = prior.expand(torch.from_numpy(free)).numpy()
+    w = w / w.sum()
+    if config.estimator == "mean":
+        estimate = w @ samples
+    elif config.estimator == "median":
+        estimate = _weighted_median(samples, w)
+    else:
+        estimate = samples[int(np.argmin(dist))]
+    pops = pops[pops.t >= 0].sort_values("t")
+    log = sampler.log
+    gens = [g for g in log if not g.get("calibration", False)]
+    aborted = bool(gens) and not gens[-1]["ok"]
+    t_model = distance.time_simulate + distance.time_distance
+    extras = {
+        "epsilons": [float(e) for e in pops.epsilon],
+        "acceptance_rates": [float(p) / float(s) for p, s in zip(pops.particles, pops.samples, strict=True)],
+        "n_evaluations": [int(s) for s in pops.samples],
+        "n_populations": int(len(pops)),
+        "generations": log,
+        "aborted_population": aborted,
+        "n_simulations_discarded": int(gens[-1]["simulations"]) if aborted else 0,
+        "n_particles_simulated": distance.n_particles,
+        "ess": float(1.0 / np.sum(w**2)),
+        "distances": dist,
+        "time_simulate": distance.time_simulate,
+        "time_distance": distance.time_distance,
+        "time_total": t_total,
+        "overhead_per_particle": (t_total - t_model) / max(distance.n_particles, 1),
+        "sampler": config.sampler,
+        "db": None if config.workdir is None else str(db_path),
+    }
+    return PosteriorResult(
+        method="abc-smc", samples=samples, weights=w, estimate=estimate,
+        n_simulations=int(getattr(task.simulator, "n_simulations", distance.n_simulations)),
+        wall_time=t_total, n_tasks=k, extras=extras,
+    )

@@ -1,0 +1,87 @@
+"""The batched torch reference controller (pytorch_kinematics FK/Jacobian + batched solve).
+
+This is the readable statement of the controller law, the correctness reference for the
+generated numba kernel (`kernel.py`), the backend for non-CPU devices and the baseline
+of ``benchmarks/bench_simulator.py``. At step t, for every sample still moving::
+
+    x = fk(q_t);  e = goal - x;  ||e|| < tol  ->  done, length = t + 1
+    v = gain * e, rescaled so that ||v|| <= max_cartesian_step
+    J = position Jacobian (3, n);  A = J J^T + damping^2 I
+    dq0 = null_gain * (mid - q_t),  mid = (lo + hi) / 2          (pushes into the limits)
+    dq = J^T A^-1 v + (I - J^T A^-1 J) dq0  =  J^T A^-1 (v - J dq0) + dq0
+    dq rescaled so that max_i |dq_i| <= max_joint_step
+    q_{t+1} = clamp(q_t + dq, lo, hi)
+
+At most ``max_steps`` points are produced (the start included); afterwards the final
+posture and position are repeated.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+
+from camo_sbi.simulators.base import Trajectories
+from camo_sbi.simulators.chain import KinematicChain
+
+if TYPE_CHECKING:  # pragma: no cover
+    from camo_sbi.simulators.simulator import ControllerConfig
+
+__all__ = ["controller_step", "reference_simulate"]
+
+
+def controller_step(J: torch.Tensor, e: torch.Tensor, q: torch.Tensor, lo: torch.Tensor,
+                    hi: torch.Tensor, config: ControllerConfig) -> torch.Tensor:
+    """One step of the law. J (B, 3, n), e (B, 3), q/lo/hi (B, n) -> q_next (B, n)."""
+    c = config
+    v = c.gain * e
+    vn = v.norm(dim=-1, keepdim=True)
+    v = v * torch.where(vn > c.max_cartesian_step, c.max_cartesian_step / vn, torch.ones_like(vn))
+    dq0 = c.null_gain * (0.5 * (lo + hi) - q)
+    eye = torch.eye(3, dtype=J.dtype, device=J.device)
+    A = J @ J.transpose(1, 2) + (c.damping * c.damping) * eye
+    r = v - (J @ dq0.unsqueeze(-1)).squeeze(-1)
+    w = torch.linalg.solve(A, r)
+    dq = (J.transpose(1, 2) @ w.unsqueeze(-1)).squeeze(-1) + dq0
+    m = dq.abs().amax(dim=-1, keepdim=True)
+    dq = dq * torch.where(m > c.max_joint_step, c.max_joint_step / m, torch.ones_like(m))
+    return torch.clamp(q + dq, min=lo, max=hi)
+
+
+def reference_simulate(chain: KinematicChain, theta: torch.Tensor, goal: torch.Tensor,
+                       start: torch.Tensor, config: ControllerConfig) -> Trajectories:
+    """Simulate B reaches with pk: theta (B, 2n), goal (B, 3), start (B, n), validated, one dtype/device.
+
+    Each step calls ``chain.jacobian(q, ret_eef_pose=True)`` on the whole batch and one
+    batched 3x3 solve. Returns `Trajectories` with T = config.max_steps.
+    """
+    B, n = start.shape
+    T = config.max_steps
+    lo, hi = theta[:, 0::2], theta[:, 1::2]
+    q_out = torch.empty(B, T, n, dtype=theta.dtype, device=theta.device)
+    x_out = torch.empty(B, T, 3, dtype=theta.dtype, device=theta.device)
+    length = torch.full((B,), T, dtype=torch.int64, device=theta.device)
+    active = torch.ones(B, dtype=torch.bool, device=theta.device)
+    q = start.clone()
+    t_last = T - 1
+    for t in range(T):
+        J6, pose = chain.reference_jacobian(q)
+        x = pose[:, :3, 3]
+        q_out[:, t] = q
+        x_out[:, t] = x
+        e = goal - x
+        done_now = active & (e.norm(dim=-1) < config.tol)
+        length = torch.where(done_now, t + 1, length)
+        active = active & ~done_now
+        if t == T - 1 or not bool(active.any()):
+            t_last = t
+            break
+        q = torch.where(active.unsqueeze(-1), controller_step(J6[:, :3], e, q, lo, hi, config), q)
+    # padding: every step after length - 1 repeats the final point
+    idx = torch.minimum(torch.arange(T, device=theta.device).expand(B, T), (length - 1).unsqueeze(-1))
+    idx = torch.minimum(idx, torch.tensor(t_last, device=theta.device))
+    q_out = q_out.gather(1, idx.unsqueeze(-1).expand(B, T, n))
+    x_out = x_out.gather(1, idx.unsqueeze(-1).expand(B, T, 3))
+    reached = (goal - x_out[:, -1]).norm(dim=-1) < config.tol
+    return Trajectories(q_out, x_out, length, reached)

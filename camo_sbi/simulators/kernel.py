@@ -1,0 +1,347 @@
+"""The fused hot loop: a numba kernel generated from a `ChainSpec`.
+
+For each (chain, dtype) `generate_source` writes straight-line Python: the forward
+kinematics and position Jacobian of that very chain with its constant transforms baked
+in (terms whose constant is exactly 0 are dropped, +-1 factors become signs, so a
+quarter-turn URDF origin costs no arithmetic), followed by the controller step of
+`controller.py` (closed-form 3x3 solve, no linalg call). Every float literal is wrapped
+in the kernel's dtype ``F(...)`` so float32 maths never promotes to float64.
+
+The source is written once to a cache directory (``$CAMO_SBI_KERNEL_CACHE``, else
+``$XDG_CACHE_HOME/camo_sbi/kernels``, else ``~/.cache/camo_sbi/kernels``) under a name
+keyed by the sha256 of the chain constants, the dtype and the generator version, then
+imported, so ``@njit(cache=True)`` reuses the compiled machine code across processes.
+The batch is split over threads with ``prange``; each sample is computed independently
+and sequentially, so results do not depend on ``NUMBA_NUM_THREADS``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from camo_sbi.simulators.chain import ChainSpec
+
+__all__ = ["generate_source", "kernel_fk", "kernel_simulate", "load_kernel", "cache_dir"]
+
+GENERATOR_VERSION = "4"
+_DTYPES = {np.dtype(np.float32): "float32", np.dtype(np.float64): "float64"}
+
+# --------------------------------------------------------------------------- symbolic code
+# An "entry" is a polynomial {factors (sorted tuple of variable names): coefficient}.
+# Constants are the empty tuple. Entries are materialised into temporaries as soon as they
+# hold more than one term, so expressions stay short.
+
+
+def _const(c: float) -> dict:
+    return {} if c == 0.0 else {(): float(c)}
+
+
+def _var(name: str) -> dict:
+    return {(name,): 1.0}
+
+
+def _lin(pairs) -> dict:
+    """sum_i c_i * entry_i for constant c_i."""
+    out: dict = {}
+    for c, e in pairs:
+        if c == 0.0:
+            continue
+        for f, v in e.items():
+            out[f] = out.get(f, 0.0) + c * v
+    return {f: v for f, v in out.items() if v != 0.0}
+
+
+def _mul(a: dict, b: dict) -> dict:
+    out: dict = {}
+    for fa, va in a.items():
+        for fb, vb in b.items():
+            f = tuple(sorted(fa + fb))
+            out[f] = out.get(f, 0.0) + va * vb
+    return {f: v for f, v in out.items() if v != 0.0}
+
+
+def _add(*es) -> dict:
+    return _lin([(1.0, e) for e in es])
+
+
+class _Writer:
+    def __init__(self, indent: str):
+        self.indent = indent
+        self.lines: list[str] = []
+        self._n = 0
+
+    def line(self, s: str) -> None:
+        self.lines.append(self.indent + s)
+
+    @staticmethod
+    def expr(e: dict) -> str:
+        if not e:
+            return "F(0.0)"
+        parts = []
+        for f in sorted(e, key=lambda f: (len(f), f)):
+            c = e[f]
+            body = "*".join(f)
+            if not f:
+                parts.append(("+" if c > 0 else "-", f"F({float(abs(c))!r})"))
+            elif abs(c) == 1.0:
+                parts.append(("+" if c > 0 else "-", body))
+            else:
+                parts.append(("+" if c > 0 else "-", f"F({float(abs(c))!r})*{body}"))
+        s = ("-" if parts[0][0] == "-" else "") + parts[0][1]
+        for sign, p in parts[1:]:
+            s += f" {sign} {p}"
+        return s
+
+    def mat(self, e: dict, name: str | None = None) -> dict:
+        """Materialise ``e`` into a temporary (or ``name``) unless it is a signed single factor."""
+        if name is None:
+            if not e or (len(e) == 1 and len(next(iter(e))) <= 1):
+                return e
+            self._n += 1
+            name = f"_t{self._n}"
+        self.line(f"{name} = {self.expr(e)}")
+        return _var(name)
+
+
+def _fk(w: _Writer, spec: ChainSpec, name_x=("x0", "x1", "x2")):
+    """Emit FK (and per-joint world axis/origin) for the chain; returns (p_ee, joints)."""
+    R = [[_const(1.0 if r == c else 0.0) for c in range(3)] for r in range(3)]
+    p = [_const(0.0)] * 3
+    joints = []
+    for k in range(spec.n_joints):
+        O = spec.origins[k]
+        M = [[w.mat(_lin([(O[j, c], R[r][j]) for j in range(3)])) for c in range(3)] for r in range(3)]
+        po = [w.mat(_add(p[r], _lin([(O[j, 3], R[r][j]) for j in range(3)]))) for r in range(3)]
+        a = spec.axes[k]
+        z = [w.mat(_lin([(a[j], M[r][j]) for j in range(3)])) for r in range(3)]
+        q = _var(f"q{k}")
+        if spec.joint_types[k] == "revolute":
+            w.line(f"cq{k} = math.cos(q{k})")
+            w.line(f"sq{k} = math.sin(q{k})")
+            C, S, ONE = _var(f"cq{k}"), _var(f"sq{k}"), _const(1.0)
+            K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+            rot = [[_lin([(a[r] * a[c], ONE), ((1.0 if r == c else 0.0) - a[r] * a[c], C), (K[r, c], S)])
+                    for c in range(3)] for r in range(3)]
+            R = [[w.mat(_add(*[_mul(M[r][j], rot[j][c]) for j in range(3)])) for c in range(3)]
+                 for r in range(3)]
+            p = po
+        else:
+            R = M
+            p = [w.mat(_add(po[r], _mul(q, z[r]))) for r in range(3)]
+        joints.append((spec.joint_types[k], po, z))
+    tip = spec.tip
+    pe = [w.mat(_add(p[r], _lin([(tip[j, 3], R[r][j]) for j in range(3)])), name=name_x[r]) for r in range(3)]
+    return pe, joints
+
+
+def generate_source(spec: ChainSpec, dtype) -> str:
+    """Python source of the numba module for ``spec`` in ``dtype`` (np.float32 / np.float64)."""
+    dt = _DTYPES[np.dtype(dtype)]
+    n = spec.n_joints
+    J = range(n)
+    head = [
+        f'"""Generated by camo_sbi.simulators.kernel (v{GENERATOR_VERSION}) for chain',
+        f"{spec.base_link} -> {spec.end_effector}, joints {list(spec.joint_names)}, {dt}.",
+        f'chain sha256 {spec.digest}. Do not edit."""',
+        "",
+        "import math",
+        "",
+        "import numpy as np",
+        "from numba import njit, prange",
+        "",
+        f"F = np.{dt}",
+        "",
+    ]
+
+    # ---- fk(q (B, n), out (B, 3))
+    fkw = _Writer(" " * 8)
+    _fk(fkw, spec)
+    fk_src = [
+        "@njit(cache=True, parallel=True, nogil=True, error_model=\"numpy\")",
+        "def fk(q, out):",
+        "    for b in prange(q.shape[0]):",
+        *[f"        q{k} = q[b, {k}]" for k in J],
+        *fkw.lines,
+        *[f"        out[b, {r}] = x{r}" for r in range(3)],
+        "",
+        "",
+    ]
+
+    # ---- simulate
+    w = _Writer(" " * 12)
+    pe, joints = _fk(w, spec)
+    cols = []
+    for k, (typ, po, z) in enumerate(joints):
+        if typ == "revolute":
+            d = [w.mat(_lin([(1.0, pe[r]), (-1.0, po[r])])) for r in range(3)]
+            col = [w.mat(_lin([(1.0, _mul(z[(r + 1) % 3], d[(r + 2) % 3])),
+                               (-1.0, _mul(z[(r + 2) % 3], d[(r + 1) % 3]))])) for r in range(3)]
+        else:
+            col = z
+        cols.append(col)
+    step = _Writer(" " * 12)
+    # r = v - J dq0 ; A = J J^T + lam2 I ; w = A^-1 r ; dq = J^T w + dq0
+    for r in range(3):
+        step.mat(_lin([(1.0, _var(f"v{r}"))] + [(-1.0, _mul(cols[k][r], _var(f"n{k}"))) for k in J]), name=f"r{r}")
+    for r, c in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+        e = _add(*[_mul(cols[k][r], cols[k][c]) for k in J])
+        if r == c:
+            e = _add(e, _var("lam2"))
+        step.mat(e, name=f"a{r}{c}")
+    sim_lines_step = [
+        "i00 = a11 * a22 - a12 * a12",
+        "i01 = a02 * a12 - a01 * a22",
+        "i02 = a01 * a12 - a02 * a11",
+        "i11 = a00 * a22 - a02 * a02",
+        "i12 = a01 * a02 - a00 * a12",
+        "i22 = a00 * a11 - a01 * a01",
+        "idet = F(1.0) / (a00 * i00 + a01 * i01 + a02 * i02)",
+        "w0 = (i00 * r0 + i01 * r1 + i02 * r2) * idet",
+        "w1 = (i01 * r0 + i11 * r1 + i12 * r2) * idet",
+        "w2 = (i02 * r0 + i12 * r1 + i22 * r2) * idet",
+    ]
+    for line in sim_lines_step:
+        step.line(line)
+    for k in J:
+        step.mat(_add(*[_mul(cols[k][r], _var(f"w{r}")) for r in range(3)], _var(f"n{k}")), name=f"d{k}")
+
+    i3 = " " * 12
+    i4 = " " * 16
+    i5 = " " * 20
+    sim_src = [
+        "@njit(cache=True, parallel=True, nogil=True, error_model=\"numpy\")",
+        "def simulate(theta, goal, start, n_steps, tol, gain, lam2, max_cart, max_joint, null_gain,",
+        "             q_out, x_out, length, reached):",
+        "    for b in prange(theta.shape[0]):",
+        *[f"        lo{k} = theta[b, {2 * k}]\n        hi{k} = theta[b, {2 * k + 1}]" for k in J],
+        *[f"        md{k} = F(0.5) * (lo{k} + hi{k})" for k in J],
+        *[f"        q{k} = start[b, {k}]" for k in J],
+        *[f"        g{r} = goal[b, {r}]" for r in range(3)],
+        "        length[b] = n_steps",
+        "        reached[b] = False",
+        "        for t in range(n_steps):",
+        *w.lines,
+        *[f"{i3}q_out[b, t, {k}] = q{k}" for k in J],
+        *[f"{i3}x_out[b, t, {r}] = x{r}" for r in range(3)],
+        *[f"{i3}e{r} = g{r} - x{r}" for r in range(3)],
+        f"{i3}if math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) < tol:",
+        f"{i4}length[b] = t + 1",
+        f"{i4}reached[b] = True",
+        f"{i4}for u in range(t + 1, n_steps):",
+        *[f"{i5}q_out[b, u, {k}] = q{k}" for k in J],
+        *[f"{i5}x_out[b, u, {r}] = x{r}" for r in range(3)],
+        f"{i4}break",
+        f"{i3}if t == n_steps - 1:",
+        f"{i4}break",
+        *[f"{i3}v{r} = gain * e{r}" for r in range(3)],
+        f"{i3}vn = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)",
+        f"{i3}if vn > max_cart:",
+        f"{i4}sc = max_cart / vn",
+        *[f"{i4}v{r} = v{r} * sc" for r in range(3)],
+        *[f"{i3}n{k} = null_gain * (md{k} - q{k})" for k in J],
+        *step.lines,
+        f"{i3}m = abs(d0)",
+        *[f"{i3}m = max(m, abs(d{k}))" for k in range(1, n)],
+        f"{i3}if m > max_joint:",
+        f"{i4}sc = max_joint / m",
+        *[f"{i4}d{k} = d{k} * sc" for k in J],
+    ]
+    for k in J:
+        sim_src += [
+            f"{i3}q{k} = q{k} + d{k}",
+            f"{i3}if q{k} < lo{k}:",
+            f"{i4}q{k} = lo{k}",
+            f"{i3}elif q{k} > hi{k}:",
+            f"{i4}q{k} = hi{k}",
+        ]
+    return "\n".join(head + fk_src + sim_src) + "\n"
+
+
+# --------------------------------------------------------------------------- cache + import
+_lock = threading.Lock()
+_loaded: dict[str, object] = {}
+
+
+def cache_dir() -> Path:
+    """Directory holding generated kernel modules (created on demand)."""
+    env = os.environ.get("CAMO_SBI_KERNEL_CACHE")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "camo_sbi" / "kernels"
+
+
+def _write_once(path: Path, src: str) -> None:
+    if path.exists() and path.read_text() == src:
+        return  # unchanged: keep the mtime so numba's on-disk cache stays valid
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(src)
+    os.replace(tmp, path)
+
+
+def load_kernel(spec: ChainSpec, dtype):
+    """The imported generated module for (``spec``, ``dtype``): attributes ``fk`` and ``simulate``."""
+    dt = _DTYPES[np.dtype(dtype)]
+    key = hashlib.sha256(f"{GENERATOR_VERSION}|{spec.digest}|{dt}".encode()).hexdigest()[:24]
+    with _lock:
+        mod = _loaded.get(key)
+        if mod is not None:
+            return mod
+        name = f"camo_sbi_kernel_{key}"
+        src = generate_source(spec, dtype)
+        path = None
+        for d in (cache_dir(), Path(tempfile.gettempdir()) / f"camo_sbi_kernels_{os.getuid()}"):
+            try:
+                _write_once(d / f"{name}.py", src)
+                path = d / f"{name}.py"
+                break
+            except OSError:
+                continue
+        if path is None:
+            raise OSError("cannot write the generated kernel to any cache directory")
+        mspec = importlib.util.spec_from_file_location(name, path)
+        mod = importlib.util.module_from_spec(mspec)
+        sys.modules[name] = mod
+        mspec.loader.exec_module(mod)
+        _loaded[key] = mod
+        return mod
+
+
+# --------------------------------------------------------------------------- numpy entry points
+def kernel_fk(spec: ChainSpec, q: np.ndarray) -> np.ndarray:
+    """q (B, n) float32/float64 -> end-effector positions (B, 3), same dtype."""
+    q = np.ascontiguousarray(q)
+    out = np.empty((q.shape[0], 3), dtype=q.dtype)
+    load_kernel(spec, q.dtype).fk(q, out)
+    return out
+
+
+def kernel_simulate(spec: ChainSpec, theta: np.ndarray, goal: np.ndarray, start: np.ndarray, *,
+                    max_steps: int, tol: float, gain: float, damping: float,
+                    max_cartesian_step: float, max_joint_step: float, null_gain: float,
+                    out=None):
+    """Run the controller: theta (B, 2n), goal (B, 3), start (B, n), all C-contiguous, one dtype.
+
+    Returns (q (B, T, n), ee (B, T, 3), length (B,) int64, reached (B,) bool); ``out`` may
+    supply these four arrays preallocated.
+    """
+    dtype = theta.dtype
+    F = dtype.type
+    B, n, T = theta.shape[0], spec.n_joints, int(max_steps)
+    if out is None:
+        out = (np.empty((B, T, n), dtype), np.empty((B, T, 3), dtype),
+               np.empty(B, np.int64), np.empty(B, np.bool_))
+    load_kernel(spec, dtype).simulate(
+        theta, goal, start, np.int64(T), F(tol), F(gain), F(damping * damping),
+        F(max_cartesian_step), F(max_joint_step), F(null_gain), *out)
+    return out

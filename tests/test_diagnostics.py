@@ -1,0 +1,427 @@
+"""Diagnostics: arviz conversion + netCDF, calibration (coverage / SBC / C2ST), HTML report.
+
+Everything is built from fakes here (PosteriorResult, BoxPrior, results.csv), so these
+tests do not depend on the simulators or inference methods. Runs in well under 60 s.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+
+import arviz as az
+import numpy as np
+import pandas as pd
+import pytest
+from matplotlib.figure import Figure
+
+from camo_sbi.diagnostics import arviz_io, calibration, report
+from camo_sbi.inference.priors import BoxPrior
+from camo_sbi.inference.result import PosteriorResult
+
+JOINTS = ["shoulder", "elbow", "wrist"]
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture
+def prior() -> BoxPrior:
+    bounds = np.array([[-2.0, 2.0], [-1.0, 1.5], [-3.0, 0.5]])
+    start = np.array([0.1, 0.2, -1.0])
+    return BoxPrior(bounds, start, fixed={2: (-2.0, 0.0)})  # wrist known: zero-width coordinates
+
+
+def _informative_result(prior: BoxPrior, truth: np.ndarray, *, method="camo", n=2000, seed=0,
+                        weighted=False, width=0.05) -> PosteriorResult:
+    """Samples concentrated around ``truth`` (fixed coordinates exact)."""
+    rng = np.random.default_rng(seed)
+    s = truth + width * rng.standard_normal((n, truth.size))
+    s[:, ~prior.free_mask.numpy()] = truth[~prior.free_mask.numpy()]
+    w = rng.random(n) if weighted else None
+    return PosteriorResult(method, s, w, truth.copy(), n_simulations=5000, wall_time=1.5, n_tasks=4,
+                           extras={"budget": 5000, "epsilon": 0.2})
+
+
+@pytest.fixture
+def truth(prior) -> np.ndarray:
+    return prior.sample(1, 123).numpy()[0]
+
+
+# --------------------------------------------------------------------------- conversion
+
+
+def test_to_inference_data_keeps_values_names_and_metadata(prior, truth):
+    r = _informative_result(prior, truth)
+    obs = {"trajectories": np.zeros((4, 20, 3)), "goals": np.ones((4, 3))}
+    idata = arviz_io.to_inference_data(
+        r, JOINTS, seed=0, prior=prior, prior_draws=300, true_theta=truth, observed=obs,
+        observed_dims={"trajectories": ["task", "time", "joint"]}, attrs={"task": "reach", "subject": "s0"})
+    assert set(idata.groups()) == {"posterior", "prior", "observed_data", "constant_data"}
+    lim = idata.posterior["limits"]
+    assert lim.dims == ("chain", "draw", "joint", "bound")
+    assert lim.sizes["chain"] == 1 and lim.sizes["draw"] == r.samples.shape[0]
+    assert list(lim["joint"].values) == JOINTS and list(lim["bound"].values) == ["lower", "upper"]
+    # exact values, layout [lo_1, hi_1, ...] -> (joint, bound)
+    np.testing.assert_array_equal(lim.values[0].reshape(len(r.samples), -1), r.samples)
+    np.testing.assert_array_equal(lim.sel(joint="elbow", bound="upper").values[0], r.samples[:, 3])
+    np.testing.assert_array_equal(idata.constant_data["true_limits"].values.reshape(-1), truth)
+    np.testing.assert_array_equal(idata.constant_data["estimate"].values.reshape(-1), r.estimate)
+    assert idata.prior["limits"].sizes["draw"] == 300
+    assert bool(prior.contains(idata.prior["limits"].values[0].reshape(300, -1)).all())
+    assert list(idata.observed_data["trajectories"]["joint"].values) == JOINTS
+    a = idata.posterior.attrs
+    assert (a["method"], a["n_simulations"], a["n_tasks"], a["budget"], a["units"]) == ("camo", 5000, 4, 5000, "rad")
+    assert a["wall_time"] == 1.5 and a["resampled"] == 0 and a["extra_epsilon"] == 0.2
+    assert (a["task"], a["subject"]) == ("reach", "s0")
+
+
+def test_degrees_convert_limits_truth_and_prior(prior, truth):
+    r = _informative_result(prior, truth)
+    rad = arviz_io.to_inference_data(r, JOINTS, seed=1, prior=prior, true_theta=truth)
+    deg = arviz_io.to_inference_data(r, JOINTS, seed=1, prior=prior, true_theta=truth, units="deg")
+    np.testing.assert_allclose(deg.posterior["limits"].values, np.degrees(rad.posterior["limits"].values))
+    np.testing.assert_allclose(deg.prior["limits"].values, np.degrees(rad.prior["limits"].values))
+    np.testing.assert_allclose(deg.constant_data["true_limits"].values, np.degrees(truth.reshape(3, 2)))
+    assert deg.posterior.attrs["units"] == "deg"
+
+
+def test_weighted_samples_resampled_reproducibly(prior, truth):
+    r = _informative_result(prior, truth, weighted=True, n=4000, width=0.3)
+    a = arviz_io.to_inference_data(r, JOINTS, seed=7)
+    b = arviz_io.to_inference_data(r, JOINTS, seed=7)
+    c = arviz_io.to_inference_data(r, JOINTS, seed=8)
+    np.testing.assert_array_equal(a.posterior["limits"].values, b.posterior["limits"].values)
+    assert not np.array_equal(a.posterior["limits"].values, c.posterior["limits"].values)
+    assert a.posterior.attrs["resampled"] == 1 and a.posterior.attrs["resample_seed"] == 7
+    assert a.posterior.attrs["weights_ess"] == pytest.approx(1 / np.sum(r.weights**2))
+    # every resampled draw is one of the original samples
+    draws = a.posterior["limits"].values[0].reshape(4000, -1)
+    assert np.isin(draws[:, 0], r.samples[:, 0]).all()
+    # tolerance: weighted mean preserved within 0.1 posterior sd (resampling SE ~ sd/sqrt(4000) = 0.016 sd)
+    sd = r.samples.std(axis=0)
+    free = sd > 0
+    assert np.all(np.abs(draws.mean(axis=0) - r.mean())[free] < 0.1 * sd[free])
+    np.testing.assert_allclose(draws.mean(axis=0)[~free], r.mean()[~free], atol=1e-12)
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # plain az.summary on zero-variance (fixed) limits
+def test_netcdf_roundtrip_loads_with_plain_arviz(tmp_path, prior, truth):
+    r = _informative_result(prior, truth, weighted=True)
+    idata = arviz_io.to_inference_data(r, JOINTS, seed=3, prior=prior, prior_draws=200, true_theta=truth,
+                                       observed={"goals": np.ones((4, 3))})
+    path = tmp_path / "camo.nc"
+    assert arviz_io.save_netcdf(idata, path) == path
+    assert [p.name for p in tmp_path.iterdir()] == ["camo.nc"]  # no temp file left behind
+    plain = az.from_netcdf(str(path))
+    np.testing.assert_array_equal(plain.posterior["limits"].values, idata.posterior["limits"].values)
+    np.testing.assert_array_equal(plain.constant_data["true_limits"].values, truth.reshape(3, 2))
+    assert plain.posterior.attrs["method"] == "camo" and plain.posterior.attrs["resample_seed"] == 3
+    s = az.summary(plain)
+    for j in JOINTS:
+        for b in ("lower", "upper"):
+            assert f"limits[{j}, {b}]" in s.index
+    loaded = arviz_io.load_netcdf(path)
+    np.testing.assert_array_equal(loaded.prior["limits"].values, idata.prior["limits"].values)
+    arviz_io.save_netcdf(loaded, path)  # overwrite an existing file (atomically replaced)
+    assert az.from_netcdf(str(path)).posterior.sizes["draw"] == r.samples.shape[0]
+
+
+def test_summary_truth_position_and_width(prior, truth):
+    r = _informative_result(prior, truth, width=0.02)
+    idata = arviz_io.to_inference_data(r, JOINTS, seed=0, prior=prior, true_theta=truth)
+    s = arviz_io.summary(idata)
+    assert "r_hat" not in s.columns and {"mean", "sd", "hdi_3%", "hdi_97%", "ess_bulk", "truth"} <= set(s.columns)
+    assert s.loc["limits[wrist, lower]", "sd"] == 0  # fixed coordinate: zero variance is fine
+    tp = arviz_io.truth_position(idata)
+    assert tp.loc[("wrist", "lower"), "zero_width"] and tp.loc[("wrist", "lower"), "quantile"] == 0.5
+    assert tp["quantile"].between(0.02, 0.98).all()  # truth at the centre of these fake posteriors
+    w = arviz_io.posterior_width(idata)
+    # informative posterior: 94% HDI ~ 2*1.88*0.02 = 0.075 rad, far below the prior width
+    assert (w.loc[["shoulder", "elbow"], "relative_width"] < 0.2).all()
+    assert w.loc["wrist", "relative_width"].isna().all()
+    # a posterior equal to the prior is uninformed: relative width ~ 1 (tolerance 0.1)
+    flat = PosteriorResult("prior", prior.sample(4000, 5).numpy(), None, truth, 0, 0.0, 0)
+    wf = arviz_io.posterior_width(arviz_io.to_inference_data(flat, JOINTS, seed=0, prior=prior))
+    np.testing.assert_allclose(wf.loc[["shoulder", "elbow"], "relative_width"], 1.0, atol=0.1)
+
+
+def test_plots_return_figures(prior, truth):
+    a = arviz_io.to_inference_data(_informative_result(prior, truth), JOINTS, seed=0, true_theta=truth)
+    b = arviz_io.to_inference_data(_informative_result(prior, truth, method="npe", seed=1, weighted=True),
+                                   JOINTS, seed=0, true_theta=truth)
+    for fig in (arviz_io.plot_posterior(a), arviz_io.plot_pair(a, joints=["shoulder", "elbow"]),
+                arviz_io.plot_forest([a, b], ["camo", "npe"]), arviz_io.plot_posterior(a, joints=["wrist"])):
+        assert isinstance(fig, Figure) and fig.axes
+        fig.clear()
+
+
+def test_compare_marginals_wasserstein(prior, truth):
+    a = _informative_result(prior, truth, n=3000, seed=0)
+    shifted = PosteriorResult("shift", a.samples + 0.1, None, a.estimate + 0.1, 0, 0.0, 4)
+    d = arviz_io.compare_marginals(a, shifted, joint_names=JOINTS)
+    np.testing.assert_allclose(d["wasserstein"], 0.1, atol=1e-9)
+    same = arviz_io.compare_marginals(a, a)
+    assert (same["wasserstein"] == 0).all() and list(same.index.get_level_values(0)[::2]) == [
+        "joint_0", "joint_1", "joint_2"]
+    # weights are honoured: weight only samples below the truth -> shifted lower
+    w = (a.samples[:, 0] < truth[0]).astype(float)
+    lowered = PosteriorResult("w", a.samples, w, a.estimate, 0, 0.0, 4)
+    assert arviz_io.compare_marginals(a, lowered).iloc[0, 0] > 0.02
+
+
+def test_arviz_io_bad_inputs(prior, truth, tmp_path):
+    r = _informative_result(prior, truth)
+    with pytest.raises(ValueError, match="^joint_names"):
+        arviz_io.to_inference_data(r, ["a", "b"], seed=0)
+    with pytest.raises(ValueError, match="^joint_names"):
+        arviz_io.to_inference_data(r, ["a", "a", "b"], seed=0)
+    with pytest.raises(TypeError, match="^joint_names"):
+        arviz_io.to_inference_data(r, "abc", seed=0)
+    with pytest.raises(TypeError, match="^result"):
+        arviz_io.to_inference_data(r.samples, JOINTS, seed=0)
+    with pytest.raises(ValueError, match="^units"):
+        arviz_io.to_inference_data(r, JOINTS, seed=0, units="grad")
+    with pytest.raises(TypeError, match="^seed"):
+        arviz_io.to_inference_data(r, JOINTS, seed=1.5)
+    with pytest.raises(ValueError, match="^true_theta"):
+        arviz_io.to_inference_data(r, JOINTS, seed=0, true_theta=truth[:4])
+    with pytest.raises(ValueError, match="^true_theta"):
+        arviz_io.to_inference_data(r, JOINTS, seed=0, true_theta=truth[::-1])  # lo > hi
+    with pytest.raises(ValueError, match="^prior_draws"):
+        arviz_io.to_inference_data(r, JOINTS, seed=0, prior=prior, prior_draws=0)
+    with pytest.raises(TypeError, match="^observed"):
+        arviz_io.to_inference_data(r, JOINTS, seed=0, observed=[1, 2])
+    with pytest.raises(TypeError, match="^idata"):
+        arviz_io.save_netcdf({"not": "idata"}, tmp_path / "x.nc")
+    idata = arviz_io.to_inference_data(r, JOINTS, seed=0)
+    with pytest.raises(ValueError, match="^path"):
+        arviz_io.save_netcdf(idata, tmp_path / "missing_dir" / "x.nc")
+    with pytest.raises(ValueError, match="^path"):
+        arviz_io.load_netcdf(tmp_path / "nope.nc")
+    with pytest.raises(ValueError, match="^idata"):
+        arviz_io.truth_position(idata)  # no truth stored
+    with pytest.raises(ValueError, match="^idata"):
+        arviz_io.posterior_width(idata)  # no prior stored
+    with pytest.raises(ValueError, match="^hdi_prob"):
+        arviz_io.summary(idata, hdi_prob=1.5)
+    with pytest.raises(ValueError, match="^joints"):
+        arviz_io.plot_posterior(idata, joints=["knee"])
+    with pytest.raises(ValueError, match="^model_names"):
+        arviz_io.plot_forest([idata, idata], ["one"])
+    with pytest.raises(ValueError, match="^result_b"):
+        arviz_io.compare_marginals(r, PosteriorResult("x", np.zeros((5, 2)), None, np.zeros(2), 0, 0.0, 1))
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+def _gaussian_toy(S=200, N=500, D=4, shrink=1.0, seed=0):
+    """Conjugate Gaussian: theta ~ N(0, 1), x ~ N(theta, 0.5^2); posterior exact, sd optionally shrunk.
+
+    A fifth coordinate is fixed (0.3 in both posterior and truth) and must be ignored.
+    """
+    rng = np.random.default_rng(seed)
+    sig = 0.5
+    theta = rng.standard_normal((S, D))
+    x = theta + sig * rng.standard_normal((S, D))
+    pm, ps = x / (1 + sig**2), np.sqrt(sig**2 / (1 + sig**2)) / shrink
+    post = pm[:, None, :] + ps * rng.standard_normal((S, N, D))
+    post = np.concatenate([post, np.full((S, N, 1), 0.3)], axis=2)
+    theta = np.concatenate([theta, np.full((S, 1), 0.3)], axis=1)
+    return post, theta, pm, ps
+
+
+def test_coverage_calibrated_on_diagonal_overconfident_below():
+    post, theta, _, _ = _gaussian_toy()
+    cov = calibration.central_interval_coverage(post, theta)
+    assert set(cov["coordinate"]) == {"theta_0", "theta_1", "theta_2", "theta_3", "overall"}  # fixed one ignored
+    overall = cov[cov["coordinate"] == "overall"]
+    assert (overall["n"] == 200 * 4).all()
+    # tolerances: per coordinate (200 subjects, SE <= 0.035) |coverage - alpha| < 0.1;
+    # pooled over 4 coordinates (800, SE <= 0.018) < 0.06
+    assert (cov["coverage"] - cov["alpha"]).abs().max() < 0.1
+    assert (overall["coverage"] - overall["alpha"]).abs().max() < 0.06
+    post3, theta3, _, _ = _gaussian_toy(shrink=3.0)
+    over = calibration.central_interval_coverage(post3, theta3)
+    o = over[over["coordinate"] == "overall"].set_index("alpha")["coverage"]
+    # sd shrunk 3x: expected coverage 2*Phi(z_a/3)-1, e.g. 0.43 at alpha=0.9 -> far below the diagonal
+    assert (o.index - o.values)[o.index >= 0.5].min() > 0.2
+    assert (o.values < o.index).all()
+
+
+def test_coverage_weighted_importance_samples():
+    """Samples from a 2x wider proposal, importance-weighted to the exact posterior, stay calibrated."""
+    rng = np.random.default_rng(1)
+    _, theta, pm, ps = _gaussian_toy(S=200, N=10)
+    theta = theta[:, :4]
+    prop = pm[:, None, :] + 2 * ps * rng.standard_normal((200, 2000, 4))
+    z = (prop - pm[:, None, :]) / ps
+    logw = -0.5 * z**2 + 0.5 * (z / 2) ** 2  # target / proposal, per coordinate (independent)
+    # one weight vector per subject must serve all coordinates: weight by the product
+    w = np.exp(logw.sum(axis=2) - logw.sum(axis=2).max(axis=1, keepdims=True))
+    cov = calibration.central_interval_coverage(list(prop), theta, weights=list(w))
+    overall = cov[cov["coordinate"] == "overall"]
+    # tolerance 0.08 (the weighted ESS is ~ 1/5 of 2000 draws, plus subject noise)
+    assert (overall["coverage"] - overall["alpha"]).abs().max() < 0.08
+    # same result when the weights come from PosteriorResult objects
+    results = [PosteriorResult("is", prop[s], w[s], pm[s], 0, 0.0, 1) for s in range(200)]
+    cov2 = calibration.central_interval_coverage(results, theta)
+    np.testing.assert_allclose(cov2["coverage"], cov["coverage"])
+
+
+def test_weighted_quantile_matches_numpy_hazen():
+    x = np.random.default_rng(0).standard_normal((101, 3))
+    q = np.array([0.05, 0.5, 0.95])
+    np.testing.assert_allclose(calibration.weighted_quantile(x, q, np.ones(101)),
+                               np.quantile(x, q, axis=0, method="hazen"), atol=1e-12)
+    # integer weights behave like repeated samples (up to interpolation at the ends)
+    xs = np.array([0.0, 1.0, 2.0])
+    med = calibration.weighted_quantile(xs, np.array([0.5]), np.array([1.0, 1.0, 4.0]))
+    assert med[0, 0] > 1.0
+
+
+def test_sbc_ranks_uniform_when_calibrated():
+    post, theta, _, _ = _gaussian_toy()
+    ranks = calibration.sbc_ranks(post, theta, n_draws=100, seed=0)
+    assert ranks.shape == (200, 5) and np.isnan(ranks[:, 4]).all()  # fixed coordinate ignored
+    assert np.nanmin(ranks) >= 0 and np.nanmax(ranks) <= 100
+    np.testing.assert_array_equal(ranks, calibration.sbc_ranks(post, theta, n_draws=100, seed=0))
+    u = calibration.sbc_uniformity(ranks, 100).set_index("coordinate")
+    assert "theta_4" not in u.index
+    assert u.loc["overall", "chi2_pvalue"] > 0.01 and u.loc["overall", "ks_pvalue"] > 0.01
+    assert u["chi2_pvalue"].min() > 0.001  # 5 tests: Bonferroni-style threshold
+    post3, theta3, _, _ = _gaussian_toy(shrink=3.0)
+    u3 = calibration.sbc_uniformity(calibration.sbc_ranks(post3, theta3, 100, seed=0), 100).set_index("coordinate")
+    assert u3.loc["overall", "chi2_pvalue"] < 1e-6 and u3.loc["overall", "ks_pvalue"] < 1e-6
+
+
+def test_c2st_same_vs_different():
+    rng = np.random.default_rng(0)
+    a, b = rng.standard_normal((300, 2)), rng.standard_normal((400, 2))  # b subsampled to 300
+    same = calibration.c2st(a, b, seed=0)
+    assert abs(same - 0.5) < 0.1  # chance level; SE of a 600-point CV accuracy ~ 0.02
+    far = calibration.c2st(a, b + 3.0, seed=0)
+    assert far > 0.9
+    assert calibration.c2st(a, b, seed=0) == same  # seeded
+
+
+def test_plot_coverage_and_calibration_bad_inputs():
+    post, theta, _, _ = _gaussian_toy(S=30, N=100)
+    cov = calibration.central_interval_coverage(post, theta)
+    fig = calibration.plot_coverage({"exact": cov, "copy": cov})
+    assert isinstance(fig, Figure) and len(fig.axes[0].lines) == 3  # diagonal + 2 methods
+    fig = calibration.plot_coverage(cov.assign(method="exact"))
+    assert isinstance(fig, Figure)
+    with pytest.raises(ValueError, match="^true_thetas"):
+        calibration.central_interval_coverage(post, theta[:10])
+    with pytest.raises(ValueError, match="^alphas"):
+        calibration.central_interval_coverage(post, theta, alphas=[0.5, 1.2])
+    with pytest.raises(ValueError, match="^samples_per_subject"):
+        calibration.central_interval_coverage(np.full((3, 10, 2), 1.0), np.ones((3, 2)))  # all fixed
+    with pytest.raises(TypeError, match="^samples_per_subject"):
+        calibration.central_interval_coverage("samples", theta)
+    with pytest.raises(ValueError, match="^weights"):
+        calibration.central_interval_coverage(post, theta, weights=[np.ones(100)] * 29)
+    with pytest.raises(ValueError, match="^n_draws"):
+        calibration.sbc_ranks(post, theta, n_draws=0, seed=0)
+    with pytest.raises(TypeError, match="^seed"):
+        calibration.sbc_ranks(post, theta, n_draws=10, seed="zero")
+    with pytest.raises(ValueError, match="^ranks"):
+        calibration.sbc_uniformity(np.array([[3.0], [50.0]]), n_draws=10)
+    with pytest.raises(ValueError, match="^samples_b"):
+        calibration.c2st(np.zeros((50, 2)), np.zeros((50, 3)), seed=0)
+    with pytest.raises(ValueError, match="^df_by_method"):
+        calibration.plot_coverage(cov)  # no method column
+
+
+# --------------------------------------------------------------------------- report
+
+
+def make_run_dir(root, prior: BoxPrior, truth: np.ndarray):
+    """A fake run directory with config.json, results.csv, posteriors/*.nc and coverage.csv."""
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "config.json").write_text(json.dumps({"scenario": "reaching", "robot": "panda",
+                                                  "camo": {"n_samples": 1000, "kde_bw": 0.1}, "seeds": [0, 1, 2]}))
+    rng = np.random.default_rng(0)
+    rows = []
+    for method, budgets in (("camo", [1000, 5000]), ("abc-smc", [1000, 5000]), ("naive", [np.nan])):
+        for budget in budgets:
+            for n_tasks in (1, 3, 5):
+                for seed in range(3):
+                    for subject in ("s0", "s1"):
+                        err = 0.3 / np.sqrt(n_tasks) * (1 if np.isnan(budget) else 2000 / (budget + 1000))
+                        rows.append(("reach", subject, method, budget, seed, n_tasks, "limit_rmse",
+                                     err * (1 + 0.1 * rng.standard_normal())))
+                        rows.append(("reach", subject, method, budget, seed, n_tasks, "wall_time",
+                                     abs(rng.normal(5.0, 1.0))))
+    pd.DataFrame(rows, columns=list(report.RESULTS_COLUMNS)).to_csv(root / "results.csv", index=False)
+    (root / "posteriors").mkdir()
+    for i, method in enumerate(("camo", "npe")):
+        r = _informative_result(prior, truth, method=method, seed=i, weighted=method == "npe", width=0.1)
+        idata = arviz_io.to_inference_data(r, JOINTS, seed=0, prior=prior, prior_draws=200, true_theta=truth,
+                                           attrs={"task": "reach", "subject": "s0"})
+        arviz_io.save_netcdf(idata, root / "posteriors" / f"reach_s0_{method}.nc")
+    post, theta, _, _ = _gaussian_toy(S=50, N=200)
+    post3, _, _, _ = _gaussian_toy(S=50, N=200, shrink=3.0)
+    cov = pd.concat([calibration.central_interval_coverage(post, theta).assign(method="npe"),
+                     calibration.central_interval_coverage(post3, theta).assign(method="camo")])
+    cov.to_csv(root / "coverage.csv", index=False)
+    return root
+
+
+def _check_self_contained(text: str) -> list[str]:
+    srcs = re.findall(r"""\bsrc\s*=\s*["']?([^"'\s>]*)""", text, flags=re.I)
+    assert all(s.startswith("data:image/png;base64,") for s in srcs), [s[:40] for s in srcs]
+    assert not re.search(r"<link\b|<script\b|url\(|@import|href=\"http", text, flags=re.I)
+    for s in srcs:
+        assert base64.b64decode(s.split(",", 1)[1])[:8] == b"\x89PNG\r\n\x1a\n"
+    return srcs
+
+
+def test_report_has_every_section_and_embeds_every_image(tmp_path, prior, truth):
+    run = make_run_dir(tmp_path / "run", prior, truth)
+    out = report.write_report(run, tmp_path / "out" / "report.html", title="Toy <run>")
+    assert out.is_file() and [p.name for p in out.parent.iterdir()] == ["report.html"]
+    text = out.read_text(encoding="utf-8")
+    for sid, name in report.SECTIONS:
+        assert f'<section id="{sid}"><h2>{name}</h2>' in text
+    assert "Toy &lt;run&gt;" in text  # escaped title
+    assert "not available" not in text  # every input was present
+    assert "camo.n_samples" in text and "reaching" in text  # settings flattened
+    assert "± " in text and "limit_rmse" in text and "abc-smc" in text  # comparison table
+    assert "limits[shoulder, lower]" in text  # diagnostics: arviz summary by name
+    srcs = _check_self_contained(text)
+    # error vs tasks, error vs budget, 2 posterior plots, 1 forest plot, 1 coverage plot
+    assert len(srcs) == 6
+
+
+def test_report_with_missing_inputs_says_not_available(tmp_path):
+    run = tmp_path / "empty"
+    run.mkdir()
+    out = report.write_report(run, tmp_path / "r.html")
+    text = out.read_text(encoding="utf-8")
+    for sid, name in report.SECTIONS:
+        section = text.split(f'<section id="{sid}">', 1)[1].split("</section>", 1)[0]
+        assert f"<h2>{name}</h2>" in section and "not available" in section, sid
+    assert "calibration was not computed" in text
+    _check_self_contained(text)
+    # partial inputs: a results.csv with a single n_tasks and a broken posterior file
+    pd.DataFrame([("reach", "s0", "camo", 1000, 0, 3, "limit_rmse", 0.1)],
+                 columns=list(report.RESULTS_COLUMNS)).to_csv(run / "results.csv", index=False)
+    (run / "posteriors").mkdir()
+    (run / "posteriors" / "broken.nc").write_bytes(b"not a netcdf file")
+    text = report.write_report(run, tmp_path / "r.html").read_text(encoding="utf-8")
+    assert "fewer than two distinct n_tasks values" in text and "broken.nc could not be read" in text
+
+
+def test_report_bad_inputs(tmp_path):
+    with pytest.raises(ValueError, match="^run_dir"):
+        report.write_report(tmp_path / "missing", tmp_path / "r.html")
+    with pytest.raises(TypeError, match="^run_dir"):
+        report.write_report(3, tmp_path / "r.html")
+    with pytest.raises(ValueError, match="^out_path"):
+        report.write_report(tmp_path, tmp_path)
+    with pytest.raises(TypeError, match="^title"):
+        report.write_report(tmp_path, tmp_path / "r.html", title=5)
