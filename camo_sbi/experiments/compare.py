@@ -144,6 +144,7 @@ def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
     idata = to_inference_data(res, sim.joint_names, prior=task.prior, true_theta=task.true_theta,
                               seed=derive_seed(spec["base_seed"], spec["seed"], 13))
     idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"]})
+    (out / "posteriors").mkdir(parents=True, exist_ok=True)
     save_netcdf(idata, out / "posteriors" / f"{spec['key']}.nc")
 
 

@@ -25,8 +25,10 @@ The naive baseline uses the same knowledge: fixed (known) joints take their know
 limits, the others the observed min/max. When nothing has been observed yet
 (``--task-unit trial`` only) an estimator allocates every block to the robot.
 
-Rows: run, prior, method, n_tasks, metric, value (metrics precision, recall, f1,
-accuracy) in ``<out>/results.csv``; the figure ``fig5_allocation.png``; with
+Rows: run, subject, prior, method, n_tasks, metric, value in ``<out>/results.csv``:
+precision, recall, f1, accuracy (methods camo, naive, majority), limit_error (camo,
+naive: mean absolute error of the prior's free limits, radians) and person_fraction
+(method truth: the person's share of the test blocks); the figure ``fig5_allocation.png``; with
 ``--scene-png`` one picture per run of the first test trial under CAMO's final
 (strong-prior) allocation.
 """
@@ -63,6 +65,8 @@ STRONG_PRIOR_FIXED = ("torso_flexion", "torso_rotation", "forearm_pronation", "w
                       "wrist_deviation")
 """Joints whose limits the strong prior knows (fixed to the subject's true limits)."""
 TASK_UNITS = ("pick", "trial")
+_CELL_SETTINGS = ("subject", "seed", "tasks", "task_unit", "test_trials", "samples", "keep_best", "epsilon",
+                  "bandwidth", "space", "priors")
 
 
 def derive_seed(*parts: int) -> int:
@@ -178,13 +182,13 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
     camo_cfg = {"keep_best": args.keep_best, "epsilon": args.epsilon, "bandwidth": args.bandwidth,
                 "sampling": "lhs", "space": args.space}
     estimates: dict[tuple[str, str], list] = {}
-    for pi, kind in enumerate(args.priors):
-        prior = make_prior(sim, true_theta, kind)
+    priors = {kind: make_prior(sim, true_theta, kind) for kind in args.priors}
+    for kind, prior in priors.items():
         task = ReachingTask(
             name="hrc", subject=subject, simulator=sim, prior=prior, observations=tuple(observations),
             test_starts=sim.start.to(torch.float64).expand(grasp.shape[0], -1).clone(),
             test_goals=grasp.clone(), true_theta=true_theta)
-        camo = run_method_sequence("camo", task, budget=args.samples, seed=derive_seed(args.seed, run, pi),
+        camo = run_method_sequence("camo", task, budget=args.samples, seed=derive_seed(args.seed, run, PRIORS.index(kind)),
                                    config=camo_cfg) if observations else []
         naive = [naive_estimate(observations[: i + 1], prior) for i in range(len(observations))]
         for method, ests in (("camo", [r.estimate for r in camo]), ("naive", naive)):
@@ -195,27 +199,31 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
                 per_task.append(ests[seen[-1]] if seen else None)
             estimates[(kind, method)] = per_task
     keys = list(estimates)
-    flat = [t for k in keys for t in estimates[k]]
-    preds = predictor(flat)
+    flat = predictor([t for key in keys for t in estimates[key]])
+    predictions = {key: flat[i * args.tasks:(i + 1) * args.tasks] for i, key in enumerate(keys)}
     rows = []
 
-    def add(kind, method, k, scores):
-        for metric in METRICS:
-            rows.append({"run": run, "subject": subject, "prior": kind, "method": method,
-                         "n_tasks": k, "metric": metric, "value": float(scores[metric])})
+    def add(kind, method, k, metric, value):
+        rows.append({"run": run, "subject": subject, "prior": kind, "method": method,
+                     "n_tasks": k, "metric": metric, "value": float(value)})
 
     base = allocation_metrics(y_true, y_true)  # only its majority-baseline fields are used
-    majority = {metric: getattr(base, f"majority_{metric}") for metric in METRICS}
-    for ki, (kind, method) in enumerate(keys):
-        for k in range(args.tasks):
-            m = allocation_metrics(y_true, preds[ki * args.tasks + k])
-            add(kind, method, k + 1, {metric: getattr(m, metric) for metric in METRICS})
+    free = {kind: prior.free_mask.numpy() for kind, prior in priors.items()}
+    truth = true_theta.numpy()
+    for kind, method in keys:
+        for k, (est, pred) in enumerate(zip(estimates[(kind, method)], predictions[(kind, method)], strict=True)):
+            m = allocation_metrics(y_true, pred)
+            for metric in METRICS:
+                add(kind, method, k + 1, metric, getattr(m, metric))
+            if est is not None:  # mean absolute error of the estimated (free) limits, radians
+                add(kind, method, k + 1, "limit_error", np.abs(est - truth)[free[kind]].mean())
     for kind in args.priors:
         for k in range(args.tasks):
-            add(kind, "majority", k + 1, majority)
+            for metric in METRICS:
+                add(kind, "majority", k + 1, metric, getattr(base, f"majority_{metric}"))
+            add(kind, "truth", k + 1, "person_fraction", y_true.mean())
     extras = {"y_true": y_true, "test_trials": test_trials, "estimates": estimates,
-              "predictions": dict(zip(keys, [preds[i * args.tasks:(i + 1) * args.tasks] for i in range(len(keys))])),
-              "true_theta": true_theta, "n_observations": len(observations)}
+              "predictions": predictions, "true_theta": true_theta, "n_observations": len(observations)}
     return rows, extras
 
 
@@ -293,7 +301,7 @@ def _check_subject(name: str) -> None:
         raise ValueError(f"--subject: unknown profile {name!r}; known: {', '.join(known)}")
 
 
-def _render_run(scene, sim, extras, path: Path) -> None:
+def _render_run(scene, extras, path: Path) -> None:
     from camo_sbi.scenarios.block_stacking import COLOURS, PERSON, ROBOT
 
     trial = extras["test_trials"][0]
@@ -301,10 +309,10 @@ def _render_run(scene, sim, extras, path: Path) -> None:
     pred = extras["predictions"][key][-1][0]
     truth = extras["y_true"][0]
     scene.set_trial(trial)
-    wrong = [c for c, a, b in zip(COLOURS, pred, truth) if a != b]
+    wrong = [c for c, a, b in zip(COLOURS, pred, truth, strict=True) if a != b]
     title = (f"test trial 1, {key[1]} ({key[0]} prior) allocation; green: reachable with the true limits"
              + (f"; wrong: {', '.join(wrong)}" if wrong else ""))
-    scene.render(path, {c: PERSON if a else ROBOT for c, a in zip(COLOURS, pred)},
+    scene.render(path, {c: PERSON if a else ROBOT for c, a in zip(COLOURS, pred, strict=True)},
                  region_theta=extras["true_theta"], title=title)
 
 
@@ -326,20 +334,23 @@ def main(args) -> int:
     atomic_write_text(out / "config.json", json.dumps({"experiment": "reproduce hrc", **settings}, indent=2))
     with BlockStackingScene(sim, seed=args.seed) as scene:
         for run in tqdm(range(args.runs), desc=f"reproduce hrc ({args.subject})", unit="run"):
-            key = cell_key({"run": run, "subject": args.subject})
+            key = cell_key({"run": run, **{k: settings[k] for k in _CELL_SETTINGS}})
             if store.done(key) and not args.scene_png:
                 continue
             rows, extras = run_one(scene, sim, args.subject, run, args)
             store.put(key, rows)
             if args.scene_png:
-                _render_run(scene, sim, extras, out / f"scene_run{run:02d}.png")
+                _render_run(scene, extras, out / f"scene_run{run:02d}.png")
     df = store.write_table()
     fig = make_figure(df, out)
     wall = time.perf_counter() - t0
-    last = df[(df["n_tasks"] == df["n_tasks"].max()) & df["metric"].isin(["precision", "recall", "f1"])]
+    last = df[(df["n_tasks"] == df["n_tasks"].max())
+              & df["metric"].isin(["precision", "recall", "f1", "limit_error"])]
     summary = last.groupby(["prior", "method", "metric"])["value"].mean().unstack("metric")
-    print(f"after {int(df['n_tasks'].max())} tasks (mean over {df['run'].nunique()} runs):")
-    print(summary.to_string(float_format=lambda v: f"{v:.3f}"))
+    person = df.loc[df["metric"] == "person_fraction", "value"].mean()
+    print(f"after {int(df['n_tasks'].max())} tasks (mean over {df['run'].nunique()} runs; "
+          f"person's share of test blocks {person:.2f}; limit_error in rad over the free limits):")
+    print(summary.to_string(float_format=lambda v: f"{v:.3f}", na_rep="-"))
     print(f"table: {out / 'results.csv'}  figure: {fig}")
     print(f"wall time: {wall:.1f} s")
     return 0
@@ -364,7 +375,7 @@ def render_main(args) -> int:
     theta = impaired_limits(sim, args.subject)
     with BlockStackingScene(sim, seed=args.seed) as scene:
         labels = scene.labels(theta)
-        path = scene.render(args.out, {c: PERSON if a else ROBOT for c, a in zip(COLOURS, labels)},
+        path = scene.render(args.out, {c: PERSON if a else ROBOT for c, a in zip(COLOURS, labels, strict=True)},
                             region_theta=None if args.no_region else theta, width=args.width,
                             height=args.height,
                             title=f"{args.subject}: true allocation (white: person, black: robot)")

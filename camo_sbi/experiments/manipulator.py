@@ -116,7 +116,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--samples", type=int, default=2000, help="CAMO prior draws per task (b)")
     p.add_argument("--epsilon", type=float, default=None, help="CAMO DTW acceptance threshold")
     p.add_argument("--keep-best", type=int, default=100, help="CAMO keeps at most the k best per task")
-    p.add_argument("--bandwidth", type=float, default=0.005, help="CAMO kernel variance h [rad^2]")
+    p.add_argument("--bandwidth", type=float, default=0.2, help="CAMO kernel variance h [rad^2]")
     p.add_argument("--bandwidth-mode", choices=("fixed", "scott"), default="fixed")
     p.add_argument("--sampling", choices=("uniform", "lhs"), default="uniform")
     p.add_argument("--methods", default=",".join(METHOD_LABELS),

@@ -80,8 +80,14 @@ class ResultStore:
 
     def table(self) -> pd.DataFrame:
         """All finished cells concatenated in key order (empty DataFrame if none)."""
-        parts = [pd.read_csv(p) for p in sorted(self.cells.glob("*.csv")) if p.stat().st_size]
-        parts = [p for p in parts if len(p)]
+        parts = []
+        for p in sorted(self.cells.glob("*.csv")):
+            try:
+                df = pd.read_csv(p)
+            except pd.errors.EmptyDataError:  # a cell that finished with no rows
+                continue
+            if len(df):
+                parts.append(df)
         return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
 
     def write_table(self, name: str = "results.csv") -> pd.DataFrame:

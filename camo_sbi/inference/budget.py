@@ -34,7 +34,7 @@ class CountingSimulator:
         return None if self.budget is None else self.budget - self.n_simulations
 
     def simulate(self, theta, goal, start=None) -> Trajectories:
-        b = 1 if theta.dim() == 1 else int(theta.shape[0])
+        b = _batch_size(theta, goal, start)
         if self.budget is not None and self.n_simulations + b > self.budget:
             raise BudgetExceededError(
                 f"budget: {self.n_simulations} simulations used, {b} more requested, "
@@ -48,3 +48,12 @@ class CountingSimulator:
         return getattr(self._sim, name)
 
 
+
+
+def _batch_size(theta, goal, start) -> int:
+    """Number of trajectories a call produces: the broadcast batch of theta, goal and start."""
+    sizes = [int(x.shape[0]) for x in (theta, goal, start)
+             if x is not None and hasattr(x, "dim") and x.dim() == 2]
+    if not sizes:
+        return 1
+    return max(sizes)

@@ -59,7 +59,7 @@ class CamoConfig:
     epsilon: float | None = None
     keep_best: int | None = 100
     fallback_keep: int = 20
-    bandwidth: float = 0.005
+    bandwidth: float = 0.2
     bandwidth_mode: str = "fixed"
     space: str = "joint"
     sampling: str = "uniform"
@@ -221,6 +221,12 @@ class Camo:
         self.records.append(rec)
         return rec
 
+    def observe_all(self, observations) -> Camo:
+        """Observe a sequence of `Observation` in order (in ``config.space``); returns self."""
+        for obs in observations:
+            self.observe(obs.start, obs.goal, obs.trajectory(self.config.space))
+        return self
+
     def estimate(self) -> np.ndarray:
         """(2n,) the kept vector with the highest joint density over the tasks so far (Eq. 6)."""
         if not self.records:
@@ -256,20 +262,18 @@ def _camo_for(task, config: CamoConfig, budget: int, seed: int) -> Camo:
     return Camo(task.simulator, task.prior, replace(config, n_samples=budget), seed=seed)
 
 
-def run_sequence(task, observations, *, budget: int, seed: int, config: CamoConfig) -> list[PosteriorResult]:
-    """Results after each of the observed tasks (continual: nothing is re-simulated).
+def run_sequence(task, observations, *, budget: int, seed: int, config: CamoConfig):
+    """Yield the result after each observed task (continual: nothing is re-simulated).
 
-    ``n_simulations`` is read from the task's simulator counter when it has one.
+    The ``n_simulations`` / ``wall_time`` fields are placeholders: `run_method_sequence`
+    fills them from the budget counter and its own clock.
     """
     camo = _camo_for(task, config, budget, seed)
-    out, t0 = [], time.perf_counter()
     for obs in observations:
-        camo.observe(obs.start, obs.goal, obs.trajectory(config.space))
-        out.append(camo.result(n_simulations=int(getattr(task.simulator, "n_simulations", 0)),
-                               wall_time=time.perf_counter() - t0))
-    return out
+        camo.observe_all([obs])
+        yield camo.result()
 
 
 def run(task, observations, *, budget: int, seed: int, config: CamoConfig) -> PosteriorResult:
     """The run contract: CAMO on ``observations`` with ``budget`` prior draws per task."""
-    return run_sequence(task, observations, budget=budget, seed=seed, config=config)[-1]
+    return _camo_for(task, config, budget, seed).observe_all(observations).result()

@@ -63,244 +63,574 @@ from camo_sbi._validation import as_tensor, check_finite, check_positive_float, 
 
 __all__ = ["dtw_distances", "dtw_reference", "l2_distance"]
 
-# Candidates computed together, one per SIMD lane (2 x 8 float64 lanes with AVX-512, 4 x 4 with
-# AVX2): independent recursions interleave and hide the latency of the D(i, j-1) dependency.
+# Candidates computed together, one per SIMD lane: their independent recursions fill the vector
+# registers and hide the latency of the D(i, j-1) -> D(i, j) dependency.
 _LANES = 16
-# Points per segment of the piecewise bounding-box envelope used by the lower bound.
-_SEG = 8
-# Relative shrink applied to every lower bound before comparing it with a threshold.
+# Points per segment of the piecewise bounding-box envelope of the fine lower bounds.
+_SEG = 10
+# Relative shrink applied to every lower bound, relative slack added to every threshold: float
+# rounding of sums taken in a different order can then never prune a cell or a candidate that
+# the plain recursion would keep (their rounding errors are ~(n + m) * 1.1e-16 relative).
 _SHRINK = 1.0 - 1e-9
+_SLACK = 1.0 + 1e-10
+# Columns added at a time when a row extends beyond the previous row's alive window.
+_EXTEND = 8
 
 
 # ----------------------------------------------------------------------------------------------
-# numba kernels
+# numba kernels. A block holds _LANES candidates: Yf[k, j * _LANES + lane] (D, T * _LANES) is
+# coordinate k of point j of a lane's candidate. DP rows are flat arrays indexed
+# (j + 1) * _LANES + lane, the first _LANES entries holding the virtual column -1.
 # ----------------------------------------------------------------------------------------------
 
 
 @njit(cache=True, nogil=True)
-def _gather_block(sim, lengths, ids, start, count, Y, mlen):
-    """Copy candidates ``ids[start:start+count]`` into the lane block ``Y`` (D, T, L).
+def _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad):
+    """Copy candidates ``ids[start:start+count]`` into the lane block Yf.
 
-    Steps >= length repeat the last valid point whatever the input padding holds; unused lanes
-    replicate the first lane. Returns the largest length in the block.
+    Points j < the block's largest length (returned) are written; steps >= a candidate's length
+    repeat its last valid point whatever the input padding holds; unused lanes replicate the
+    first one. box[0, k, lane] / box[1, k, lane] receive the lane's bounding box. A NaN/inf
+    among the valid points is recorded in bad[0] (as b * T + step) and replaced by 0 (the
+    caller raises).
     """
-    T = Y.shape[1]
-    D = Y.shape[0]
+    D = Yf.shape[0]
+    T = sim.shape[1]
+    nl = mlen.shape[0]
     mmax = 1
-    for lane in range(_LANES):
-        b = ids[start + (lane if lane < count else 0)]
-        m = lengths[b]
+    for lane in range(nl):
+        m = lengths[ids[start + (lane if lane < count else 0)]]
         mlen[lane] = m
         if m > mmax:
             mmax = m
-        for j in range(T):
-            jj = j if j < m else m - 1
+    flat = sim.reshape(sim.size)
+    base = np.empty(nl, dtype=np.int64)  # offset of each lane's candidate in flat
+    off = np.empty(nl, dtype=np.int64)  # offset of its point j
+    for lane in range(nl):
+        base[lane] = ids[start + (lane if lane < count else 0)] * (T * D)
+    for k in range(D):
+        for lane in range(nl):
+            v = flat[base[lane] + k]
+            box[0, k, lane] = v
+            box[1, k, lane] = v
+    chk = np.zeros(nl)
+    for j in range(mmax):
+        for lane in range(nl):
+            m = mlen[lane]
+            off[lane] = base[lane] + (j if j < m else m - 1) * D
+        t = j * nl
+        for k in range(D):
+            lo = box[0, k]
+            hi = box[1, k]
+            Yk = Yf[k, t : t + nl]
+            for lane in range(nl):
+                v = flat[off[lane] + k]
+                Yk[lane] = v
+                chk[lane] += v * 0.0  # NaN as soon as one value is NaN or inf
+                lo[lane] = v if v < lo[lane] else lo[lane]
+                hi[lane] = v if v > hi[lane] else hi[lane]
+    for lane in range(count):
+        if chk[lane] != 0.0:
+            b = ids[start + lane]
+            for j in range(mlen[lane]):
+                for k in range(D):
+                    if not np.isfinite(sim[b, j, k]) and bad[0] < 0:
+                        bad[0] = b * T + j
             for k in range(D):
-                Y[k, j, lane] = sim[b, jj, k]
+                for j in range(mmax):
+                    if not np.isfinite(Yf[k, j * nl + lane]):
+                        Yf[k, j * nl + lane] = 0.0
     return mmax
 
 
 @njit(cache=True, nogil=True)
-def _dtw_block(x, Y, mlen, mmax, thr, suffix_blk, prev, cur, cost, rmin, out):
-    """DTW of the observed ``x`` (n, D) against the ``_LANES`` candidates of block ``Y``.
-
-    thr: (L,) abandon threshold per lane (+inf: never abandon); a lane is abandoned when
-    ``(min_j D(i, j) + suffix_blk[i+1, lane]) * _SHRINK > thr[lane]``; the block stops when all
-    of its lanes are abandoned. out[lane] receives the exact DTW or +inf when abandoned.
-    Returns True when the block ran to the end.
-    """
-    n = x.shape[0]
-    D = x.shape[1]
-    inf = np.inf
-    check = False
+def _box_rows_bound(xT, box, acc_r, inner):
+    """Row bounds against one box per lane (the whole candidate): inner[lane] = r_1+...+r_{n-2}."""
+    D, n = xT.shape
     for lane in range(_LANES):
-        if thr[lane] < inf:
-            check = True
-    for j in range(mmax + 1):
-        for lane in range(_LANES):
-            prev[j, lane] = inf
-    for lane in range(_LANES):
-        prev[0, lane] = 0.0
-    for i in range(n):
-        for lane in range(_LANES):
-            cur[0, lane] = inf
-        # squared distances of x_i to every point of every lane
-        x0 = x[i, 0]
-        for j in range(mmax):
-            for lane in range(_LANES):
-                d = x0 - Y[0, j, lane]
-                cost[j, lane] = d * d
-        for k in range(1, D):
-            xk = x[i, k]
-            for j in range(mmax):
-                for lane in range(_LANES):
-                    d = xk - Y[k, j, lane]
-                    cost[j, lane] += d * d
-        for lane in range(_LANES):
-            rmin[lane] = inf
-        for j in range(mmax):
-            for lane in range(_LANES):
-                a = prev[j, lane]
-                b = prev[j + 1, lane]
-                e = cur[j, lane]
-                mn = a if a < b else b
-                mn = mn if mn < e else e
-                v = np.sqrt(cost[j, lane]) + mn
-                cur[j + 1, lane] = v
-                r = v if j < mlen[lane] else inf
-                rmin[lane] = r if r < rmin[lane] else rmin[lane]
-        if check and i + 1 < n:
-            alive = False
-            for lane in range(_LANES):
-                if (rmin[lane] + suffix_blk[i + 1, lane]) * _SHRINK <= thr[lane]:
-                    alive = True
-            if not alive:
-                for lane in range(_LANES):
-                    out[lane] = inf
-                return False
-        prev, cur = cur, prev
-    for lane in range(_LANES):
-        out[lane] = prev[mlen[lane], lane]
-    return True
-
-
-@njit(cache=True, parallel=True)
-def _dtw_all(x, sim, lengths, ids, n_chunks, out):
-    """Exact DTW for candidates ``ids`` (ideally sorted by length), no pruning.
-
-    Blocks of ``_LANES`` consecutive ids are dealt round-robin to ``n_chunks`` chunks (one per
-    thread) so that each thread sees a similar mix of lengths.
-    """
-    n_ids = ids.shape[0]
-    T = sim.shape[1]
-    D = sim.shape[2]
-    n_blocks = (n_ids + _LANES - 1) // _LANES
-    for c in prange(n_chunks):
-        Y = np.empty((D, T, _LANES))
-        prev = np.empty((T + 1, _LANES))
-        cur = np.empty((T + 1, _LANES))
-        cost = np.empty((T, _LANES))
-        rmin = np.empty(_LANES)
-        mlen = np.empty(_LANES, dtype=np.int64)
-        thr = np.full(_LANES, np.inf)
-        suffix_blk = np.zeros((1, _LANES))
-        res = np.empty(_LANES)
-        for blk in range(c, n_blocks, n_chunks):
-            start = blk * _LANES
-            count = min(_LANES, n_ids - start)
-            mmax = _gather_block(sim, lengths, ids, start, count, Y, mlen)
-            _dtw_block(x, Y, mlen, mmax, thr, suffix_blk, prev, cur, cost, rmin, res)
-            for lane in range(count):
-                out[ids[start + lane]] = res[lane]
+        for k in range(D):
+            lo = box[0, k, lane]
+            hi = box[1, k, lane]
+            xk = xT[k]
+            if k == 0:
+                for i in range(n):
+                    d1 = lo - xk[i]
+                    d2 = xk[i] - hi
+                    d = d1 if d1 > d2 else d2
+                    d = d if d > 0.0 else 0.0
+                    acc_r[i] = d * d
+            else:
+                for i in range(n):
+                    d1 = lo - xk[i]
+                    d2 = xk[i] - hi
+                    d = d1 if d1 > d2 else d2
+                    d = d if d > 0.0 else 0.0
+                    acc_r[i] += d * d
+        for i in range(n):
+            acc_r[i] = np.sqrt(acc_r[i])
+        mid = 0.0
+        for i in range(1, n - 1):
+            mid += acc_r[i]
+        inner[lane] = mid
 
 
 @njit(cache=True, nogil=True)
-def _seg_boxes(pts, m, seg, lo, hi):
-    """Bounding boxes of consecutive segments of ``seg`` points of pts[:m]; returns their count."""
-    D = pts.shape[1]
-    n_seg = (m + seg - 1) // seg
+def _seg_boxes(x, seg):
+    """Bounding boxes lo, hi (D, n_seg) of consecutive segments of ``seg`` points of x (n, D)."""
+    n, D = x.shape
+    n_seg = (n + seg - 1) // seg
+    lo = np.empty((D, n_seg))
+    hi = np.empty((D, n_seg))
     for s in range(n_seg):
         a = s * seg
-        e = min(a + seg, m)
+        e = min(a + seg, n)
         for k in range(D):
-            v = pts[a, k]
-            lo[s, k] = v
-            hi[s, k] = v
-        for j in range(a + 1, e):
-            for k in range(D):
-                v = pts[j, k]
-                if v < lo[s, k]:
-                    lo[s, k] = v
-                if v > hi[s, k]:
-                    hi[s, k] = v
-    return n_seg
+            vlo = x[a, k]
+            vhi = vlo
+            for j in range(a + 1, e):
+                v = x[j, k]
+                vlo = v if v < vlo else vlo
+                vhi = v if v > vhi else vhi
+            lo[k, s] = vlo
+            hi[k, s] = vhi
+    return lo, hi
 
 
 @njit(cache=True, nogil=True)
-def _box_dist2(p, lo, hi, n_seg):
-    """Squared distance from point p (D,) to the nearest of ``n_seg`` boxes."""
-    D = p.shape[0]
-    best = np.inf
-    for s in range(n_seg):
-        acc = 0.0
-        for k in range(D):
-            v = p[k]
-            if v < lo[s, k]:
-                d = lo[s, k] - v
-                acc += d * d
-            elif v > hi[s, k]:
-                d = v - hi[s, k]
-                acc += d * d
-        if acc < best:
-            best = acc
-    return best
-
-
-@njit(cache=True, nogil=True)
-def _point_dist(p, q):
-    acc = 0.0
-    for k in range(p.shape[0]):
-        d = p[k] - q[k]
+def _cell_cost(x, i, Yf, j, lane):
+    """c(i, j) for one lane, summing squares in the same order as the DP kernel."""
+    t = j * _LANES + lane
+    d = x[i, 0] - Yf[0, t]
+    acc = d * d
+    for k in range(1, x.shape[1]):
+        d = x[i, k] - Yf[k, t]
         acc += d * d
     return np.sqrt(acc)
 
 
-@njit(cache=True, parallel=True)
-def _lower_bounds(x, sim, lengths, seg, lb, suffix):
-    """Lower bounds of DTW(x, sim[b, :lengths[b]]) for every candidate b.
+@njit(cache=True, nogil=True)
+def _rows_bound(xT, Yf, mlen, seg, acc_r, best_r, suffix_blk, inner):
+    """Row bounds: r_i = min over the lane's segments s of dist(x_i, box_s(y)) <= min_j c(i, j).
 
-    lb: (B,) receives max(row bound, column bound), shrunk by ``_SHRINK``.
-    suffix: (B, n+1) receives S(i) = bound on the cost of rows i..n-1 (S(n) = 0).
+    Every warping path visits every row, in cells that differ from row to row, so any sum of
+    r_i over distinct rows is a lower bound of the cost of the path's cells in those rows.
+    suffix_blk[i, lane] = (r_i + ... + r_{n-1}) * _SHRINK (suffix_blk[n] = 0);
+    inner[lane] = r_1 + ... + r_{n-2}.
     """
-    n = x.shape[0]
-    D = x.shape[1]
-    B = sim.shape[0]
-    T = sim.shape[1]
-    max_seg_obs = (n + seg - 1) // seg
-    olo = np.empty((max_seg_obs, D))
-    ohi = np.empty((max_seg_obs, D))
-    n_seg_obs = _seg_boxes(x, n, seg, olo, ohi)
-    max_seg = (T + seg - 1) // seg
-    for b in prange(B):
-        y = sim[b]
-        m = lengths[b]
-        ylo = np.empty((max_seg, D))
-        yhi = np.empty((max_seg, D))
-        n_seg = _seg_boxes(y, m, seg, ylo, yhi)
-        # rows (observed points)
-        first = _point_dist(x[0], y[0])
-        suffix[b, n] = 0.0
-        if n == 1:
-            last_row = _point_dist(x[0], y[m - 1]) if m > 1 else 0.0
-            rows = first + last_row
-            suffix[b, 0] = rows
-        else:
-            acc = _point_dist(x[n - 1], y[m - 1])
-            suffix[b, n - 1] = acc
-            for i in range(n - 2, 0, -1):
-                acc += np.sqrt(_box_dist2(x[i], ylo, yhi, n_seg))
-                suffix[b, i] = acc
-            acc += first
-            suffix[b, 0] = acc
-            rows = acc
-        # columns (simulated points)
-        if m == 1:
-            cols = first + (_point_dist(x[n - 1], y[0]) if n > 1 else 0.0)
-        else:
-            cols = first + _point_dist(x[n - 1], y[m - 1])
-            for j in range(1, m - 1):
-                cols += np.sqrt(_box_dist2(y[j], olo, ohi, n_seg_obs))
-        best = rows if rows > cols else cols
-        lb[b] = best * _SHRINK
-        for i in range(n + 1):
-            suffix[b, i] = suffix[b, i] * _SHRINK
+    D, n = xT.shape
+    L = _LANES
+    inf = np.inf
+    for lane in range(L):
+        m = mlen[lane]
+        for i in range(n):
+            best_r[i] = inf
+        for s in range((m + seg - 1) // seg):
+            a = s * seg
+            e = min(a + seg, m)
+            for k in range(D):
+                lo = Yf[k, a * L + lane]
+                hi = lo
+                for j in range(a + 1, e):
+                    v = Yf[k, j * L + lane]
+                    lo = v if v < lo else lo
+                    hi = v if v > hi else hi
+                xk = xT[k]
+                if k == 0:
+                    for i in range(n):
+                        d1 = lo - xk[i]
+                        d2 = xk[i] - hi
+                        d = d1 if d1 > d2 else d2
+                        d = d if d > 0.0 else 0.0
+                        acc_r[i] = d * d
+                else:
+                    for i in range(n):
+                        d1 = lo - xk[i]
+                        d2 = xk[i] - hi
+                        d = d1 if d1 > d2 else d2
+                        d = d if d > 0.0 else 0.0
+                        acc_r[i] += d * d
+            for i in range(n):
+                v = acc_r[i]
+                best_r[i] = v if v < best_r[i] else best_r[i]
+        tot = 0.0
+        mid = 0.0
+        suffix_blk[n, lane] = 0.0
+        for i in range(n - 1, -1, -1):
+            r = np.sqrt(best_r[i])
+            tot += r
+            suffix_blk[i, lane] = tot * _SHRINK
+            if 0 < i < n - 1:
+                mid += r
+        inner[lane] = mid
 
 
 @njit(cache=True, nogil=True)
-def _heap_replace_top(heap, v):
-    """Max-heap: replace the largest element with v and restore the heap."""
+def _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, inner):
+    """Column bounds: inner[lane] = sum over columns 1..m-2 of min_s dist(y_j, box_s(x))."""
+    D = Yf.shape[0]
+    L = _LANES
+    W = mmax * L
+    bc = best_c[:W]
+    ac = acc_c[:W]
+    for t in range(W):
+        bc[t] = np.inf
+    for s in range(olo.shape[1]):
+        for k in range(D):
+            lo = olo[k, s]
+            hi = ohi[k, s]
+            Yk = Yf[k, :W]
+            if k == 0:
+                for t in range(W):
+                    d1 = lo - Yk[t]
+                    d2 = Yk[t] - hi
+                    d = d1 if d1 > d2 else d2
+                    d = d if d > 0.0 else 0.0
+                    ac[t] = d * d
+            else:
+                for t in range(W):
+                    d1 = lo - Yk[t]
+                    d2 = Yk[t] - hi
+                    d = d1 if d1 > d2 else d2
+                    d = d if d > 0.0 else 0.0
+                    ac[t] += d * d
+        for t in range(W):
+            v = ac[t]
+            bc[t] = v if v < bc[t] else bc[t]
+    for t in range(W):
+        bc[t] = np.sqrt(bc[t])
+    for lane in range(L):
+        inner[lane] = 0.0
+    for j in range(1, mmax - 1):
+        for lane in range(L):
+            if j < mlen[lane] - 1:
+                inner[lane] += bc[j * L + lane]
+
+
+@njit(cache=True, nogil=True)
+def _combine_bounds(x, Yf, mlen, rows_inner, cols_inner, lb):
+    """lb = max(row bound, column bound) * _SHRINK, each with its LB_Kim end cells.
+
+    Every path contains (0, 0) and (n-1, m-1): row 0 (column 0) costs at least c(0, 0) and row
+    n-1 (column m-1) at least c(n-1, m-1); the inner rows (columns) add their own bounds.
+    """
+    n = x.shape[0]
+    for lane in range(_LANES):
+        m = mlen[lane]
+        first = _cell_cost(x, 0, Yf, 0, lane)
+        if n == 1:
+            rows = first + (_cell_cost(x, 0, Yf, m - 1, lane) if m > 1 else 0.0)
+        else:
+            rows = first + rows_inner[lane] + _cell_cost(x, n - 1, Yf, m - 1, lane)
+        if m == 1:
+            cols = first + (_cell_cost(x, n - 1, Yf, 0, lane) if n > 1 else 0.0)
+        else:
+            cols = first + cols_inner[lane] + _cell_cost(x, n - 1, Yf, m - 1, lane)
+        lb[lane] = (rows if rows > cols else cols) * _SHRINK
+
+
+@njit(cache=True, nogil=True)
+def _upper_bound(x, Yf, mlen, ub, acc):
+    """Cost of the straight warping path from (0, 0) to (n-1, m-1), summed in path order.
+
+    The longer side advances at every step, the other by 0 or 1. Summed along the path exactly
+    as the DP accumulates, so the DP's result never exceeds it, even in floating point.
+    acc: (L,) scratch.
+    """
+    n, D = x.shape
+    nl = mlen.shape[0]
+    m = mlen[0]
+    same = True
+    for lane in range(nl):
+        if mlen[lane] != m:
+            same = False
+    if not same:
+        for lane in range(nl):
+            m = mlen[lane]
+            K = n if n > m else m
+            tot = _cell_cost(x, 0, Yf, 0, lane)
+            for t in range(1, K):
+                i = (t * (n - 1) + (K - 1) // 2) // (K - 1)
+                j = (t * (m - 1) + (K - 1) // 2) // (K - 1)
+                tot = _cell_cost(x, i, Yf, j, lane) + tot
+            ub[lane] = tot
+        return
+    # every lane has the same length: one path for all, vectorised across lanes
+    K = n if n > m else m
+    for t in range(K):
+        i = 0 if K == 1 else (t * (n - 1) + (K - 1) // 2) // (K - 1)
+        j = 0 if K == 1 else (t * (m - 1) + (K - 1) // 2) // (K - 1)
+        for k in range(D):
+            xk = x[i, k]
+            Yk = Yf[k, j * nl : (j + 1) * nl]
+            if k == 0:
+                for lane in range(nl):
+                    d = xk - Yk[lane]
+                    acc[lane] = d * d
+            else:
+                for lane in range(nl):
+                    d = xk - Yk[lane]
+                    acc[lane] += d * d
+        if t == 0:
+            for lane in range(nl):
+                ub[lane] = np.sqrt(acc[lane])
+        else:
+            for lane in range(nl):
+                ub[lane] = np.sqrt(acc[lane]) + ub[lane]
+
+
+@njit(cache=True, nogil=True)
+def _acc_dims(x, i, Yf, t0, t1, cst, k0, cnt, first):
+    """cst[t] (+)= sum of (x[i, k] - Yf[k, t0 + t])^2 for k in k0..k0+cnt-1 (cnt <= 4).
+
+    Adds left to right like ``acc += d * d`` coordinate after coordinate (same rounding), with
+    several coordinates per pass over memory.
+    """
+    w = t1 - t0
+    a0 = x[i, k0]
+    y0 = Yf[k0, t0:t1]
+    if cnt == 1:
+        if first:
+            for t in range(w):
+                d0 = a0 - y0[t]
+                cst[t] = d0 * d0
+        else:
+            for t in range(w):
+                d0 = a0 - y0[t]
+                cst[t] = cst[t] + d0 * d0
+        return
+    a1 = x[i, k0 + 1]
+    y1 = Yf[k0 + 1, t0:t1]
+    if cnt == 2:
+        if first:
+            for t in range(w):
+                d0 = a0 - y0[t]
+                d1 = a1 - y1[t]
+                cst[t] = d0 * d0 + d1 * d1
+        else:
+            for t in range(w):
+                d0 = a0 - y0[t]
+                d1 = a1 - y1[t]
+                cst[t] = cst[t] + d0 * d0 + d1 * d1
+        return
+    a2 = x[i, k0 + 2]
+    y2 = Yf[k0 + 2, t0:t1]
+    if cnt == 3:
+        if first:
+            for t in range(w):
+                d0 = a0 - y0[t]
+                d1 = a1 - y1[t]
+                d2 = a2 - y2[t]
+                cst[t] = d0 * d0 + d1 * d1 + d2 * d2
+        else:
+            for t in range(w):
+                d0 = a0 - y0[t]
+                d1 = a1 - y1[t]
+                d2 = a2 - y2[t]
+                cst[t] = cst[t] + d0 * d0 + d1 * d1 + d2 * d2
+        return
+    a3 = x[i, k0 + 3]
+    y3 = Yf[k0 + 3, t0:t1]
+    if first:
+        for t in range(w):
+            d0 = a0 - y0[t]
+            d1 = a1 - y1[t]
+            d2 = a2 - y2[t]
+            d3 = a3 - y3[t]
+            cst[t] = d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3
+    else:
+        for t in range(w):
+            d0 = a0 - y0[t]
+            d1 = a1 - y1[t]
+            d2 = a2 - y2[t]
+            d3 = a3 - y3[t]
+            cst[t] = cst[t] + d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3
+
+
+@njit(cache=True, nogil=True)
+def _row_pass(x, i, Yf, prev, cur, cost, c0, c1):
+    """Cells (i, c0..c1) of every lane: cost, then min over above / diagonal, then left.
+
+    Reads prev columns c0-1..c1 and cur column c0-1. Slices starting at 0 let LLVM prove the
+    accesses disjoint and vectorise every loop. Per cell this is exactly
+    D(i, j) = c(i, j) + min(D(i-1, j-1), D(i-1, j), D(i, j-1)), since rounding is monotone:
+    c + min(a, b, e) == min(c + min(a, b), c + e) in floating point.
+    """
+    L = _LANES
+    D = x.shape[1]
+    t0 = c0 * L
+    t1 = (c1 + 1) * L
+    w = t1 - t0
+    cst = cost[t0:t1]
+    for k0 in range(0, D, 4):
+        _acc_dims(x, i, Yf, t0, t1, cst, k0, min(4, D - k0), k0 == 0)
+    up_left = prev[t0:t1]
+    up = prev[t0 + L : t1 + L]
+    here = cur[t0 + L : t1 + L]
+    for t in range(w):
+        c = np.sqrt(cst[t])
+        cst[t] = c
+        p = up_left[t]
+        q = up[t]
+        here[t] = c + (p if p < q else q)
+    # flat loop with a dependence distance of _LANES: still vectorises across lanes
+    row = cur[t0 : t1 + L]
+    for t in range(w):
+        v = row[t + L]
+        v2 = cst[t] + row[t]
+        row[t + L] = v if v < v2 else v2
+
+
+@njit(cache=True, nogil=True)
+def _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, prev, cur, cost, thr_eff, out):
+    """Exact DTW of the observed ``x`` (n, D) against the ``_LANES`` candidates of a block.
+
+    thr[lane]: threshold; out[lane] = the exact DTW if it is <= thr[lane], else +inf. Cells
+    (i, j) are computed only inside a window of columns outside of which every lane's cell
+    provably has ``D(i, j) + suffix_blk[i+1] > thr`` (PrunedDTW, Silva & Batista 2016, with the
+    bounds of the remaining rows as in EAPrunedDTW, Herrmann & Webb 2021): such cells cannot lie
+    on an optimal path of cost <= thr, and every cell that can is computed with exactly the
+    operations of the plain recursion. A column j >= mlen[lane] is dead for that lane. The
+    block stops as soon as a whole row is dead. Returns True if the block ran to its last row.
+    """
+    n = x.shape[0]
+    L = _LANES
+    inf = np.inf
+    for lane in range(L):
+        thr_eff[lane] = thr[lane] * _SLACK
+        prev[lane] = 0.0  # virtual cell (-1, -1)
+        prev[L + lane] = inf  # virtual cell (-1, 0)
+    a = -1  # first and last alive columns of the previous row
+    b = -1
+    s = 0
+    e = 0
+    for i in range(n):
+        i1 = i + 1
+        s = a if a > 0 else 0
+        e = b + 1 if b + 1 < mmax else mmax - 1
+        for lane in range(L):
+            cur[s * L + lane] = inf  # column s-1
+        c0 = s
+        while True:
+            _row_pass(x, i, Yf, prev, cur, cost, c0, e)
+            if e + 1 >= mmax:
+                break
+            # beyond the previous row's alive columns only the left neighbour can be alive
+            base = (e + 1) * L
+            alive = False
+            for lane in range(L):
+                if e < mlen[lane] and cur[base + lane] + suffix_blk[i1, lane] <= thr_eff[lane]:
+                    alive = True
+            if not alive:
+                break
+            c0 = e + 1
+            e = min(e + _EXTEND, mmax - 1)
+            for t in range((c0 + 1) * L, (e + 2) * L):
+                prev[t] = inf
+        for lane in range(L):
+            cur[(e + 2) * L + lane] = inf  # column e+1
+        a = -1
+        b = -1
+        for j in range(s, e + 1):
+            base = (j + 1) * L
+            for lane in range(L):
+                if j < mlen[lane] and cur[base + lane] + suffix_blk[i1, lane] <= thr_eff[lane]:
+                    a = j
+            if a >= 0:
+                break
+        if a < 0:
+            for lane in range(L):
+                out[lane] = inf
+            return False
+        for j in range(e, a - 1, -1):
+            base = (j + 1) * L
+            for lane in range(L):
+                if j < mlen[lane] and cur[base + lane] + suffix_blk[i1, lane] <= thr_eff[lane]:
+                    b = j
+            if b >= 0:
+                break
+        prev, cur = cur, prev
+    for lane in range(L):
+        col = mlen[lane] - 1
+        v = prev[(col + 1) * L + lane] if s <= col <= e else inf
+        out[lane] = v if v <= thr[lane] else inf
+    return True
+
+
+@njit(cache=True, parallel=True)
+def _coarse_bounds(x, sim, lengths, ids, lb, ub, bad):
+    """Cheap lower bound (one box per trajectory, LB_Kim ends) and upper bound of candidates
+    ``ids`` (sorted by length for short blocks), written to lb[b], ub[b]."""
+    n, D = x.shape
+    T = sim.shape[1]
+    n_ids = ids.shape[0]
+    xT = np.ascontiguousarray(x.T)
+    olo, ohi = _seg_boxes(x, n)
+    n_blocks = (n_ids + _LANES - 1) // _LANES
+    for blk in prange(n_blocks):
+        Yf = np.empty((D, T * _LANES))
+        mlen = np.empty(_LANES, dtype=np.int64)
+        box = np.empty((2, D, _LANES))
+        acc_r = np.empty(n)
+        best_r = np.empty(n)
+        acc_c = np.empty(T * _LANES)
+        best_c = np.empty(T * _LANES)
+        suffix_blk = np.empty((n + 1, _LANES))
+        rows = np.empty(_LANES)
+        cols = np.empty(_LANES)
+        lbb = np.empty(_LANES)
+        ubb = np.empty(_LANES)
+        start = blk * _LANES
+        count = min(_LANES, n_ids - start)
+        mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad)
+        _box_rows_bound(xT, box, acc_r, rows)
+        _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols)
+        _combine_bounds(x, Yf, mlen, rows, cols, lbb)
+        _upper_bound(x, Yf, mlen, ubb, cols)
+        for lane in range(count):
+            b = ids[start + lane]
+            lb[b] = lbb[lane]
+            ub[b] = ubb[lane]
+
+
+@njit(cache=True)
+def _fine_bounds(x, sim, lengths, seg, lb, ub, suffix):
+    """Fine lower bounds, upper bounds and row suffix bounds of every candidate (tests)."""
+    n, D = x.shape
+    B, T = sim.shape[0], sim.shape[1]
+    xT = np.ascontiguousarray(x.T)
+    olo, ohi = _seg_boxes(x, seg)
+    Yf = np.empty((D, T * _LANES))
+    mlen = np.empty(_LANES, dtype=np.int64)
+    box = np.empty((2, D, _LANES))
+    acc_r = np.empty(n)
+    best_r = np.empty(n)
+    acc_c = np.empty(T * _LANES)
+    best_c = np.empty(T * _LANES)
+    suffix_blk = np.empty((n + 1, _LANES))
+    rows = np.empty(_LANES)
+    cols = np.empty(_LANES)
+    lbb = np.empty(_LANES)
+    ubb = np.empty(_LANES)
+    ids = np.arange(B)
+    bad = np.full(1, -1)
+    for start in range(0, B, _LANES):
+        count = min(_LANES, B - start)
+        mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad)
+        _rows_bound(xT, Yf, mlen, seg, acc_r, best_r, suffix_blk, rows)
+        _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols)
+        _combine_bounds(x, Yf, mlen, rows, cols, lbb)
+        _upper_bound(x, Yf, mlen, ubb, cols)
+        for lane in range(count):
+            lb[start + lane] = lbb[lane]
+            ub[start + lane] = ubb[lane]
+            for i in range(n + 1):
+                suffix[start + lane, i] = suffix_blk[i, lane]
+
+
+@njit(cache=True, nogil=True)
+def _sift_down(heap, i, v):
+    """Max-heap: put v at position i and move it down to its place."""
     k = heap.shape[0]
-    i = 0
     while True:
         left = 2 * i + 1
         if left >= k:
@@ -316,80 +646,93 @@ def _heap_replace_top(heap, v):
     heap[i] = v
 
 
-@njit(cache=True, nogil=True)
-def _heapify(heap):
-    k = heap.shape[0]
-    for start in range(k // 2 - 1, -1, -1):
-        v = heap[start]
-        i = start
-        while True:
-            left = 2 * i + 1
-            if left >= k:
-                break
-            right = left + 1
-            c = left
-            if right < k and heap[right] > heap[left]:
-                c = right
-            if heap[c] <= v:
-                break
-            heap[i] = heap[c]
-            i = c
-        heap[i] = v
-
-
 @njit(cache=True, parallel=True)
-def _dtw_pruned(x, sim, lengths, ids, lb, suffix, thr0, heap0, n_chunks, out):
-    """DTW with pruning for candidates ``ids`` sorted by ascending lower bound.
+def _dtw_blocks(x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, n_chunks, out, bad):
+    """DTW of candidates ``ids`` in blocks of ``_LANES``, dealt round-robin to ``n_chunks``.
 
-    thr0: initial abandon threshold (a candidate is dropped when its bound is > thr0).
-    heap0: (k,) exact values already known (k = 0: the threshold stays thr0); each chunk keeps
-    its own max-heap of the k best values it has seen, whose top is an upper bound of the global
-    k-th best, and tightens its threshold with it. out[b] = exact DTW or +inf (pruned).
+    mode 0 (all exact): each lane's threshold is its own upper bound, so every result is exact
+        and cells that cannot lie on an optimal path are skipped; ids sorted by length.
+    mode 1 / 2 (pruned): a chunk's threshold is tau = min(thr0, top of its max-heap); the heap
+        starts from heap0, values known for k *other* candidates (exact, or +inf above the
+        threshold they were computed with), and takes in the exact values the chunk computes,
+        so its top always bounds the global k-th best from above (k = 0: no heap). A lane's
+        threshold is min(tau, its upper bound); a lane whose fine lower bound exceeds tau is
+        dead from the start and a block without live lanes skips the DP. In mode 2 ids are in
+        ascending coarse bound lb0 and a chunk stops at its first block whose bounds all exceed
+        tau.
+    out[b] = exact DTW if <= the lane's threshold, else +inf.
     """
-    n_ids = ids.shape[0]
-    n = x.shape[0]
+    n, D = x.shape
     T = sim.shape[1]
-    D = sim.shape[2]
+    n_ids = ids.shape[0]
     k = heap0.shape[0]
+    xT = np.ascontiguousarray(x.T)
+    olo, ohi = _seg_boxes(x, _SEG)
     n_blocks = (n_ids + _LANES - 1) // _LANES
     for c in prange(n_chunks):
-        Y = np.empty((D, T, _LANES))
-        prev = np.empty((T + 1, _LANES))
-        cur = np.empty((T + 1, _LANES))
-        cost = np.empty((T, _LANES))
-        rmin = np.empty(_LANES)
+        Yf = np.empty((D, T * _LANES))
         mlen = np.empty(_LANES, dtype=np.int64)
-        thr = np.empty(_LANES)
+        box = np.empty((2, D, _LANES))
+        acc_r = np.empty(n)
+        best_r = np.empty(n)
+        acc_c = np.empty(T * _LANES)
+        best_c = np.empty(T * _LANES)
         suffix_blk = np.empty((n + 1, _LANES))
+        rows = np.empty(_LANES)
+        cols = np.empty(_LANES)
+        lbb = np.empty(_LANES)
+        prev = np.empty((T + 2) * _LANES)
+        cur = np.empty((T + 2) * _LANES)
+        cost = np.empty(T * _LANES)
+        thr = np.empty(_LANES)
+        thr_eff = np.empty(_LANES)
         res = np.empty(_LANES)
         heap = heap0.copy()
-        if k > 0:
-            _heapify(heap)
+        for h in range(k // 2 - 1, -1, -1):
+            _sift_down(heap, h, heap[h])
         for blk in range(c, n_blocks, n_chunks):
+            start = blk * _LANES
+            count = min(_LANES, n_ids - start)
             tau = thr0
             if k > 0 and heap[0] < tau:
                 tau = heap[0]
-            start = blk * _LANES
-            count = min(_LANES, n_ids - start)
-            if lb[ids[start]] > tau:
-                # ids are sorted by bound: this block and every later one are pruned
+            if mode == 2 and lb0[ids[start]] > tau:
+                # every later block of the chunk has larger coarse bounds: all out
                 for b2 in range(blk, n_blocks, n_chunks):
                     s2 = b2 * _LANES
                     for lane in range(min(_LANES, n_ids - s2)):
                         out[ids[s2 + lane]] = np.inf
                 break
-            mmax = _gather_block(sim, lengths, ids, start, count, Y, mlen)
+            mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad)
+            _rows_bound(xT, Yf, mlen, _SEG, acc_r, best_r, suffix_blk, rows)
+            if mode == 0:
+                _upper_bound(x, Yf, mlen, thr, cols)
+            else:
+                for lane in range(_LANES):
+                    u = ub[ids[start + (lane if lane < count else 0)]]
+                    thr[lane] = u if u < tau else tau
+            for lane in range(count, _LANES):
+                thr[lane] = -1.0  # padding lane
+            if mode != 0:
+                _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols)
+                _combine_bounds(x, Yf, mlen, rows, cols, lbb)
+                for lane in range(_LANES):
+                    if lbb[lane] > thr[lane]:
+                        thr[lane] = -1.0  # dead from the start
+            alive = False
             for lane in range(_LANES):
-                b = ids[start + (lane if lane < count else 0)]
-                thr[lane] = tau
-                for i in range(n + 1):
-                    suffix_blk[i, lane] = suffix[b, i]
-            _dtw_block(x, Y, mlen, mmax, thr, suffix_blk, prev, cur, cost, rmin, res)
+                if thr[lane] >= 0.0:
+                    alive = True
+            if alive:
+                _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, prev, cur, cost, thr_eff, res)
+            else:
+                for lane in range(_LANES):
+                    res[lane] = np.inf
             for lane in range(count):
                 v = res[lane]
                 out[ids[start + lane]] = v
                 if k > 0 and v < heap[0]:
-                    _heap_replace_top(heap, v)
+                    _sift_down(heap, 0, v)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -450,15 +793,13 @@ def _check_observed_length(observed_length, T_o: int) -> int:
     return int(observed_length)
 
 
-def _check_valid_finite(sim: torch.Tensor, lengths: np.ndarray, name: str) -> None:
+def _raise_nonfinite(sim: np.ndarray, lengths: np.ndarray, name: str) -> None:
+    """Raise ValueError naming the first sample/step holding NaN or inf among valid steps."""
     T = sim.shape[1]
-    if bool(torch.isfinite(sim).all()):
-        return
-    valid = torch.arange(T)[None, :] < torch.from_numpy(lengths)[:, None]
-    bad = ~torch.isfinite(sim).all(dim=-1) & valid
-    if bool(bad.any()):
-        b, t = (int(v) for v in torch.nonzero(bad)[0])
-        raise ValueError(f"{name}: contains NaN or inf values (sample {b}, step {t})")
+    valid = np.arange(T)[None, :] < lengths[:, None]
+    bad = ~np.isfinite(sim).all(axis=-1) & valid
+    b, t = np.argwhere(bad)[0]
+    raise ValueError(f"{name}: contains NaN or inf values (sample {int(b)}, step {int(t)})")
 
 
 class _Threads:
@@ -539,18 +880,21 @@ def dtw_distances(
             )
     obs_t = obs_t[:n]
     check_finite(obs_t, "observed")
-    _check_valid_finite(sim_t, lens, "simulated")
 
     sim = _to_numpy(sim_t)
-    x = np.ascontiguousarray(_to_numpy(obs_t).astype(sim.dtype, copy=False))
+    x = np.ascontiguousarray(_to_numpy(obs_t).astype(np.float64))
     out = np.empty(B, dtype=np.float64)
+    bad = np.full(1, -1, dtype=np.int64)  # set by the kernels on NaN/inf in a valid step
 
     with _Threads(workers) as n_threads:
         if eps is None and (k is None or k >= B):
             ids = np.argsort(lens, kind="stable").astype(np.int64)
-            _dtw_all(x, sim, lens, ids, n_threads, out)
+            none = np.empty(0)
+            _dtw_blocks(x, sim, lens, ids, 0, none, none, np.inf, none, n_threads, out, bad)
+            if bad[0] >= 0:
+                _raise_nonfinite(sim, lens, "simulated")
         else:
-            _dtw_with_pruning(x, sim, lens, eps, k, n_threads, out)
+            _dtw_with_pruning(x, sim, lens, eps, k, n_threads, out, bad)
 
     if eps is not None:
         out[out >= eps] = np.inf
@@ -562,30 +906,53 @@ def dtw_distances(
     return torch.from_numpy(out)
 
 
-def _dtw_with_pruning(x, sim, lens, eps, k, n_threads, out) -> None:
+def _dtw_with_pruning(x, sim, lens, eps, k, n_threads, out, bad) -> None:
+    """The pruned pipeline (see the module docstring); out[b] = exact DTW or +inf."""
     B = sim.shape[0]
-    n = x.shape[0]
-    lb = np.empty(B)
-    suffix = np.empty((B, n + 1))
-    _lower_bounds(x, sim, lens, _SEG, lb, suffix)
-    order = np.argsort(lb, kind="stable").astype(np.int64)
-    # candidates with bound >= epsilon are > prev_float(epsilon): abandon threshold
+    lb0 = np.empty(B)
+    ub = np.empty(B)
+    by_length = np.argsort(lens, kind="stable").astype(np.int64)
+    _coarse_bounds(x, sim, lens, by_length, lb0, ub, bad)
+    if bad[0] >= 0:
+        _raise_nonfinite(sim, lens, "simulated")
+    out[:] = np.inf
+    # "DTW >= epsilon" is "DTW > prev_float(epsilon)": the threshold for epsilon
     thr0 = np.inf if eps is None else float(np.nextafter(eps, 0.0))
-    if k is None or k >= B:
-        heap0 = np.empty(0)
-        rest = order
-    else:
-        # phase 1: the k most promising candidates exactly (abandoning only at epsilon)
-        first = order[:k]
-        _dtw_pruned(x, sim, lens, first, lb, suffix, thr0, np.empty(0), n_threads, out)
+    heap0 = np.empty(0)
+    todo = np.ones(B, dtype=bool)
+    if k is not None and k < B:
+        # phase 1: the k smallest upper bounds; the k-th of them bounds the k-th best DTW, and
+        # these candidates are likely among the best: their exact values start the heap
+        first = np.argsort(ub, kind="stable")[:k]
+        thr0 = min(thr0, float(ub[first[-1]]))
+        first = first[np.argsort(lens[first], kind="stable")].astype(np.int64)
+        _dtw_blocks(x, sim, lens, first, 1, lb0, ub, thr0, heap0, n_threads, out, bad)
         heap0 = np.ascontiguousarray(out[first])
-        rest = order[k:]
-        thr0 = min(thr0, float(heap0.max()))
-        out[rest] = np.inf
-        # drop everything whose bound already exceeds the k-th best known value
-        rest = rest[: int(np.searchsorted(lb[rest], thr0, side="right"))]
+        todo[first] = False
+    # phase 2: the others by ascending coarse bound; those above the threshold never get there
+    rest = np.flatnonzero(todo & (lb0 <= thr0))
+    rest = rest[np.argsort(lb0[rest], kind="stable")].astype(np.int64)
     if rest.size:
-        _dtw_pruned(x, sim, lens, rest, lb, suffix, thr0, heap0, n_threads, out)
+        _dtw_blocks(x, sim, lens, rest, 2, lb0, ub, thr0, heap0, n_threads, out, bad)
+
+
+def _candidate_bounds(observed, simulated, lengths=None, seg=_SEG):
+    """Bounds of every candidate, for tests and diagnostics.
+
+    Returns (lb, ub, suffix): the fine lower bound (segments of ``seg`` points), the straight
+    path's cost and the per-row suffix bounds S(i) (B, n+1). ``_coarse_bounds`` is the same lb
+    with one box per trajectory.
+    """
+    x = np.ascontiguousarray(np.asarray(observed, dtype=np.float64))
+    sim = np.ascontiguousarray(np.asarray(simulated, dtype=np.float64))
+    B, T = sim.shape[:2]
+    n = x.shape[0]
+    lens = _check_lengths(lengths, B, T)
+    lb = np.empty(B)
+    ub = np.empty(B)
+    suffix = np.empty((B, n + 1))
+    _fine_bounds(x, sim, lens, seg, lb, ub, suffix)
+    return lb, ub, suffix
 
 
 def dtw_reference(a, b) -> float:

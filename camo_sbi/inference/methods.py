@@ -101,10 +101,11 @@ def run_method_sequence(name: str, task, observations: Sequence | None = None, *
                         seed: int, config=None) -> list[PosteriorResult]:
     """Results conditioned on the first 1, 2, ..., K observations.
 
-    Continual methods (a module-level ``run_sequence``) observe the tasks once; the others
-    are rerun from scratch for each k with a fresh counter capped at ``budget * k``. For a
-    continual method the k-th result's ``n_simulations`` is what the counter had counted
-    after task k, and its cap is ``budget * K``, ``budget * k`` used by then.
+    Continual methods (a module-level generator ``run_sequence`` yielding one result per
+    task) observe the tasks once; the others are rerun from scratch for each k with a fresh
+    counter capped at ``budget * k``. For a continual method the k-th result's
+    ``n_simulations`` and ``wall_time`` are read from the counter and the clock here when
+    it yields task k's result (cap ``budget * K``), never taken from the method.
     """
     spec = get_method(name)
     seq = spec.load_sequence()
@@ -117,5 +118,13 @@ def run_method_sequence(name: str, task, observations: Sequence | None = None, *
         return [run_method(name, task, observations[: k + 1], budget=budget, seed=seed, config=cfg)
                 for k in range(len(observations))]
     counter = CountingSimulator(task.simulator, budget * len(observations))
-    results = seq(task.with_simulator(counter), observations, budget=budget, seed=seed, config=cfg)
-    return [replace(r, method=name, n_tasks=k + 1) for k, r in enumerate(results)]
+    out, t0 = [], time.perf_counter()
+    # a continual method yields after each task; the count and the clock are read here
+    for k, r in enumerate(seq(task.with_simulator(counter), observations, budget=budget, seed=seed,
+                              config=cfg)):
+        out.append(replace(r, method=name, n_tasks=k + 1, n_simulations=counter.n_simulations,
+                           wall_time=time.perf_counter() - t0))
+    if len(out) != len(observations):
+        raise RuntimeError(f"method {name!r}: run_sequence yielded {len(out)} results for "
+                           f"{len(observations)} observations")
+    return out

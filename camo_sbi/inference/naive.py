@@ -35,10 +35,11 @@ def _result(observations, t0: float) -> PosteriorResult:
     return PosteriorResult("naive", est[None, :], None, est, 0, time.perf_counter() - t0, len(observations))
 
 
-def run_sequence(task, observations, *, budget: int, seed: int, config: NaiveConfig) -> list[PosteriorResult]:
-    """Results after each observed task (no simulation)."""
+def run_sequence(task, observations, *, budget: int, seed: int, config: NaiveConfig):
+    """Yield the result after each observed task (no simulation)."""
     t0 = time.perf_counter()
-    return [_result(observations[: k + 1], t0) for k in range(len(observations))]
+    for k in range(len(observations)):
+        yield _result(observations[: k + 1], t0)
 
 
 def run(task, observations, *, budget: int, seed: int, config: NaiveConfig) -> PosteriorResult:

@@ -58,11 +58,18 @@ class BoxPrior:
         high = torch.empty(2 * n, dtype=torch.float64)
         low[0::2], high[0::2] = b[:, 0], s
         low[1::2], high[1::2] = s, b[:, 1]
+        if fixed is not None and not isinstance(fixed, Mapping):
+            raise TypeError(f"fixed: expected a mapping {{joint index: (lo, hi)}}, got {type(fixed).__name__}")
         fixed = dict(fixed or {})
         for j, pair in fixed.items():
             if isinstance(j, bool) or not isinstance(j, (int, np.integer)) or not 0 <= j < n:
                 raise ValueError(f"fixed: joint index {j!r} out of range 0..{n - 1}")
-            lo, hi = (float(v) for v in pair)
+            try:
+                lo, hi = (float(v) for v in pair)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"fixed: joint {j} needs a pair of numbers (lo, hi), got {pair!r}") from exc
+            if not (np.isfinite(lo) and np.isfinite(hi)):
+                raise ValueError(f"fixed: joint {j} limits must be finite")
             if not (b[j, 0] <= lo <= s[j] <= hi <= b[j, 1]):
                 raise ValueError(
                     f"fixed: joint {j} limits ({lo:.4g}, {hi:.4g}) must satisfy "
@@ -124,6 +131,8 @@ class BoxPrior:
     def free(self, theta) -> torch.Tensor:
         """(B, 2n) -> (B, n_free): the coordinates that are not fixed."""
         t = as_tensor(theta, "theta", dtype=torch.float64)
+        if t.shape[-1] != self.dim:
+            raise ValueError(f"theta: expected last dimension {self.dim}, got {t.shape[-1]}")
         return t[..., self.free_mask.to(t.device)]
 
     def expand(self, free_theta) -> torch.Tensor:

@@ -120,15 +120,15 @@ class SceneConfig:
     """
 
     table_height: float = 0.75
-    table_depth: float = 1.2
-    table_width: float = 1.8
-    standoff: float = 0.25
-    person_lateral: float = 0.2
+    table_depth: float = 1.4
+    table_width: float = 2.2
+    standoff: float = 0.3
+    person_lateral: float = 0.4
     base_yaw: float = 0.0
     block_size: float = 0.05
     grasp_offset: float = 0.02
-    block_region: tuple[tuple[float, float], tuple[float, float]] = ((0.05, 1.15), (-0.85, 0.85))
-    tower_region: tuple[tuple[float, float], tuple[float, float]] = ((0.10, 0.45), (-0.45, 0.15))
+    block_region: tuple[tuple[float, float], tuple[float, float]] = ((0.05, 1.35), (-1.05, 1.05))
+    tower_region: tuple[tuple[float, float], tuple[float, float]] = ((0.10, 0.45), (-0.25, 0.35))
     min_gap: float = 0.03
     collision_margin: float = 0.005
     hand_penetration: float = 0.045
@@ -370,8 +370,8 @@ class BlockStackingScene:
         # blocks, addressed by their own body ids
         s = 0.5 * cfg.block_size
         self.block_ids: dict[str, int] = {}
+        bcol = p.createCollisionShape(p.GEOM_BOX, halfExtents=[s, s, s], physicsClientId=cid)
         for k, colour in enumerate(COLOURS):
-            bcol = p.createCollisionShape(p.GEOM_BOX, halfExtents=[s, s, s], physicsClientId=cid)
             bvis = p.createVisualShape(p.GEOM_BOX, halfExtents=[s, s, s], rgbaColor=_RGBA[colour],
                                        physicsClientId=cid)
             self.block_ids[colour] = p.createMultiBody(
@@ -465,10 +465,10 @@ class BlockStackingScene:
         clearance = 2 * radius + cfg.min_gap
         (tx0, tx1), (ty0, ty1) = cfg.tower_region
         (bx0, bx1), (by0, by1) = cfg.block_region
-        for _ in range(1000):
+        for _layout in range(1000):
             tower = np.array(self._table_to_world_xy(rng.uniform(tx0, tx1), rng.uniform(ty0, ty1)))
             xy: list[np.ndarray] = []
-            for _ in range(200 * len(COLOURS)):
+            for _attempt in range(200 * len(COLOURS)):
                 c = np.array(self._table_to_world_xy(rng.uniform(bx0, bx1), rng.uniform(by0, by1)))
                 if all(np.linalg.norm(c - o) >= clearance for o in [tower, *xy]):
                     xy.append(c)
@@ -488,7 +488,7 @@ class BlockStackingScene:
         self._check_open()
         if not isinstance(trial, Trial):
             raise TypeError(f"trial: expected Trial, got {type(trial).__name__}")
-        for colour, pos in zip(COLOURS, trial.positions):
+        for colour, pos in zip(COLOURS, trial.positions, strict=True):
             p.resetBasePositionAndOrientation(self.block_ids[colour], pos.tolist(), [0, 0, 0, 1],
                                               physicsClientId=self.client)
         self.order, self.tower = trial.order, trial.tower.copy()
@@ -555,7 +555,9 @@ class BlockStackingScene:
         """Set the person's joints to ``q`` (n,) (resetJointState on this scene's client)."""
         self._check_open()
         q = np.asarray(q, dtype=np.float64).reshape(-1)
-        for j, v in zip(self.joint_indices, q):
+        if q.shape != (len(self.joint_indices),):
+            raise ValueError(f"q: expected {len(self.joint_indices)} joint values, got {q.shape[0]}")
+        for j, v in zip(self.joint_indices, q, strict=True):
             p.resetJointState(self.human_id, j, float(v), physicsClientId=self.client)
 
     def _collides_now(self) -> bool:
@@ -717,7 +719,7 @@ class BlockStackingScene:
             flags = _as_bool_labels(assignment, "assignment")
             if flags.shape != (len(COLOURS),):
                 raise ValueError(f"assignment: expected {len(COLOURS)} labels, got {flags.shape}")
-            assignment = {c: PERSON if f else ROBOT for c, f in zip(COLOURS, flags)}
+            assignment = {c: PERSON if f else ROBOT for c, f in zip(COLOURS, flags, strict=True)}
         if assignment is not None:
             bad = {k: v for k, v in assignment.items() if k not in COLOURS or v not in (PERSON, ROBOT)}
             if bad:
@@ -750,7 +752,7 @@ class BlockStackingScene:
                                           basePosition=[self.tower[0], self.tower[1], cfg.table_height + 0.003],
                                           physicsClientId=cid))
             self.set_posture(self.simulator.start if posture is None else posture)
-            cam = {"target": [0.0, 0.0, 0.75], "distance": 2.5, "yaw": -150.0, "pitch": -42.0}
+            cam = {"target": [-0.2, 0.0, 0.75], "distance": 2.9, "yaw": -20.0, "pitch": -42.0}
             cam.update(camera or {})
             view = p.computeViewMatrixFromYawPitchRoll(cam["target"], cam["distance"], cam["yaw"],
                                                        cam["pitch"], 0.0, 2, physicsClientId=cid)
@@ -774,7 +776,7 @@ class BlockStackingScene:
         if region_theta is not None:
             handles.append(Patch(facecolor=(0.45, 0.85, 0.45), label="reachable (grasp)"))
         handles.append(Patch(facecolor=(0.2, 0.2, 0.2), label="tower"))
-        ax.legend(handles=handles, loc="upper left", fontsize=8, framealpha=0.85)
+        ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.85)
         ax.set_title(title or "order (bottom->top): " + ", ".join(self.order), fontsize=9)
         fig.tight_layout()
         out = os.fspath(out_png)

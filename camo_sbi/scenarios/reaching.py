@@ -23,6 +23,7 @@ __all__ = [
     "make_reaching_task",
     "observe",
     "predict",
+    "reachable_goals",
 ]
 
 SPACES = ("joint", "cartesian")
@@ -104,10 +105,23 @@ def observe(simulator, theta, goals, start=None) -> tuple[Observation, ...]:
 
 
 def predict(simulator, theta_hat, starts, goals) -> Trajectories:
-    """Trajectories predicted with limits ``theta_hat`` (2n,) for ``goals`` (M, 3) from ``starts`` (M, n)."""
-    theta_hat = check_theta(as_tensor(theta_hat, "theta_hat", dtype=torch.float64), simulator.n_joints)
+    """Trajectories predicted with limits ``theta_hat`` (2n,) for ``goals`` (M, 3) from ``starts`` (M, n) or (n,).
+
+    An estimate that excludes a start posture is widened to contain it (the start is observed).
+    """
+    n = simulator.n_joints
+    theta_hat = check_theta(as_tensor(theta_hat, "theta_hat", dtype=torch.float64), n, "theta_hat")
+    if theta_hat.shape[0] != 1:
+        raise ValueError(f"theta_hat: expected one limit vector (2n,), got {tuple(theta_hat.shape)}")
     goals = as_tensor(goals, "goals", dtype=torch.float64)
+    if goals.dim() != 2 or goals.shape[1] != 3:
+        raise ValueError(f"goals: expected shape (M, 3), got {tuple(goals.shape)}")
     starts = as_tensor(starts, "starts", dtype=torch.float64)
+    if starts.dim() == 1 and starts.shape == (n,):
+        starts = starts.expand(goals.shape[0], -1)
+    if starts.shape != (goals.shape[0], n):
+        raise ValueError(f"starts: expected shape ({goals.shape[0]}, {n}) (one per row of goals) or ({n},), "
+                         f"got {tuple(starts.shape)}")
     lim = theta_to_limits(theta_hat[0])
     # the observed start bounds the limits: widen an estimate that excludes it
     lo = torch.minimum(lim[:, 0].expand_as(starts), starts)
@@ -119,12 +133,46 @@ def predict(simulator, theta_hat, starts, goals) -> Trajectories:
 def cumulative_cartesian_error(true: Trajectories, pred: Trajectories) -> torch.Tensor:
     """(M,) per goal: sum over time steps of ||ee_true(t) - ee_pred(t)||, padded trajectories
     compared step by step (a trajectory that stopped early holds its final point)."""
+    _check_pair(true, pred)
     return (true.ee - pred.ee).norm(dim=-1).sum(dim=-1)
 
 
 def cumulative_joint_error(true: Trajectories, pred: Trajectories) -> torch.Tensor:
     """(M,) per goal: sum over time steps of ||q_true(t) - q_pred(t)|| (joint space, radians)."""
+    _check_pair(true, pred)
     return (true.q - pred.q).norm(dim=-1).sum(dim=-1)
+
+
+def _check_pair(true: Trajectories, pred: Trajectories) -> None:
+    if not isinstance(true, Trajectories) or not isinstance(pred, Trajectories):
+        raise TypeError("true/pred: expected Trajectories")
+    if true.q.shape != pred.q.shape:
+        raise ValueError(f"pred: shape {tuple(pred.q.shape)} does not match true {tuple(true.q.shape)}")
+
+
+def reachable_goals(simulator, true_theta, n: int, generator, start=None, *, max_rounds: int = 20) -> torch.Tensor:
+    """(n, 3) float64 goals that the subject with limits ``true_theta`` reaches from ``start``.
+
+    Candidates are FK images of configurations drawn uniformly inside the limits
+    (`sample_goals`), drawn in rounds of 2n with ``generator``; candidates the controller
+    does not reach within tolerance are dropped, in draw order.
+    """
+    from camo_sbi.simulators import sample_goals
+
+    n = check_positive_int(n, "n")
+    lim = theta_to_limits(true_theta.reshape(-1))
+    start = simulator.start if start is None else start
+    found = []
+    total = 0
+    for _ in range(max_rounds):
+        cand = sample_goals(simulator, lim, 2 * n, generator).to(torch.float64)
+        traj = simulator.simulate(true_theta.reshape(1, -1).expand(2 * n, -1), cand,
+                                  torch.as_tensor(start, dtype=torch.float64))
+        found.append(cand[traj.reached])
+        total += int(traj.reached.sum())
+        if total >= n:
+            return torch.cat(found)[:n]
+    raise ValueError(f"true_theta: only {total} of {2 * n * max_rounds} sampled goals were reachable")
 
 
 def make_reaching_task(simulator, true_theta, *, n_train: int = 10, n_test: int = 20, seed,
@@ -133,12 +181,11 @@ def make_reaching_task(simulator, true_theta, *, n_train: int = 10, n_test: int 
     """A synthetic subject with limits ``true_theta`` (2n,) observed on ``n_train`` goals.
 
     Goals (train and test) are joint configurations drawn uniformly inside the true
-    limits mapped through FK, so the subject can reach them (as in the paper). All
+    limits mapped through FK, kept only if the subject's controller actually reaches
+    them (`reachable_goals`; the paper's "reachable random goals"). All
     reaches start from ``start`` (default: the simulator's start posture). The default
     prior is the simulator's full range split at the start posture.
     """
-    from camo_sbi.simulators import sample_goals
-
     n_train = check_positive_int(n_train, "n_train")
     n_test = check_positive_int(n_test, "n_test")
     true_theta = check_theta(as_tensor(true_theta, "true_theta", dtype=torch.float64),
@@ -148,7 +195,7 @@ def make_reaching_task(simulator, true_theta, *, n_train: int = 10, n_test: int 
     if bool(((start < lim[:, 0] - 1e-9) | (start > lim[:, 1] + 1e-9)).any()):
         raise ValueError("start: posture lies outside true_theta's limits")
     gen = torch_generator(seed)
-    goals = sample_goals(simulator, lim, n_train + n_test, gen).to(torch.float64)
+    goals = reachable_goals(simulator, true_theta, n_train + n_test, gen, start)
     obs = observe(simulator, true_theta, goals[:n_train], start)
     if prior is None:
         prior = BoxPrior(simulator.bounds, start)

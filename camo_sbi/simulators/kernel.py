@@ -117,9 +117,9 @@ def _fk(w: _Writer, spec: ChainSpec, name_x=("x0", "x1", "x2")):
     p = [_const(0.0)] * 3
     joints = []
     for k in range(spec.n_joints):
-        O = spec.origins[k]
-        M = [[w.mat(_lin([(O[j, c], R[r][j]) for j in range(3)])) for c in range(3)] for r in range(3)]
-        po = [w.mat(_add(p[r], _lin([(O[j, 3], R[r][j]) for j in range(3)]))) for r in range(3)]
+        org = spec.origins[k]
+        M = [[w.mat(_lin([(org[j, c], R[r][j]) for j in range(3)])) for c in range(3)] for r in range(3)]
+        po = [w.mat(_add(p[r], _lin([(org[j, 3], R[r][j]) for j in range(3)]))) for r in range(3)]
         a = spec.axes[k]
         z = [w.mat(_lin([(a[j], M[r][j]) for j in range(3)])) for r in range(3)]
         q = _var(f"q{k}")
@@ -179,7 +179,7 @@ def generate_source(spec: ChainSpec, dtype) -> str:
     w = _Writer(" " * 12)
     pe, joints = _fk(w, spec)
     cols = []
-    for k, (typ, po, z) in enumerate(joints):
+    for typ, po, z in joints:
         if typ == "revolute":
             d = [w.mat(_lin([(1.0, pe[r]), (-1.0, po[r])])) for r in range(3)]
             col = [w.mat(_lin([(1.0, _mul(z[(r + 1) % 3], d[(r + 2) % 3])),

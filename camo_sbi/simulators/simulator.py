@@ -45,6 +45,13 @@ class ControllerConfig:
         max_cartesian_step: cap on the commanded end-effector displacement per step (m).
         max_joint_step: cap on max_i |dq_i| per step (rad or m).
         null_gain: gain of the null-space motion towards the middle of the limits (0: off).
+
+    The defaults were tuned on goals sampled uniformly inside the limits (1000 goals,
+    from the start posture): the Panda reaches 99.9 % of them with its full URDF
+    limits (mean 21 points) and ~92 % with random limits bracketing the start (the
+    rest stall against a clamped joint); the 9-DOF human model ~93 % / ~95 %. A larger
+    ``null_gain`` lowers these rates (the null-space term then dominates the joint-step
+    cap); 0.01 keeps every trajectory a continuous function of all limits.
     """
 
     max_steps: int = 100

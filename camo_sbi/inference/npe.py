@@ -1,0 +1,636 @@
+"""Neural posterior estimation (sbi) per observed task, combined into the joint posterior.
+
+The only module importing sbi.
+
+Design (same simulation design as CAMO, so budgets are equal):
+
+1. Per observed task i, draw ``budget`` limit vectors from the prior and simulate them to THAT
+   task's goal from its start in large batched ``simulate`` calls (never sbi's
+   ``simulate_for_sbi`` with batch size 1). As in CAMO, each vector is widened to contain the
+   task's observed start before simulating (part of the model, a no-op when the start is the
+   prior's split point).
+2. Summary x: the valid part of the trajectory (``config.space``) linearly resampled at
+   ``n_points`` equally spaced times after the start (the start itself is observed, hence
+   uninformative), flattened, plus the trajectory length. A fixed-size vector whatever the
+   length; features that are constant over the task's simulations are dropped (their z-score
+   would divide by ~0). Optionally an MLP embedding net is trained jointly (``embedding="mlp"``).
+3. Train a conditional flow q_i(z | x) (sbi NPE, single round = maximum likelihood, MAF or
+   NSF) on the FREE coordinates only, in unconstrained coordinates z = logit of the position
+   inside the prior box (``theta_transform="logit"``): the flow has no mass outside the box
+   (no leakage correction needed). Training is seeded inside ``torch.random.fork_rng``, so
+   the same seed gives the same estimator and the caller's global torch RNG is untouched.
+4. Combine: with a common prior p, p(theta | x_1..k) ∝ p(theta)^(1-k) ∏_i q_i(theta | x_i)
+   (exact if each q_i is the exact posterior). In z coordinates p is the product of standard
+   logistic densities; with ``theta_transform="none"``, p is uniform and the product is
+   restricted to the box.
+5. Sample the combination by importance sampling: round 0 proposes from the equal mixture of
+   the k flows (stratified: n/k draws from each); later rounds (``is_rounds``) propose from a
+   defensive mixture of a Gaussian fitted to the weighted particles (weight 1 - alpha) and
+   the flow mixture (alpha = ``defensive_fraction``). The round with the largest effective
+   sample size (ESS) is returned as weighted samples; every round's ESS is reported.
+
+`NpePosterior` holds the trained flows and observed summaries: ``log_prob``, ``sample``,
+``save``; `load_posterior` reloads it without retraining.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import os
+import time
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from camo_sbi._validation import as_tensor, check_positive_float, check_positive_int
+from camo_sbi.inference.priors import BoxPrior
+from camo_sbi.inference.result import PosteriorResult
+
+__all__ = [
+    "NpeConfig",
+    "NpePosterior",
+    "fit",
+    "load_posterior",
+    "run",
+    "summarize",
+]
+
+_SPACES = ("joint", "cartesian")
+_MODELS = ("maf", "nsf")
+_EMBEDDINGS = ("none", "mlp")
+_TRANSFORMS = ("logit", "none")
+_ESTIMATORS = ("mean", "median", "map")
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+_FORMAT = "camo_sbi.npe.posterior/1"
+# positions inside the box are clamped to [_U_EPS, 1 - _U_EPS] before the logit
+_U_EPS = 1e-6
+# log-prob evaluations per chunk (samples x tasks)
+_CHUNK = 8192
+
+
+@dataclass(frozen=True)
+class NpeConfig:
+    """NPE settings.
+
+    Attributes:
+        space: "joint" (q) or "cartesian" (end-effector) trajectories summarised.
+        n_points: resampled points per trajectory (after the start).
+        include_length: append the trajectory length to the summary.
+        embedding: "none" (summary fed to the flow, z-scored) or "mlp" (sbi FCEmbedding
+            trained jointly, output ``embedding_dim``).
+        embedding_dim: output size of the MLP embedding.
+        density_estimator: "maf" or "nsf".
+        hidden_features, num_transforms: flow size (sbi's ``posterior_nn``).
+        theta_transform: "logit" (train in unconstrained coordinates) or "none" (raw theta;
+            mass outside the box is discarded when sampling).
+        training_batch_size, learning_rate, validation_fraction, stop_after_epochs, max_epochs:
+            sbi training settings (early stopping on the validation loss).
+        n_posterior_samples: importance samples returned (per IS round).
+        is_rounds: adaptive importance-sampling rounds after the flow-mixture round (0: none).
+        defensive_fraction: share of each adaptive round drawn from the flow mixture.
+        estimator: point estimate: "mean" (weighted), "median" (coordinate-wise weighted) or
+            "map" (sample with the highest combined density).
+        simulation_batch_size: prior draws per ``simulate`` call.
+        sim_dtype: "float32" or "float64" for the simulations.
+        workdir: None, or a directory (created) receiving ``npe_posterior_k{k}_seed{seed}.pt``
+            (reload with `load_posterior`).
+        device: torch device for training ("cpu").
+        n_threads: torch intra-op threads while training and sampling (restored afterwards);
+            None keeps the current setting. Small flows train fastest on one thread: with
+            OpenMP's busy-waiting, 2 threads were ~10x slower per batch on a loaded 2-core box.
+    """
+
+    space: str = "joint"
+    n_points: int = 20
+    include_length: bool = True
+    embedding: str = "none"
+    embedding_dim: int = 32
+    density_estimator: str = "maf"
+    hidden_features: int = 50
+    num_transforms: int = 5
+    theta_transform: str = "logit"
+    training_batch_size: int = 100
+    learning_rate: float = 1e-3
+    validation_fraction: float = 0.1
+    stop_after_epochs: int = 20
+    max_epochs: int = 200
+    n_posterior_samples: int = 4000
+    is_rounds: int = 2
+    defensive_fraction: float = 0.2
+    estimator: str = "mean"
+    simulation_batch_size: int = 10000
+    sim_dtype: str = "float32"
+    workdir: str | os.PathLike | None = None
+    device: str = "cpu"
+    n_threads: int | None = 1
+
+    def __post_init__(self):
+        if self.space not in _SPACES:
+            raise ValueError(f"space: expected one of {_SPACES}, got {self.space!r}")
+        check_positive_int(self.n_points, "n_points")
+        if not isinstance(self.include_length, bool):
+            raise TypeError(f"include_length: expected a bool, got {type(self.include_length).__name__}")
+        if self.embedding not in _EMBEDDINGS:
+            raise ValueError(f"embedding: expected one of {_EMBEDDINGS}, got {self.embedding!r}")
+        check_positive_int(self.embedding_dim, "embedding_dim")
+        if self.density_estimator not in _MODELS:
+            raise ValueError(f"density_estimator: expected one of {_MODELS}, got {self.density_estimator!r}")
+        check_positive_int(self.hidden_features, "hidden_features")
+        check_positive_int(self.num_transforms, "num_transforms")
+        if self.theta_transform not in _TRANSFORMS:
+            raise ValueError(f"theta_transform: expected one of {_TRANSFORMS}, got {self.theta_transform!r}")
+        check_positive_int(self.training_batch_size, "training_batch_size", minimum=2)
+        check_positive_float(self.learning_rate, "learning_rate")
+        check_positive_float(self.validation_fraction, "validation_fraction")
+        if self.validation_fraction >= 0.5:
+            raise ValueError(f"validation_fraction: must be < 0.5, got {self.validation_fraction}")
+        check_positive_int(self.stop_after_epochs, "stop_after_epochs")
+        check_positive_int(self.max_epochs, "max_epochs")
+        check_positive_int(self.n_posterior_samples, "n_posterior_samples", minimum=2)
+        check_positive_int(self.is_rounds, "is_rounds", minimum=0)
+        check_positive_float(self.defensive_fraction, "defensive_fraction")
+        if self.defensive_fraction >= 1:
+            raise ValueError(f"defensive_fraction: must be in (0, 1), got {self.defensive_fraction}")
+        if self.estimator not in _ESTIMATORS:
+            raise ValueError(f"estimator: expected one of {_ESTIMATORS}, got {self.estimator!r}")
+        check_positive_int(self.simulation_batch_size, "simulation_batch_size")
+        if self.sim_dtype not in _DTYPES:
+            raise ValueError(f"sim_dtype: expected one of {tuple(_DTYPES)}, got {self.sim_dtype!r}")
+        if self.workdir is not None and not isinstance(self.workdir, (str, os.PathLike)):
+            raise TypeError(f"workdir: expected a path or None, got {type(self.workdir).__name__}")
+        if self.n_threads is not None:
+            check_positive_int(self.n_threads, "n_threads")
+        if not isinstance(self.device, str):
+            raise TypeError(f"device: expected a str, got {type(self.device).__name__}")
+        try:
+            torch.device(self.device)
+        except RuntimeError as exc:
+            raise ValueError(f"device: {exc}") from exc
+
+
+# ----------------------------------------------------------------------------------------------
+# summaries
+# ----------------------------------------------------------------------------------------------
+
+
+def summarize(traj, lengths, *, n_points: int = 20, include_length: bool = True) -> torch.Tensor:
+    """Fixed-size summaries of padded trajectories.
+
+    traj: (B, T, D) (steps >= length are padding) or (T, D); lengths: (B,) ints in [1, T]
+    (or an int for a single trajectory). Returns (B, n_points * D [+ 1]) float64: the valid
+    part linearly resampled at times (L - 1) * j / n_points, j = 1..n_points (the start,
+    j = 0, is left out), flattened time-major, then the length L if ``include_length``.
+    """
+    x = as_tensor(traj, "traj", dtype=torch.float64)
+    if x.dim() == 2:
+        x = x.unsqueeze(0)
+    if x.dim() != 3 or x.shape[1] < 1:
+        raise ValueError(f"traj: expected shape (B, T, D), got {tuple(x.shape)}")
+    B, T, D = x.shape
+    L = torch.as_tensor(lengths).reshape(-1).to(device=x.device)
+    if L.is_floating_point() or L.shape[0] != B:
+        raise ValueError(f"lengths: expected {B} integer lengths, got {tuple(L.shape)} {L.dtype}")
+    if bool(((L < 1) | (L > T)).any()):
+        raise ValueError(f"lengths: must lie in [1, {T}]")
+    n_points = check_positive_int(n_points, "n_points")
+    last = (L - 1).to(torch.float64)
+    pos = last[:, None] * (torch.arange(1, n_points + 1, dtype=torch.float64, device=x.device) / n_points)
+    i0 = pos.floor().long().clamp(max=T - 1)
+    i1 = torch.minimum(i0 + 1, (L - 1)[:, None].long())
+    frac = (pos - i0.to(torch.float64)).unsqueeze(-1)
+    x0 = torch.gather(x, 1, i0.unsqueeze(-1).expand(-1, -1, D))
+    x1 = torch.gather(x, 1, i1.unsqueeze(-1).expand(-1, -1, D))
+    feats = (x0 + frac * (x1 - x0)).reshape(B, n_points * D)
+    if include_length:
+        feats = torch.cat([feats, L.to(torch.float64)[:, None]], dim=1)
+    return feats
+
+
+# ----------------------------------------------------------------------------------------------
+# the combined posterior
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ImportanceSample:
+    """Weighted draws from `NpePosterior.sample`.
+
+    theta: (N, 2n) float64; weights: (N,) normalised; log_prob: (N,) combined log density
+    (theta coordinates, unnormalised); ess: effective sample size of the returned round;
+    ess_rounds: ESS of every round (round 0 = flow mixture).
+    """
+
+    theta: np.ndarray
+    weights: np.ndarray
+    log_prob: np.ndarray
+    ess: float
+    ess_rounds: list[float]
+
+
+class NpePosterior:
+    """p(theta | x_1..k) ∝ p(theta)^(1-k) ∏_i q_i(theta | x_i) from per-task flows.
+
+    Args:
+        estimators: k trained sbi density estimators q_i(z | x) over the free coordinates.
+        x_obs: k observed summaries (1-D tensors; each estimator's own feature set).
+        low, high: (2n,) prior box; coordinates with low == high are fixed.
+        theta_transform: "logit" or "none" (coordinates the estimators model).
+        info: free-form metadata (config, training summaries) saved along.
+    """
+
+    def __init__(self, estimators, x_obs, low, high, *, theta_transform: str = "logit", info=None):
+        if len(estimators) != len(x_obs) or not estimators:
+            raise ValueError("estimators: need one estimator per observed summary (at least one)")
+        if theta_transform not in _TRANSFORMS:
+            raise ValueError(f"theta_transform: expected one of {_TRANSFORMS}, got {theta_transform!r}")
+        self.estimators = [e.eval() for e in estimators]
+        self.x_obs = [torch.as_tensor(x, dtype=torch.float32).reshape(1, -1) for x in x_obs]
+        self.low = torch.as_tensor(low, dtype=torch.float64).cpu()
+        self.high = torch.as_tensor(high, dtype=torch.float64).cpu()
+        self.free_mask = self.high > self.low
+        self.theta_transform = theta_transform
+        self.info = dict(info or {})
+        self._lo = self.low[self.free_mask]
+        self._w = (self.high - self.low)[self.free_mask]
+
+    @property
+    def n_tasks(self) -> int:
+        return len(self.estimators)
+
+    @property
+    def dim(self) -> int:
+        return int(self.low.shape[0])
+
+    @property
+    def n_free(self) -> int:
+        return int(self.free_mask.sum())
+
+    # coordinates -------------------------------------------------------------------------
+
+    def to_unconstrained(self, theta_free: torch.Tensor) -> torch.Tensor:
+        """(N, n_free) free coordinates -> (N, n_free) flow coordinates z."""
+        if self.theta_transform == "none":
+            return theta_free.to(torch.float64)
+        u = ((theta_free.to(torch.float64) - self._lo) / self._w).clamp(_U_EPS, 1 - _U_EPS)
+        return torch.logit(u)
+
+    def from_unconstrained(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """z (N, n_free) -> (free coordinates (N, n_free), log |d theta / d z| (N,))."""
+        z = z.to(torch.float64)
+        if self.theta_transform == "none":
+            return z, torch.zeros(z.shape[0], dtype=torch.float64)
+        theta = self._lo + self._w * torch.sigmoid(z)
+        logdet = (torch.log(self._w) + nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
+        return theta, logdet
+
+    def _prior_log_prob_z(self, z: torch.Tensor) -> torch.Tensor:
+        if self.theta_transform == "none":
+            inside = ((z >= self._lo) & (z <= self._lo + self._w)).all(-1)
+            lp = torch.full((z.shape[0],), -float(torch.log(self._w).sum()), dtype=torch.float64)
+            return torch.where(inside, lp, torch.full_like(lp, -math.inf))
+        # z = logit(u), u ~ U(0, 1): standard logistic density
+        return (nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
+
+    # densities ---------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def task_log_probs(self, z: torch.Tensor) -> torch.Tensor:
+        """(k, N) log q_i(z | x_i) in flow coordinates (NaN mapped to -inf)."""
+        z = torch.as_tensor(z, dtype=torch.float32)
+        out = torch.empty(self.n_tasks, z.shape[0], dtype=torch.float64)
+        for i, (est, x) in enumerate(zip(self.estimators, self.x_obs, strict=True)):
+            for s in range(0, z.shape[0], _CHUNK):
+                zc = z[s : s + _CHUNK]
+                out[i, s : s + zc.shape[0]] = est.log_prob(zc.unsqueeze(1), condition=x).reshape(-1).double()
+        return torch.nan_to_num(out, nan=-math.inf)
+
+    def _log_target_z(self, z: torch.Tensor, lq: torch.Tensor) -> torch.Tensor:
+        return lq.sum(0) + (1 - self.n_tasks) * self._prior_log_prob_z(z)
+
+    @torch.no_grad()
+    def log_prob(self, theta) -> torch.Tensor:
+        """(B,) unnormalised log p(theta | x_1..k) for theta (B, 2n) or (2n,), -inf outside the box.
+
+        Density with respect to the free coordinates; exact normalisation only for k = 1.
+        """
+        t = as_tensor(theta, "theta", dtype=torch.float64).cpu()
+        t = t.unsqueeze(0) if t.dim() == 1 else t
+        if t.dim() != 2 or t.shape[1] != self.dim:
+            raise ValueError(f"theta: expected shape (B, {self.dim}), got {tuple(t.shape)}")
+        inside = ((t >= self.low - 1e-9) & (t <= self.high + 1e-9)).all(-1)
+        z = self.to_unconstrained(t[:, self.free_mask])
+        _, logdet = self.from_unconstrained(z)
+        lp = self._log_target_z(z, self.task_log_probs(z)) - logdet
+        return torch.where(inside, lp, torch.full_like(lp, -math.inf))
+
+    # sampling ----------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def _sample_flows(self, counts: list[int]) -> torch.Tensor:
+        parts = [est.sample((c,), condition=x).reshape(c, -1).double()
+                 for est, x, c in zip(self.estimators, self.x_obs, counts, strict=True) if c > 0]
+        return torch.cat(parts)
+
+    @staticmethod
+    def _mixture_counts(n: int, k: int) -> list[int]:
+        return [n // k + (1 if i < n % k else 0) for i in range(k)]
+
+    @torch.no_grad()
+    def sample(self, n: int, seed: int, *, is_rounds: int = 2, defensive_fraction: float = 0.2) -> ImportanceSample:
+        """``n`` weighted draws per round by importance sampling (see the module docstring).
+
+        Deterministic given ``seed``; the global torch RNG is restored afterwards.
+        """
+        n = check_positive_int(n, "n", minimum=2)
+        seed = check_positive_int(seed, "seed", minimum=0)
+        is_rounds = check_positive_int(is_rounds, "is_rounds", minimum=0)
+        k, d = self.n_tasks, self.n_free
+        gen = torch.Generator().manual_seed(seed)
+        best, ess_rounds = None, []
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            for r in range(is_rounds + 1):
+                if r == 0:
+                    counts = self._mixture_counts(n, k)
+                    z = self._sample_flows(counts)
+                    lq = self.task_log_probs(z)
+                    log_mix = torch.tensor([math.log(c / n) if c else -math.inf for c in counts],
+                                           dtype=torch.float64)
+                    log_r = torch.logsumexp(lq + log_mix[:, None], dim=0)
+                else:
+                    if best is None:
+                        break
+                    w = torch.from_numpy(best["weights"])
+                    zb = best["z"]
+                    mu = w @ zb
+                    zc = zb - mu
+                    cov = (zc * w[:, None]).T @ zc + 1e-6 * torch.eye(d, dtype=torch.float64)
+                    gauss = torch.distributions.MultivariateNormal(mu, covariance_matrix=cov)
+                    n_def = max(int(round(defensive_fraction * n)), k)
+                    n_gauss = n - n_def
+                    counts = self._mixture_counts(n_def, k)
+                    eps = torch.randn(n_gauss, d, generator=gen, dtype=torch.float64)
+                    z = torch.cat([mu + eps @ torch.linalg.cholesky(cov).T, self._sample_flows(counts)])
+                    lq = self.task_log_probs(z)
+                    log_mix = torch.tensor([math.log(c / n) if c else -math.inf for c in counts],
+                                           dtype=torch.float64)
+                    log_def = torch.logsumexp(lq + log_mix[:, None], dim=0)
+                    log_r = torch.logaddexp(log_def, math.log(n_gauss / n) + gauss.log_prob(z))
+                log_t = self._log_target_z(z, lq)
+                log_w = torch.nan_to_num(log_t - log_r, nan=-math.inf)
+                if not bool(torch.isfinite(log_w).any()):
+                    ess_rounds.append(0.0)
+                    continue
+                w = torch.softmax(log_w, dim=0)
+                ess = float(1.0 / (w**2).sum())
+                ess_rounds.append(ess)
+                if best is None or ess > best["ess"]:
+                    best = {"z": z, "weights": w.numpy(), "log_t": log_t, "ess": ess}
+        if best is None:
+            raise RuntimeError("sample: every importance weight is zero (the flows put no mass in the box)")
+        theta_free, logdet = self.from_unconstrained(best["z"])
+        theta = self.low.repeat(theta_free.shape[0], 1)
+        theta[:, self.free_mask] = theta_free
+        return ImportanceSample(theta.numpy(), best["weights"], (best["log_t"] - logdet).numpy(),
+                                best["ess"], ess_rounds)
+
+    # persistence -------------------------------------------------------------------------
+
+    def save(self, path) -> Path:
+        """torch.save the flows (whole modules) and everything needed to evaluate/sample."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({
+            "format": _FORMAT,
+            "estimators": self.estimators,
+            "x_obs": self.x_obs,
+            "low": self.low,
+            "high": self.high,
+            "theta_transform": self.theta_transform,
+            "info": self.info,
+        }, path)
+        return path
+
+
+def load_posterior(path) -> NpePosterior:
+    """Reload a posterior written by `NpePosterior.save` (no retraining).
+
+    The file holds pickled sbi modules: load only files you trust (``weights_only=False``).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"path: no such file {str(path)!r}")
+    blob = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(blob, dict) or blob.get("format") != _FORMAT:
+        raise ValueError(f"path: {str(path)!r} is not a camo_sbi NPE posterior ({_FORMAT})")
+    return NpePosterior(blob["estimators"], blob["x_obs"], blob["low"], blob["high"],
+                        theta_transform=blob["theta_transform"], info=blob["info"])
+
+
+# ----------------------------------------------------------------------------------------------
+# training
+# ----------------------------------------------------------------------------------------------
+
+
+class _NullTracker:
+    """sbi Tracker that records nothing (sbi's default writes TensorBoard logs to ./sbi-logs)."""
+
+    log_dir = None
+
+    def log_metric(self, name, value, step=None):
+        pass
+
+    def log_metrics(self, metrics, step=None):
+        pass
+
+    def log_params(self, params):
+        pass
+
+    def add_figure(self, name, figure, step=None):
+        pass
+
+    def flush(self):
+        pass
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int | None):
+    """torch's intra-op thread count set to ``n`` for the block (None: unchanged)."""
+    old = torch.get_num_threads()
+    if n is not None and n != old:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != old:
+            torch.set_num_threads(old)
+
+
+def _seed_int(*key: int) -> int:
+    """A 63-bit integer seed from a SeedSequence keyed by ``key``."""
+    ss = np.random.SeedSequence(key[0], spawn_key=tuple(key[1:]))
+    return int(ss.generate_state(1, dtype=np.uint64)[0] & np.uint64(2**63 - 1))
+
+
+def _train_flow(theta_z: torch.Tensor, x: torch.Tensor, config: NpeConfig, seed: int):
+    """Train q(z | x) with sbi; returns (estimator, info). Global torch RNG untouched."""
+    from sbi.inference import NPE
+    from sbi.neural_nets import posterior_nn
+    from sbi.neural_nets.embedding_nets import FCEmbedding
+
+    t0 = time.perf_counter()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        embedding = (FCEmbedding(x.shape[1], config.embedding_dim) if config.embedding == "mlp"
+                     else nn.Identity())
+        builder = posterior_nn(
+            model=config.density_estimator, hidden_features=config.hidden_features,
+            num_transforms=config.num_transforms, embedding_net=embedding,
+            z_score_theta="independent", z_score_x="independent",
+        )
+        trainer = NPE(prior=None, density_estimator=builder, device=config.device,
+                      show_progress_bars=False, tracker=_NullTracker())
+        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+            warnings.simplefilter("ignore")
+            trainer.append_simulations(theta_z.float(), x.float())
+            estimator = trainer.train(
+                training_batch_size=config.training_batch_size, learning_rate=config.learning_rate,
+                validation_fraction=config.validation_fraction,
+                stop_after_epochs=config.stop_after_epochs, max_num_epochs=config.max_epochs,
+                show_train_summary=False,
+            )
+    estimator = estimator.to("cpu").eval()
+    summary = trainer._summary
+    info = {
+        "epochs": int(summary["epochs_trained"][-1]),
+        "best_validation_loss": float(summary["best_validation_loss"][-1]),
+        "time_train": time.perf_counter() - t0,
+    }
+    return estimator, info
+
+
+def fit(task, observations, *, budget: int, seed: int, config: NpeConfig | None = None):
+    """Simulate ``budget`` prior draws per observed task, train one flow per task.
+
+    Returns (`NpePosterior`, info dict with timings and training summaries).
+    """
+    config = NpeConfig() if config is None else config
+    if not isinstance(config, NpeConfig):
+        raise TypeError(f"config: expected NpeConfig, got {type(config).__name__}")
+    budget = check_positive_int(budget, "budget")
+    seed = check_positive_int(seed, "seed", minimum=0)
+    observations = tuple(observations)
+    if not observations:
+        raise ValueError("observations: at least one observed task is required")
+    prior = task.prior
+    if not isinstance(prior, BoxPrior):
+        raise TypeError(f"task.prior: expected a BoxPrior, got {type(prior).__name__}")
+    if prior.n_free == 0:
+        raise ValueError("task.prior: every coordinate is fixed; there is nothing to infer")
+    n_val = int(budget * config.validation_fraction)
+    if n_val < 2 or budget - n_val < 2:
+        raise ValueError(
+            f"budget: {budget} simulations per task leave too few for training and validation "
+            f"(validation_fraction={config.validation_fraction})"
+        )
+    sim, dtype = task.simulator, _DTYPES[config.sim_dtype]
+    posterior_shell = NpePosterior([nn.Identity()], [torch.zeros(1)], prior.low, prior.high,
+                                   theta_transform=config.theta_transform)
+    estimators, x_obs, tasks_info = [], [], []
+    t_sim = 0.0
+    for i, obs in enumerate(observations):
+        start = torch.as_tensor(obs.start, dtype=torch.float64).cpu()
+        goal = torch.as_tensor(obs.goal, dtype=torch.float64).cpu()
+        traj_obs = torch.as_tensor(obs.trajectory(config.space), dtype=torch.float64).cpu()
+        rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0, i)))
+        theta = prior.sample(budget, rng)
+        feats = []
+        t0 = time.perf_counter()
+        for s in range(0, budget, config.simulation_batch_size):
+            th = theta[s : s + config.simulation_batch_size].clone()
+            th[:, 0::2] = torch.minimum(th[:, 0::2], start)
+            th[:, 1::2] = torch.maximum(th[:, 1::2], start)
+            out = sim.simulate(th.to(dtype), goal=goal.to(dtype), start=start.to(dtype))
+            x = out.q if config.space == "joint" else out.ee
+            feats.append(summarize(x, out.length, n_points=config.n_points,
+                                   include_length=config.include_length))
+        t_sim += time.perf_counter() - t0
+        x = torch.cat(feats)
+        xo = summarize(traj_obs, torch.tensor([traj_obs.shape[0]]), n_points=config.n_points,
+                       include_length=config.include_length)[0]
+        finite = torch.isfinite(x).all(dim=1)
+        keep = x[finite].std(dim=0) > 1e-8 * (1.0 + x[finite].abs().amax(dim=0))
+        if not bool(keep.any()):
+            raise RuntimeError(f"observations: task {i}'s simulations are all identical; nothing to learn")
+        z = posterior_shell.to_unconstrained(theta[:, prior.free_mask])
+        with _torch_threads(config.n_threads):
+            est, info = _train_flow(z, x[:, keep], config, _seed_int(seed, 1, i))
+        info.update(task=i, n_features=int(keep.sum()), n_invalid=int((~finite).sum()))
+        estimators.append(est)
+        x_obs.append(xo[keep].float())
+        tasks_info.append(info)
+    posterior = NpePosterior(estimators, x_obs, prior.low, prior.high,
+                             theta_transform=config.theta_transform,
+                             info={"config": {k: (str(v) if isinstance(v, os.PathLike) else v)
+                                              for k, v in asdict(config).items()},
+                                   "budget": budget, "seed": seed, "tasks": tasks_info})
+    return posterior, {"time_simulate": t_sim, "tasks": tasks_info}
+
+
+def _weighted_median(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    out = np.empty(x.shape[1])
+    for j in range(x.shape[1]):
+        order = np.argsort(x[:, j], kind="stable")
+        cw = np.cumsum(w[order])
+        out[j] = x[order[np.searchsorted(cw, 0.5 * cw[-1])], j]
+    return out
+
+
+def run(task, observations, *, budget: int, seed: int, config: NpeConfig | None = None) -> PosteriorResult:
+    """NPE conditioned on every task in ``observations``, ``budget`` simulations per task.
+
+    Returns importance-weighted samples of the combined posterior; ``extras``: ``ess``,
+    ``ess_rounds``, per-task training summaries (epochs, validation loss, seconds),
+    ``time_simulate``, ``time_train``, ``time_sample``, ``posterior_path`` (with a workdir).
+    """
+    config = NpeConfig() if config is None else config
+    if not isinstance(config, NpeConfig):
+        raise TypeError(f"config: expected NpeConfig, got {type(config).__name__}")
+    t_start = time.perf_counter()
+    with _torch_threads(config.n_threads):
+        posterior, info = fit(task, observations, budget=budget, seed=seed, config=config)
+        t0 = time.perf_counter()
+        draws = posterior.sample(config.n_posterior_samples, _seed_int(seed, 2) % (2**32),
+                                 is_rounds=config.is_rounds,
+                                 defensive_fraction=config.defensive_fraction)
+        t_sample = time.perf_counter() - t0
+    w = draws.weights
+    if config.estimator == "mean":
+        estimate = w @ draws.theta
+    elif config.estimator == "median":
+        estimate = _weighted_median(draws.theta, w)
+    else:
+        estimate = draws.theta[int(np.argmax(draws.log_prob))]
+    path = None
+    if config.workdir is not None:
+        path = posterior.save(Path(config.workdir) / f"npe_posterior_k{posterior.n_tasks}_seed{seed}.pt")
+    extras = {
+        "ess": draws.ess,
+        "ess_rounds": draws.ess_rounds,
+        "tasks": info["tasks"],
+        "time_simulate": info["time_simulate"],
+        "time_train": sum(t["time_train"] for t in info["tasks"]),
+        "time_sample": t_sample,
+        "posterior_path": None if path is None else str(path),
+    }
+    return PosteriorResult(
+        method="npe", samples=draws.theta, weights=w, estimate=estimate,
+        n_simulations=int(getattr(task.simulator, "n_simulations", budget * posterior.n_tasks)),
+        wall_time=time.perf_counter() - t_start, n_tasks=posterior.n_tasks, extras=extras,
+    )

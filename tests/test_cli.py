@@ -1,0 +1,280 @@
+"""The `camo-sbi` command line: `reproduce panda` and `compare`, tidy tables, resumption, bad options."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from camo_sbi.experiments.cli import main
+
+REPRO = ["reproduce", "panda", "--runs", "2", "--tasks", "2", "--test-goals", "3", "--samples", "200"]
+REPRO_METRICS = {"cartesian_error", "joint_error", "limit_error", "n_simulations", "wall_time"}
+
+COMPARE = ["compare", "--model", "panda", "--methods", "camo,naive", "--budgets", "100", "--seeds", "2",
+           "--tasks", "2", "--test-goals", "3", "--no-report"]
+PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
+COMPARE_METRICS = ({"cartesian_error", "joint_error", "limit_error", "ppc_dtw", "n_simulations", "wall_time"}
+                   | {f"limit_error_{j}" for j in PANDA_JOINTS})
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _run(args, out) -> int:
+    return main([*args, "--out", str(out)])
+
+
+def _compare(out, *extra) -> pd.DataFrame:
+    assert _run([*COMPARE, *extra], out) == 0
+    return pd.read_csv(Path(out) / "results.csv")
+
+
+def _without_wall_time(df: pd.DataFrame) -> pd.DataFrame:
+    return df[df.metric != "wall_time"].reset_index(drop=True)
+
+
+def _sorted(df: pd.DataFrame, keys) -> pd.DataFrame:
+    return df.sort_values(list(keys)).reset_index(drop=True)
+
+
+def _assert_png(path: Path):
+    assert path.is_file(), path
+    data = path.read_bytes()
+    assert len(data) > 1000 and data[:8] == PNG_MAGIC, path
+
+
+# ------------------------------------------------------------------------------ reproduce panda
+
+
+@pytest.fixture(scope="module")
+def repro(tmp_path_factory):
+    out = tmp_path_factory.mktemp("repro") / "a"
+    assert _run(REPRO, out) == 0
+    return out, pd.read_csv(out / "results.csv")
+
+
+def test_reproduce_writes_every_row_once(repro):
+    out, df = repro
+    assert list(df.columns) == ["run", "model", "subject", "method", "n_tasks", "metric", "value"]
+    expected = {(r, m, k, x) for r in (0, 1) for m in ("camo-js", "camo-cs", "naive") for k in (1, 2)
+                for x in REPRO_METRICS}
+    got = list(zip(df.run, df.method, df.n_tasks, df.metric, strict=True))
+    assert len(got) == len(set(got)) == len(expected)
+    assert set(got) == expected
+    assert set(df.model) == {"panda"}
+    # subjects are cycled over the runs: two runs, two different profiles
+    assert df.groupby("run").subject.nunique().eq(1).all() and df.subject.nunique() == 2
+    v = df.set_index(["run", "method", "n_tasks", "metric"]).value
+    assert v.notna().all()
+    # counted budgets: CAMO draws --samples per observed task, the naive baseline simulates nothing
+    for r in (0, 1):
+        for k in (1, 2):
+            assert v[(r, "camo-js", k, "n_simulations")] == 200 * k
+            assert v[(r, "camo-cs", k, "n_simulations")] == 200 * k
+            assert v[(r, "naive", k, "n_simulations")] == 0
+    errs = df[df.metric.isin(["cartesian_error", "joint_error", "limit_error"])].value
+    assert (errs >= 0).all() and (errs > 0).any()
+
+
+def test_reproduce_writes_both_figures_and_config(repro):
+    out, _ = repro
+    _assert_png(out / "fig2_cartesian_error_vs_tasks.png")
+    _assert_png(out / "fig3_final_error.png")
+    assert (out / "config.json").is_file()
+    assert len(list((out / "cells").glob("*.csv"))) == 2  # one cell per run
+
+
+def test_reproduce_same_seed_same_table(repro, tmp_path):
+    _, df = repro
+    assert _run(REPRO, tmp_path / "b") == 0
+    df2 = pd.read_csv(tmp_path / "b" / "results.csv")
+    pd.testing.assert_frame_equal(_without_wall_time(df2), _without_wall_time(df))
+
+
+def test_reproduce_other_seed_other_table(repro, tmp_path):
+    _, df = repro
+    assert _run([*REPRO, "--runs", "1", "--methods", "naive", "--seed", "1"], tmp_path / "c") == 0
+    df2 = pd.read_csv(tmp_path / "c" / "results.csv")
+    a = df[(df.run == 0) & (df.method == "naive") & (df.metric == "cartesian_error")].value.to_numpy()
+    b = df2[(df2.metric == "cartesian_error")].value.to_numpy()
+    assert a.shape == b.shape == (2,) and not (a == b).all()
+
+
+def test_reproduce_rerun_skips_finished_cells(repro):
+    out, df = repro
+    cells = sorted((out / "cells").glob("*.csv"))
+    mtimes = [p.stat().st_mtime_ns for p in cells]
+    assert _run(REPRO, out) == 0
+    df2 = pd.read_csv(out / "results.csv")
+    # identical including wall_time: nothing was recomputed, and no row was duplicated
+    pd.testing.assert_frame_equal(df2, df)
+    assert [p.stat().st_mtime_ns for p in sorted((out / "cells").glob("*.csv"))] == mtimes
+
+
+@pytest.mark.parametrize(
+    "extra, needle",
+    [
+        (["--methods", "foo"], "--methods"),
+        (["--methods", "camo-js,bar"], "--methods"),
+        (["--runs", "0"], "--runs"),
+        (["--tasks", "0"], "--tasks"),
+        (["--test-goals", "-1"], "--test-goals"),
+        (["--samples", "0"], "--samples"),
+        (["--runs", "two"], "--runs"),
+        (["--model", "robot"], "--model"),
+        (["--sampling", "sobol"], "--sampling"),
+        (["--subjects", "nobody"], "nobody"),
+    ],
+)
+def test_reproduce_bad_options_exit_2(extra, needle, tmp_path, capsys):
+    out = tmp_path / "bad"
+    with pytest.raises(SystemExit) as exc:
+        _run([*REPRO, *extra], out)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert needle in err, err
+    assert not (out / "results.csv").exists()
+
+
+# ------------------------------------------------------------------------------ compare
+
+
+@pytest.fixture(scope="module")
+def compare_table(tmp_path_factory):
+    out = tmp_path_factory.mktemp("compare") / "w1"
+    return out, _compare(out)
+
+
+def test_compare_in_a_fresh_directory(tmp_path):
+    """A first run into a new directory must work (no folder pre-created by the caller)."""
+    out = tmp_path / "fresh"
+    assert _run(["compare", "--methods", "naive", "--seeds", "1", "--tasks", "1", "--test-goals", "2",
+                 "--budgets", "10", "--no-report"], out) == 0
+    assert (out / "results.csv").is_file()
+
+
+def test_compare_row_for_every_cell(compare_table):
+    out, df = compare_table
+    assert list(df.columns) == ["task", "subject", "method", "budget", "seed", "n_tasks", "metric", "value"]
+    expected = {(m, s, k, x) for m in ("camo", "naive") for s in (0, 1) for k in (1, 2) for x in COMPARE_METRICS}
+    got = list(zip(df.method, df.seed, df.n_tasks, df.metric, strict=True))
+    assert len(got) == len(set(got)) == len(expected)
+    assert set(got) == expected
+    assert set(df.budget) == {100} and set(df.task) == {"panda"} and df.subject.nunique() == 1
+    assert df.value.notna().all()
+    v = df.set_index(["method", "seed", "n_tasks", "metric"]).value
+    for s in (0, 1):
+        for k in (1, 2):
+            assert v[("camo", s, k, "n_simulations")] == 100 * k
+            assert v[("naive", s, k, "n_simulations")] == 0
+    assert len(list((out / "cells").glob("*.csv"))) == 4
+    for name in ("error_vs_budget.png", "error_vs_tasks.png", "wall_time.png"):
+        _assert_png(out / name)
+
+
+def test_compare_methods_see_the_same_task(compare_table):
+    """Per seed the observations are shared by all methods; across seeds they differ."""
+    _, df = compare_table
+    naive = df[(df.method == "naive") & (df.metric == "cartesian_error")].set_index(["seed", "n_tasks"]).value
+    assert naive[(0, 2)] != naive[(1, 2)]
+
+
+def test_compare_rerun_returns_same_table(compare_table):
+    out, df = compare_table
+    df2 = _compare(out)
+    pd.testing.assert_frame_equal(df2, df)  # including wall_time: finished cells were skipped
+
+
+def test_compare_parallel_workers_same_table(compare_table, tmp_path):
+    _, df = compare_table
+    df2 = _compare(tmp_path / "w2", "--workers", "2")
+    keys = ["method", "seed", "n_tasks", "metric"]
+    a, b = _sorted(_without_wall_time(df), keys), _sorted(_without_wall_time(df2), keys)
+    pd.testing.assert_frame_equal(b, a, check_exact=True)
+
+
+def test_compare_interrupted_run_resumes_without_duplicates(compare_table, tmp_path):
+    _, ref = compare_table
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "camo_sbi.experiments.cli", *COMPARE, "--out", str(out)]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    cells = out / "cells"
+    try:
+        deadline = time.monotonic() + 300  # a hang guard, not a timing assertion
+        while not (cells.is_dir() and any(cells.glob("*.csv"))):
+            if proc.poll() is not None:
+                pytest.fail(f"compare exited ({proc.returncode}) before writing a cell:\n"
+                            f"{proc.stderr.read().decode()[-3000:]}")
+            if time.monotonic() > deadline:
+                pytest.fail("no cell written within 300 s")
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()
+    assert proc.returncode == -signal.SIGKILL
+    done = sorted(cells.glob("*.csv"))
+    assert 1 <= len(done) < 4, "the run was not interrupted mid-grid"
+    for p in done:  # every finished cell is complete
+        part = pd.read_csv(p)
+        assert len(part) == 2 * len(COMPARE_METRICS)
+    assert not (out / "results.csv").exists()
+
+    df = _compare(out)
+    keys = ["method", "seed", "n_tasks", "metric"]
+    counts = df.groupby(keys).size()
+    assert (counts == 1).all() and len(counts) == 2 * 2 * 2 * len(COMPARE_METRICS)
+    # and the resumed table equals an uninterrupted run (wall_time aside)
+    pd.testing.assert_frame_equal(_sorted(_without_wall_time(df), keys), _sorted(_without_wall_time(ref), keys))
+
+
+@pytest.mark.parametrize(
+    "extra, needle",
+    [
+        (["--methods", "foo"], "method"),
+        (["--methods", "camo,foo"], "method"),
+        (["--methods", ","], "--methods"),
+        (["--budgets", "0"], "--budgets"),
+        (["--budgets", "ten"], "--budgets"),
+        (["--seeds", "0"], "--seeds"),
+        (["--tasks", "0"], "--tasks"),
+        (["--workers", "0"], "--workers"),
+        (["--model", "robot"], "--model"),
+        (["--space", "polar"], "--space"),
+        (["--subjects", "nobody"], "nobody"),
+    ],
+)
+def test_compare_bad_options_exit_2(extra, needle, tmp_path, capsys):
+    out = tmp_path / "bad"
+    with pytest.raises(SystemExit) as exc:
+        _run([*COMPARE, *extra], out)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert needle in err, err
+    assert not (out / "results.csv").exists()
+    assert not (out / "cells").exists() or not any((out / "cells").iterdir())
+
+
+@pytest.mark.slow
+def test_compare_with_abc_smc_and_npe(tmp_path):
+    """The pyabc and sbi methods run through the same grid (slow: NPE trains a flow per k, minutes)."""
+    out = tmp_path / "sbi"
+    args = ["--methods", "abc-smc,npe", "--seeds", "1"]
+    df = _compare(out, *args)
+    expected = {(m, k, x) for m in ("abc-smc", "npe") for k in (1, 2) for x in COMPARE_METRICS}
+    got = list(zip(df.method, df.n_tasks, df.metric, strict=True))
+    assert len(got) == len(set(got)) == len(expected) and set(got) == expected
+    v = df.set_index(["method", "n_tasks", "metric"]).value
+    assert v.notna().all()
+    for m in ("abc-smc", "npe"):
+        for k in (1, 2):
+            assert 0 < v[(m, k, "n_simulations")] <= 100 * k  # counted, within the cap
+    assert len(list((out / "posteriors").glob("*.nc"))) == 2
+    pd.testing.assert_frame_equal(_compare(out, *args), df)  # resumable: finished cells skipped
