@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -136,6 +137,7 @@ def main(argv=None) -> None:
           "the default ControllerConfig (1 cm tolerance, early exit per trajectory).\n"
           "(a) is the best over torch threads {1, default}; (b) uses one torch thread.")
     print(f"numba threading layer: {numba.threading_layer()}; load average now {os.getloadavg()[0]:.1f}")
+    shutil.rmtree(cache, ignore_errors=True)
 
 
 if __name__ == "__main__":

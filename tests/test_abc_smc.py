@@ -7,7 +7,12 @@ import pytest
 import torch
 
 from camo_sbi.inference import abc_smc
-from camo_sbi.inference.abc_smc import AbcSmcConfig, numpy_global_seed, parameter_names, to_pyabc_prior
+from camo_sbi.inference.abc_smc import (
+    AbcSmcConfig,
+    numpy_global_seed,
+    parameter_names,
+    to_pyabc_prior,
+)
 from camo_sbi.inference.budget import BudgetExceededError, CountingSimulator
 from camo_sbi.inference.methods import make_config, run_method
 from camo_sbi.inference.priors import BoxPrior
@@ -200,10 +205,11 @@ def test_bad_run_arguments_rejected():
 
 
 def test_smoke_recovery_toy():
-    """Fast recovery: 1500 particle evaluations, joint posterior of 3 tasks."""
+    """Fast recovery: 2500 particles (budget per task), joint posterior of 3 tasks, within
+    0.1 rad (seeds 0-3 gave max errors 0.005-0.03)."""
     task = toy_task()
-    res = run_method("abc-smc", task, budget=1500, seed=0, config={"population_size": 100})
-    assert res.extras["n_populations"] >= 5
+    res = run_method("abc-smc", task, budget=2500, seed=0, config={"population_size": 100})
+    assert res.extras["n_populations"] >= 8
     np.testing.assert_allclose(res.estimate, TRUE.numpy(), atol=0.1)
 
 

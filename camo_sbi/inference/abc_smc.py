@@ -630,6 +630,8 @@ def run(task, observations, *, budget: int, seed: int, config: AbcSmcConfig | No
         estimate = _weighted_median(samples, w)
     else:
         estimate = samples[int(np.argmin(dist))]
+    fixed = ~prior.free_mask.numpy()
+    estimate[fixed] = prior.low.numpy()[fixed]  # exact, not a weighted mean of constants
     pops = pops[pops.t >= 0].sort_values("t")
     log = sampler.log
     gens = [g for g in log if not g.get("calibration", False)]

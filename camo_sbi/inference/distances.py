@@ -1,53 +1,60 @@
 """Batched trajectory distances: exact Dynamic Time Warping with exact pruning, and Eq. 2's L2.
 
 Definitions (one observed trajectory ``x`` of ``n`` points, one simulated ``y`` of ``m`` points,
-points in R^D, joint space D = n_joints or Cartesian D = 3)::
+points in R^D: joint space D = n_joints, Cartesian space D = 3)::
 
-    c(i, j)  = ||x_i - y_j||_2                                   (Euclidean local cost)
+    c(i, j)   = ||x_i - y_j||_2                                   (Euclidean local cost)
     DTW(x, y) = min over warping paths P of  sum_{(i, j) in P} c(i, j)
 
 A warping path goes from (0, 0) to (n-1, m-1) with steps (1, 0), (0, 1), (1, 1), so the
 classic recursion ``D(i, j) = c(i, j) + min(D(i-1, j), D(i, j-1), D(i-1, j-1))`` gives
-``DTW = D(n-1, m-1)``. No band (window) is used: this is the full, unconstrained DTW.
-For equal lengths the diagonal path is one of the candidates, so DTW <= sum_t ||x_t - y_t||,
-a sum of point distances; the paper's Eq. 2 (`l2_distance`, the L2 norm of the stacked point
-differences) compares equal-length trajectories only, DTW generalises the comparison to
-trajectories of different lengths (section IV-A).
+``DTW = D(n-1, m-1)``. No band (window) constrains the paths: this is the full DTW. The
+paper's Eq. 2 (`l2_distance`) is the L2 norm of the point differences of two trajectories of
+the same length; DTW generalises the comparison to trajectories of different lengths
+(section IV-A). For equal lengths the diagonal path is one of the candidates, so
+DTW <= sum_t ||x_t - y_t|| (a sum of point distances, not Eq. 2's root of summed squares).
 
-`dtw_distances` computes DTW between one observed trajectory and a batch of simulated ones with
-numba, in parallel over candidates, several candidates per SIMD register. Two optional prunings
-return values that are *exact for every candidate they report*:
+`dtw_distances` compares one observed trajectory with a batch of simulated ones with numba:
+candidates are processed in blocks of ``_LANES``, one candidate per SIMD lane, blocks spread
+over the threads. Every value it reports is the exact DTW, computed with the operations of the
+plain recursion, so results do not depend on pruning, ordering or the number of threads
+(bit for bit). Optional pruning reports +inf for candidates whose value is not needed:
 
-* ``epsilon``: a candidate whose DTW is >= epsilon is reported as +inf (ABC acceptance
-  ``L < epsilon`` only needs the accepted ones), every candidate with DTW < epsilon is exact;
-* ``keep_best=k``: the k smallest DTW values are exact (ties broken by the lower index), every
-  other candidate is reported as +inf.
+* ``epsilon``: candidates with DTW >= epsilon are +inf (ABC acceptance ``L < epsilon`` only
+  needs the others);
+* ``keep_best=k``: all but the k smallest values (ties: lower index first) are +inf.
 
-The pruning cascade (as in the UCR suite, adapted to unequal lengths and no band):
+Bounds (all true bounds for non-negative local costs; ``_candidate_bounds`` exposes them):
 
-1. a per-candidate lower bound ``LB`` (below), candidates processed in ascending ``LB`` order so
-   that a good threshold (the k-th best exact value so far) is found early, and every candidate
-   whose bound already exceeds the threshold is skipped without any DP;
-2. early abandoning inside the DP: after row ``i`` of the DP, ``min_j D(i, j) + S(i+1)`` is a
-   lower bound on DTW, where ``S(i+1)`` bounds the cost of the rows still to come; the DP stops
-   as soon as that exceeds the threshold.
+* rows: every warping path visits every row, in cells that differ from row to row, so
+  ``DTW >= sum_i min_j c(i, j)``; columns alike. ``min_j c(i, j) >= r_i = min_s dist(x_i,
+  box_s(y))`` where box_s(y) is the bounding box of the s-th segment of ``_SEG`` consecutive
+  points of y (the distance to a box never exceeds the distance to a point inside it): this is
+  LB_Keogh with the whole candidate as envelope (no band), tightened by piecewise envelopes;
+* LB_Kim: every path contains (0, 0) and (n-1, m-1): row 0 costs at least c(0, 0), row n-1
+  at least c(n-1, m-1); these replace the first and last rows' (columns') terms;
+* lower bound LB = max(row bound, column bound); the coarse LB uses one box per trajectory;
+* upper bound UB: the cost of the straight path from (0, 0) to (n-1, m-1), summed in the DP's
+  order, so the DP's result never exceeds it.
 
-Lower bound used (all terms are true lower bounds of DTW with non-negative local costs):
+The cascade (UCR suite style, adapted to no band and unequal lengths):
 
-* every warping path visits every row ``i`` at least once, in cells that differ from row to row,
-  so ``DTW >= sum_i min_j c(i, j)``; symmetrically ``DTW >= sum_j min_i c(i, j)``;
-* ``min_j c(i, j) >= min_s dist(x_i, box_s(y))`` where ``box_s(y)`` is the axis-aligned bounding
-  box of the s-th segment of consecutive points of ``y`` (``dist`` to a box is the distance to
-  the nearest point of the box, which never exceeds the distance to a point inside it). This is
-  LB_Keogh with the whole candidate as envelope (no band), made tighter by piecewise envelopes;
-* LB_Kim: every path contains (0, 0) and (n-1, m-1), so row 0 costs at least c(0, 0) and row
-  n-1 at least c(n-1, m-1); these replace the box terms of the first and last rows (columns).
+1. coarse LB and UB of every candidate (cheap);
+2. with ``keep_best``: the k candidates of smallest UB are computed first; the k-th smallest UB
+   and then the k-th best exact value so far are thresholds (per-thread max-heaps);
+3. the others in ascending coarse LB: a candidate whose coarse, then fine, LB exceeds the
+   threshold never reaches the DP, and a thread stops at its first block whose coarse bounds
+   all exceed it;
+4. inside the DP (PrunedDTW, Silva & Batista 2016; EAPrunedDTW, Herrmann & Webb 2021): a cell
+   with ``D(i, j) + max(S_rows(i+1), S_cols(j+1)) > threshold`` (S = sums of the row / column
+   bounds still to visit) cannot lie on a path of cost <= threshold; each row is computed only
+   between its first and last live columns and the candidate is abandoned when a whole row is
+   dead. Even without pruning options the threshold is the candidate's own UB, which skips
+   cells without changing any result.
 
-``LB = max(row bound, column bound)``. ``S(i)`` is the row bound restricted to rows >= i. Bounds are
-shrunk by a relative 1e-9 before any comparison so floating-point reassociation can never
-prune a candidate whose computed exact value would have been kept. Exact values do not depend on
-the pruning, on the processing order or on the number of threads (each candidate's recursion
-runs the same floating-point operations), so results are bit-for-bit reproducible.
+Every lower bound is shrunk by a relative 1e-9 and every threshold widened by 1e-10 before a
+comparison, so floating-point reassociation can never prune a cell or a candidate that the
+plain recursion would keep.
 """
 
 from __future__ import annotations
@@ -265,8 +272,11 @@ def _rows_bound(xT, Yf, mlen, seg, acc_r, best_r, suffix_blk, inner):
 
 
 @njit(cache=True, nogil=True)
-def _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, inner):
-    """Column bounds: inner[lane] = sum over columns 1..m-2 of min_s dist(y_j, box_s(x))."""
+def _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, inner, scol):
+    """Column bounds c_j = min_s dist(y_j, box_s(x)) <= min_i c(i, j).
+
+    inner[lane] = c_1 + ... + c_{m-2}; scol (flat, (T+1) * L): suffix sums of c_j, shrunk.
+    """
     D = Yf.shape[0]
     L = _LANES
     W = mmax * L
@@ -304,6 +314,17 @@ def _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, inner):
         for lane in range(L):
             if j < mlen[lane] - 1:
                 inner[lane] += bc[j * L + lane]
+    # column suffix: scol[j * L + lane] = (c_j + ... + c_{m-1}) * _SHRINK, 0 from column m on
+    nl = mlen.shape[0]
+    for lane in range(nl):
+        scol[mmax * nl + lane] = 0.0
+    for j in range(mmax - 1, -1, -1):
+        t = j * nl
+        for lane in range(nl):
+            v = bc[t + lane] if j < mlen[lane] else 0.0
+            scol[t + lane] = scol[t + nl + lane] + v
+    for t in range((mmax + 1) * nl):
+        scol[t] *= _SHRINK
 
 
 @njit(cache=True, nogil=True)
@@ -481,7 +502,7 @@ def _row_pass(x, i, Yf, prev, cur, cost, c0, c1):
 
 
 @njit(cache=True, nogil=True)
-def _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, prev, cur, cost, thr_eff, out):
+def _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, scol, prev, cur, cost, thr_eff, out):
     """Exact DTW of the observed ``x`` (n, D) against the ``_LANES`` candidates of a block.
 
     thr[lane]: threshold; out[lane] = the exact DTW if it is <= thr[lane], else +inf. Cells
@@ -518,7 +539,10 @@ def _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, prev, cur, cost, thr_eff, out
             base = (e + 1) * L
             alive = False
             for lane in range(L):
-                if e < mlen[lane] and cur[base + lane] + suffix_blk[i1, lane] <= thr_eff[lane]:
+                r = suffix_blk[i1, lane]
+                r2 = scol[base + lane]
+                r = r if r > r2 else r2
+                if e < mlen[lane] and cur[base + lane] + r <= thr_eff[lane]:
                     alive = True
             if not alive:
                 break
@@ -533,7 +557,10 @@ def _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, prev, cur, cost, thr_eff, out
         for j in range(s, e + 1):
             base = (j + 1) * L
             for lane in range(L):
-                if j < mlen[lane] and cur[base + lane] + suffix_blk[i1, lane] <= thr_eff[lane]:
+                r = suffix_blk[i1, lane]
+                r2 = scol[base + lane]
+                r = r if r > r2 else r2
+                if j < mlen[lane] and cur[base + lane] + r <= thr_eff[lane]:
                     a = j
             if a >= 0:
                 break
@@ -544,7 +571,10 @@ def _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, prev, cur, cost, thr_eff, out
         for j in range(e, a - 1, -1):
             base = (j + 1) * L
             for lane in range(L):
-                if j < mlen[lane] and cur[base + lane] + suffix_blk[i1, lane] <= thr_eff[lane]:
+                r = suffix_blk[i1, lane]
+                r2 = scol[base + lane]
+                r = r if r > r2 else r2
+                if j < mlen[lane] and cur[base + lane] + r <= thr_eff[lane]:
                     b = j
             if b >= 0:
                 break
@@ -571,10 +601,9 @@ def _coarse_bounds(x, sim, lengths, ids, lb, ub, bad):
         mlen = np.empty(_LANES, dtype=np.int64)
         box = np.empty((2, D, _LANES))
         acc_r = np.empty(n)
-        best_r = np.empty(n)
         acc_c = np.empty(T * _LANES)
         best_c = np.empty(T * _LANES)
-        suffix_blk = np.empty((n + 1, _LANES))
+        scol = np.empty((T + 1) * _LANES)
         rows = np.empty(_LANES)
         cols = np.empty(_LANES)
         lbb = np.empty(_LANES)
@@ -583,7 +612,7 @@ def _coarse_bounds(x, sim, lengths, ids, lb, ub, bad):
         count = min(_LANES, n_ids - start)
         mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad)
         _box_rows_bound(xT, box, acc_r, rows)
-        _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols)
+        _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols, scol)
         _combine_bounds(x, Yf, mlen, rows, cols, lbb)
         _upper_bound(x, Yf, mlen, ubb, cols)
         for lane in range(count):
@@ -593,8 +622,8 @@ def _coarse_bounds(x, sim, lengths, ids, lb, ub, bad):
 
 
 @njit(cache=True)
-def _fine_bounds(x, sim, lengths, seg, lb, ub, suffix):
-    """Fine lower bounds, upper bounds and row suffix bounds of every candidate (tests)."""
+def _fine_bounds(x, sim, lengths, seg, lb, ub, suffix, col_suffix):
+    """Fine lower bounds, upper bounds, row and column suffix bounds of every candidate."""
     n, D = x.shape
     B, T = sim.shape[0], sim.shape[1]
     xT = np.ascontiguousarray(x.T)
@@ -606,6 +635,7 @@ def _fine_bounds(x, sim, lengths, seg, lb, ub, suffix):
     best_r = np.empty(n)
     acc_c = np.empty(T * _LANES)
     best_c = np.empty(T * _LANES)
+    scol = np.empty((T + 1) * _LANES)
     suffix_blk = np.empty((n + 1, _LANES))
     rows = np.empty(_LANES)
     cols = np.empty(_LANES)
@@ -617,7 +647,7 @@ def _fine_bounds(x, sim, lengths, seg, lb, ub, suffix):
         count = min(_LANES, B - start)
         mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad)
         _rows_bound(xT, Yf, mlen, seg, acc_r, best_r, suffix_blk, rows)
-        _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols)
+        _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols, scol)
         _combine_bounds(x, Yf, mlen, rows, cols, lbb)
         _upper_bound(x, Yf, mlen, ubb, cols)
         for lane in range(count):
@@ -625,6 +655,8 @@ def _fine_bounds(x, sim, lengths, seg, lb, ub, suffix):
             ub[start + lane] = ubb[lane]
             for i in range(n + 1):
                 suffix[start + lane, i] = suffix_blk[i, lane]
+            for j in range(mmax + 1):
+                col_suffix[start + lane, j] = scol[j * _LANES + lane]
 
 
 @njit(cache=True, nogil=True)
@@ -677,6 +709,7 @@ def _dtw_blocks(x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, n_chunks, out,
         best_r = np.empty(n)
         acc_c = np.empty(T * _LANES)
         best_c = np.empty(T * _LANES)
+        scol = np.empty((T + 1) * _LANES)
         suffix_blk = np.empty((n + 1, _LANES))
         rows = np.empty(_LANES)
         cols = np.empty(_LANES)
@@ -713,8 +746,8 @@ def _dtw_blocks(x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, n_chunks, out,
                     thr[lane] = u if u < tau else tau
             for lane in range(count, _LANES):
                 thr[lane] = -1.0  # padding lane
+            _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols, scol)
             if mode != 0:
-                _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols)
                 _combine_bounds(x, Yf, mlen, rows, cols, lbb)
                 for lane in range(_LANES):
                     if lbb[lane] > thr[lane]:
@@ -724,7 +757,7 @@ def _dtw_blocks(x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, n_chunks, out,
                 if thr[lane] >= 0.0:
                     alive = True
             if alive:
-                _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, prev, cur, cost, thr_eff, res)
+                _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, scol, prev, cur, cost, thr_eff, res)
             else:
                 for lane in range(_LANES):
                     res[lane] = np.inf
@@ -787,7 +820,9 @@ def _check_observed_length(observed_length, T_o: int) -> int:
             raise TypeError("observed_length: expected an integer")
         observed_length = int(observed_length.item())
     if isinstance(observed_length, bool) or not isinstance(observed_length, numbers.Integral):
-        raise TypeError(f"observed_length: expected an integer, got {type(observed_length).__name__}")
+        raise TypeError(
+            f"observed_length: expected an integer, got {type(observed_length).__name__}"
+        )
     if not 1 <= int(observed_length) <= T_o:
         raise ValueError(f"observed_length: must lie in [1, {T_o}], got {observed_length}")
     return int(observed_length)
@@ -936,12 +971,13 @@ def _dtw_with_pruning(x, sim, lens, eps, k, n_threads, out, bad) -> None:
         _dtw_blocks(x, sim, lens, rest, 2, lb0, ub, thr0, heap0, n_threads, out, bad)
 
 
-def _candidate_bounds(observed, simulated, lengths=None, seg=_SEG):
-    """Bounds of every candidate, for tests and diagnostics.
+def _candidate_bounds(observed, simulated, lengths=None, *, seg=_SEG):
+    """Bounds of every candidate, for tests and diagnostics (float64 numpy arrays).
 
-    Returns (lb, ub, suffix): the fine lower bound (segments of ``seg`` points), the straight
-    path's cost and the per-row suffix bounds S(i) (B, n+1). ``_coarse_bounds`` is the same lb
-    with one box per trajectory.
+    Returns a dict: ``lb`` the fine lower bound (segments of ``seg`` points), ``coarse_lb`` the
+    one-box-per-trajectory lower bound that orders the candidates, ``ub`` the straight path's
+    cost, ``row_suffix`` (B, n+1) the bounds S(i) of rows i..n-1 and ``col_suffix`` (B, T+1)
+    the bounds of columns j..m-1 (0 from m on), all as used by the kernels (shrunk).
     """
     x = np.ascontiguousarray(np.asarray(observed, dtype=np.float64))
     sim = np.ascontiguousarray(np.asarray(simulated, dtype=np.float64))
@@ -951,8 +987,13 @@ def _candidate_bounds(observed, simulated, lengths=None, seg=_SEG):
     lb = np.empty(B)
     ub = np.empty(B)
     suffix = np.empty((B, n + 1))
-    _fine_bounds(x, sim, lens, seg, lb, ub, suffix)
-    return lb, ub, suffix
+    col_suffix = np.zeros((B, T + 1))
+    _fine_bounds(x, sim, lens, seg, lb, ub, suffix, col_suffix)
+    coarse = np.empty(B)
+    ub2 = np.empty(B)
+    ids = np.argsort(lens, kind="stable").astype(np.int64)
+    _coarse_bounds(x, sim, lens, ids, coarse, ub2, np.full(1, -1, dtype=np.int64))
+    return {"lb": lb, "coarse_lb": coarse, "ub": ub, "row_suffix": suffix, "col_suffix": col_suffix}
 
 
 def dtw_reference(a, b) -> float:

@@ -53,6 +53,7 @@ from camo_sbi.inference.priors import BoxPrior
 from camo_sbi.inference.result import PosteriorResult
 
 __all__ = [
+    "ImportanceSample",
     "NpeConfig",
     "NpePosterior",
     "fit",
@@ -212,6 +213,28 @@ def summarize(traj, lengths, *, n_points: int = 20, include_length: bool = True)
     return feats
 
 
+def _to_unconstrained(theta_free: torch.Tensor, lo: torch.Tensor, width: torch.Tensor,
+                      transform: str) -> torch.Tensor:
+    """Free coordinates (N, d) -> flow coordinates: logit of the position in the box, or as is."""
+    theta_free = theta_free.to(torch.float64)
+    if transform == "none":
+        return theta_free
+    return torch.logit(((theta_free - lo) / width).clamp(_U_EPS, 1 - _U_EPS))
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int | None):
+    """torch's intra-op thread count set to ``n`` for the block (None: unchanged)."""
+    old = torch.get_num_threads()
+    if n is not None and n != old:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != old:
+            torch.set_num_threads(old)
+
+
 # ----------------------------------------------------------------------------------------------
 # the combined posterior
 # ----------------------------------------------------------------------------------------------
@@ -242,9 +265,12 @@ class NpePosterior:
         low, high: (2n,) prior box; coordinates with low == high are fixed.
         theta_transform: "logit" or "none" (coordinates the estimators model).
         info: free-form metadata (config, training summaries) saved along.
+        n_threads: torch intra-op threads used by ``log_prob`` and ``sample`` (restored
+            afterwards), so results do not depend on the caller's thread setting; None: as is.
     """
 
-    def __init__(self, estimators, x_obs, low, high, *, theta_transform: str = "logit", info=None):
+    def __init__(self, estimators, x_obs, low, high, *, theta_transform: str = "logit", info=None,
+                 n_threads: int | None = 1):
         if len(estimators) != len(x_obs) or not estimators:
             raise ValueError("estimators: need one estimator per observed summary (at least one)")
         if theta_transform not in _TRANSFORMS:
@@ -256,6 +282,7 @@ class NpePosterior:
         self.free_mask = self.high > self.low
         self.theta_transform = theta_transform
         self.info = dict(info or {})
+        self.n_threads = None if n_threads is None else check_positive_int(n_threads, "n_threads")
         self._lo = self.low[self.free_mask]
         self._w = (self.high - self.low)[self.free_mask]
 
@@ -275,10 +302,7 @@ class NpePosterior:
 
     def to_unconstrained(self, theta_free: torch.Tensor) -> torch.Tensor:
         """(N, n_free) free coordinates -> (N, n_free) flow coordinates z."""
-        if self.theta_transform == "none":
-            return theta_free.to(torch.float64)
-        u = ((theta_free.to(torch.float64) - self._lo) / self._w).clamp(_U_EPS, 1 - _U_EPS)
-        return torch.logit(u)
+        return _to_unconstrained(theta_free, self._lo, self._w, self.theta_transform)
 
     def from_unconstrained(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """z (N, n_free) -> (free coordinates (N, n_free), log |d theta / d z| (N,))."""
@@ -304,14 +328,19 @@ class NpePosterior:
         """(k, N) log q_i(z | x_i) in flow coordinates (NaN mapped to -inf)."""
         z = torch.as_tensor(z, dtype=torch.float32)
         out = torch.empty(self.n_tasks, z.shape[0], dtype=torch.float64)
-        for i, (est, x) in enumerate(zip(self.estimators, self.x_obs, strict=True)):
-            for s in range(0, z.shape[0], _CHUNK):
-                zc = z[s : s + _CHUNK]
-                out[i, s : s + zc.shape[0]] = est.log_prob(zc.unsqueeze(1), condition=x).reshape(-1).double()
+        with _torch_threads(self.n_threads):
+            for i, (est, x) in enumerate(zip(self.estimators, self.x_obs, strict=True)):
+                for s in range(0, z.shape[0], _CHUNK):
+                    zc = z[s : s + _CHUNK]
+                    lp = est.log_prob(zc.unsqueeze(1), condition=x).reshape(-1).double()
+                    out[i, s : s + zc.shape[0]] = lp
         return torch.nan_to_num(out, nan=-math.inf)
 
     def _log_target_z(self, z: torch.Tensor, lq: torch.Tensor) -> torch.Tensor:
-        return lq.sum(0) + (1 - self.n_tasks) * self._prior_log_prob_z(z)
+        lp = self._prior_log_prob_z(z)
+        out = lq.sum(0) + (1 - self.n_tasks) * torch.where(torch.isfinite(lp), lp, torch.zeros_like(lp))
+        # outside the prior's support the target is zero, whatever the power of the prior
+        return torch.where(torch.isfinite(lp), out, torch.full_like(out, -math.inf))
 
     @torch.no_grad()
     def log_prob(self, theta) -> torch.Tensor:
@@ -353,7 +382,7 @@ class NpePosterior:
         k, d = self.n_tasks, self.n_free
         gen = torch.Generator().manual_seed(seed)
         best, ess_rounds = None, []
-        with torch.random.fork_rng(devices=[]):
+        with torch.random.fork_rng(devices=[]), _torch_threads(self.n_threads):
             torch.manual_seed(seed)
             for r in range(is_rounds + 1):
                 if r == 0:
@@ -414,6 +443,7 @@ class NpePosterior:
             "high": self.high,
             "theta_transform": self.theta_transform,
             "info": self.info,
+            "n_threads": self.n_threads,
         }, path)
         return path
 
@@ -430,7 +460,8 @@ def load_posterior(path) -> NpePosterior:
     if not isinstance(blob, dict) or blob.get("format") != _FORMAT:
         raise ValueError(f"path: {str(path)!r} is not a camo_sbi NPE posterior ({_FORMAT})")
     return NpePosterior(blob["estimators"], blob["x_obs"], blob["low"], blob["high"],
-                        theta_transform=blob["theta_transform"], info=blob["info"])
+                        theta_transform=blob["theta_transform"], info=blob["info"],
+                        n_threads=blob.get("n_threads", 1))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -457,19 +488,6 @@ class _NullTracker:
 
     def flush(self):
         pass
-
-
-@contextlib.contextmanager
-def _torch_threads(n: int | None):
-    """torch's intra-op thread count set to ``n`` for the block (None: unchanged)."""
-    old = torch.get_num_threads()
-    if n is not None and n != old:
-        torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        if torch.get_num_threads() != old:
-            torch.set_num_threads(old)
 
 
 def _seed_int(*key: int) -> int:
@@ -540,8 +558,8 @@ def fit(task, observations, *, budget: int, seed: int, config: NpeConfig | None 
             f"(validation_fraction={config.validation_fraction})"
         )
     sim, dtype = task.simulator, _DTYPES[config.sim_dtype]
-    posterior_shell = NpePosterior([nn.Identity()], [torch.zeros(1)], prior.low, prior.high,
-                                   theta_transform=config.theta_transform)
+    lo_free = prior.low[prior.free_mask]
+    width_free = (prior.high - prior.low)[prior.free_mask]
     estimators, x_obs, tasks_info = [], [], []
     t_sim = 0.0
     for i, obs in enumerate(observations):
@@ -568,7 +586,7 @@ def fit(task, observations, *, budget: int, seed: int, config: NpeConfig | None 
         keep = x[finite].std(dim=0) > 1e-8 * (1.0 + x[finite].abs().amax(dim=0))
         if not bool(keep.any()):
             raise RuntimeError(f"observations: task {i}'s simulations are all identical; nothing to learn")
-        z = posterior_shell.to_unconstrained(theta[:, prior.free_mask])
+        z = _to_unconstrained(theta[:, prior.free_mask], lo_free, width_free, config.theta_transform)
         with _torch_threads(config.n_threads):
             est, info = _train_flow(z, x[:, keep], config, _seed_int(seed, 1, i))
         info.update(task=i, n_features=int(keep.sum()), n_invalid=int((~finite).sum()))
@@ -576,7 +594,7 @@ def fit(task, observations, *, budget: int, seed: int, config: NpeConfig | None 
         x_obs.append(xo[keep].float())
         tasks_info.append(info)
     posterior = NpePosterior(estimators, x_obs, prior.low, prior.high,
-                             theta_transform=config.theta_transform,
+                             theta_transform=config.theta_transform, n_threads=config.n_threads,
                              info={"config": {k: (str(v) if isinstance(v, os.PathLike) else v)
                                               for k, v in asdict(config).items()},
                                    "budget": budget, "seed": seed, "tasks": tasks_info})
@@ -617,6 +635,8 @@ def run(task, observations, *, budget: int, seed: int, config: NpeConfig | None 
         estimate = _weighted_median(draws.theta, w)
     else:
         estimate = draws.theta[int(np.argmax(draws.log_prob))]
+    fixed = ~posterior.free_mask.numpy()
+    estimate[fixed] = posterior.low.numpy()[fixed]  # exact, not a weighted mean of constants
     path = None
     if config.workdir is not None:
         path = posterior.save(Path(config.workdir) / f"npe_posterior_k{posterior.n_tasks}_seed{seed}.pt")

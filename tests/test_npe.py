@@ -1,0 +1,246 @@
+"""NPE (sbi adapter): summaries, product combination, seeding, save/load, budget, configs."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from camo_sbi.inference import npe
+from camo_sbi.inference.methods import make_config, run_method
+from camo_sbi.inference.npe import NpeConfig, NpePosterior, load_posterior, summarize
+from camo_sbi.inference.priors import BoxPrior
+from tests.test_abc_smc import TRUE, toy_task
+from tests.toy_sim import ToySimulator
+
+# a deliberately tiny flow: these tests check plumbing, not accuracy
+TINY = {"hidden_features": 16, "num_transforms": 2, "max_epochs": 8, "stop_after_epochs": 3,
+        "n_posterior_samples": 500, "is_rounds": 1, "n_points": 8}
+
+
+# ---------------------------------------------------------------------------------------------
+# summaries
+# ---------------------------------------------------------------------------------------------
+
+
+def test_summarize_resamples_valid_part_and_ignores_padding():
+    T = 11
+    line = torch.linspace(0, 1, T)[:, None].repeat(1, 2) * torch.tensor([1.0, -2.0])
+    short = line.clone()
+    short[6:] = 99.0  # padding beyond length 6 must never be read
+    traj = torch.stack([line, short])
+    x = summarize(traj, torch.tensor([T, 6]), n_points=5)
+    assert x.shape == (2, 5 * 2 + 1)
+    t = torch.arange(1, 6, dtype=torch.float64) / 5
+    np.testing.assert_allclose(x[0, :-1].reshape(5, 2).numpy(), (t[:, None] * torch.tensor([1.0, -2.0])).numpy(),
+                               atol=1e-12)
+    # length 6: the valid part spans 0 .. 0.5 of the line
+    np.testing.assert_allclose(x[1, :-1].reshape(5, 2).numpy(),
+                               (0.5 * t[:, None] * torch.tensor([1.0, -2.0])).numpy(), atol=1e-6)
+    assert x[:, -1].tolist() == [T, 6]
+    assert summarize(traj, torch.tensor([T, 6]), n_points=5, include_length=False).shape == (2, 10)
+    one = summarize(torch.zeros(1, 3), torch.tensor([1]), n_points=4)
+    assert torch.all(one[0, :-1] == 0) and one[0, -1] == 1
+
+
+def test_summarize_rejects_bad_lengths():
+    with pytest.raises(ValueError, match="^lengths"):
+        summarize(torch.zeros(2, 5, 3), torch.tensor([0, 5]))
+    with pytest.raises(ValueError, match="^lengths"):
+        summarize(torch.zeros(2, 5, 3), torch.tensor([2.0, 5.0]))
+    with pytest.raises(ValueError, match="^traj"):
+        summarize(torch.zeros(5), torch.tensor([5]))
+
+
+# ---------------------------------------------------------------------------------------------
+# the product combination, with analytic "flows"
+# ---------------------------------------------------------------------------------------------
+
+
+class _Gauss(nn.Module):
+    """A stand-in density estimator: N(mu, diag(sd^2)) whatever the condition."""
+
+    def __init__(self, mu, sd):
+        super().__init__()
+        self.register_buffer("mu", torch.as_tensor(mu, dtype=torch.float32))
+        self.register_buffer("sd", torch.as_tensor(sd, dtype=torch.float32))
+
+    def log_prob(self, input, condition):  # noqa: A002
+        d = torch.distributions.Normal(self.mu, self.sd)
+        return d.log_prob(input).sum(-1)
+
+    def sample(self, sample_shape, condition):
+        n = int(torch.Size(sample_shape).numel())
+        return (self.mu + self.sd * torch.randn(n, condition.shape[0], self.mu.shape[0])).reshape(
+            *sample_shape, condition.shape[0], -1)
+
+
+def test_product_of_gaussians_recovered_by_importance_sampling():
+    # raw coordinates, a box so wide the uniform prior is flat: target = product of Gaussians
+    low = torch.tensor([-50.0, 0.0, -50.0, 0.0])
+    high = torch.tensor([0.0, 50.0, 0.0, 50.0])
+    mus = [[-3.0, 4.0, -2.0, 1.0], [-2.0, 5.0, -1.5, 2.0], [-2.5, 4.5, -3.0, 1.5]]
+    sds = [[1.0, 0.5, 1.0, 1.0], [0.5, 1.0, 1.0, 0.7], [1.0, 1.0, 0.5, 1.0]]
+    ests = [_Gauss(m, s) for m, s in zip(mus, sds, strict=True)]
+    post = NpePosterior(ests, [torch.zeros(1)] * 3, low, high, theta_transform="none")
+    prec = sum(1 / torch.tensor(s, dtype=torch.float64) ** 2 for s in sds)
+    mean = sum(torch.tensor(m, dtype=torch.float64) / torch.tensor(s, dtype=torch.float64) ** 2
+               for m, s in zip(mus, sds, strict=True)) / prec
+    draws = post.sample(20000, seed=0, is_rounds=2)
+    assert draws.ess > 2000
+    m = draws.weights @ draws.theta
+    v = draws.weights @ (draws.theta - m) ** 2
+    np.testing.assert_allclose(m, mean.numpy(), atol=0.03)
+    np.testing.assert_allclose(v, (1 / prec).numpy(), rtol=0.1)
+    # log_prob: sum of the Gaussians' log densities minus (k - 1) log(uniform density)
+    th = torch.tensor([[-2.0, 4.0, -2.0, 1.0]], dtype=torch.float64)
+    expect = sum(e.log_prob(th.float(), None).double() for e in ests) + 2 * math.log(50.0**4)
+    np.testing.assert_allclose(post.log_prob(th).numpy(), expect.numpy(), rtol=1e-5)
+    assert post.log_prob(torch.tensor([1.0, 4.0, -2.0, 1.0])).item() == -math.inf
+
+
+def test_single_task_logit_weights_are_uniform():
+    low, high = torch.tensor([-1.0, 0.0]), torch.tensor([0.0, 1.0])
+    post = NpePosterior([_Gauss([0.3, -0.2], [1.0, 0.8])], [torch.zeros(1)], low, high)
+    draws = post.sample(1000, seed=1, is_rounds=0)
+    assert draws.ess == pytest.approx(1000)
+    assert np.all((draws.theta >= low.numpy()) & (draws.theta <= high.numpy()))
+
+
+# ---------------------------------------------------------------------------------------------
+# training on the toy simulator
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def toy():
+    return toy_task()
+
+
+def test_run_budget_seeding_and_rng_isolation(toy):
+    torch.manual_seed(99)
+    state = torch.get_rng_state()
+    np.random.seed(3)
+    np_state = np.random.get_state()
+    r1 = run_method("npe", toy, toy.observations[:2], budget=300, seed=4, config=TINY)
+    assert torch.equal(torch.get_rng_state(), state)
+    assert np.array_equal(np.random.get_state()[1], np_state[1])
+    assert r1.method == "npe" and r1.n_tasks == 2
+    assert r1.n_simulations == 600  # exactly budget x tasks, counted by the wrapper
+    assert r1.samples.shape == (500, 4) and r1.weights.shape == (500,)
+    assert bool(toy.prior.contains(torch.from_numpy(r1.samples)).all())
+    ex = r1.extras
+    assert len(ex["tasks"]) == 2 and all(t["epochs"] >= 1 for t in ex["tasks"])
+    assert 1 <= ex["ess"] <= 500 and len(ex["ess_rounds"]) == 2
+    r2 = run_method("npe", toy, toy.observations[:2], budget=300, seed=4, config=TINY)
+    np.testing.assert_array_equal(r1.samples, r2.samples)
+    np.testing.assert_array_equal(r1.weights, r2.weights)
+    r3 = run_method("npe", toy, toy.observations[:2], budget=300, seed=5, config=TINY)
+    assert not np.array_equal(r1.samples, r3.samples)
+
+
+def test_save_load_round_trip(toy, tmp_path):
+    res = run_method("npe", toy, toy.observations[:2], budget=300, seed=0,
+                     config={**TINY, "workdir": str(tmp_path), "embedding": "mlp", "embedding_dim": 8})
+    path = res.extras["posterior_path"]
+    assert path == str(tmp_path / "npe_posterior_k2_seed0.pt")
+    post = load_posterior(path)
+    again = load_posterior(path)
+    assert post.n_tasks == 2 and post.n_free == 4
+    theta = torch.from_numpy(res.samples[:50])
+    lp = post.log_prob(theta)
+    assert torch.isfinite(lp).all()
+    torch.testing.assert_close(again.log_prob(theta), lp, rtol=0, atol=0)
+    a = post.sample(200, seed=3)
+    b = again.sample(200, seed=3)
+    np.testing.assert_array_equal(a.theta, b.theta)
+    np.testing.assert_array_equal(a.weights, b.weights)
+    # the reloaded posterior reproduces the run's own samples (same sampling seed)
+    fresh = load_posterior(path).sample(TINY["n_posterior_samples"], npe._seed_int(0, 2) % 2**32,
+                                        is_rounds=TINY["is_rounds"])
+    np.testing.assert_array_equal(fresh.theta, res.samples)
+    with pytest.raises(ValueError, match="^path"):
+        load_posterior(tmp_path / "missing.pt")
+    torch.save({"format": "other"}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="^path"):
+        load_posterior(tmp_path / "other.pt")
+
+
+def test_fixed_coordinates_not_trained(toy):
+    sim = ToySimulator(n=2)
+    prior = BoxPrior(sim.bounds, sim.start, fixed={1: (-0.4, 0.7)})
+    task = toy_task(prior)
+    post, info = npe.fit(task, task.observations[:1], budget=300, seed=0, config=NpeConfig(**TINY))
+    assert post.n_free == 2
+    assert post.sample(100, seed=0).theta.shape == (100, 4)
+    res = run_method("npe", task, task.observations[:1], budget=300, seed=0, config=TINY)
+    assert np.all(res.samples[:, 2] == -0.4) and np.all(res.samples[:, 3] == 0.7)
+    assert res.estimate[2] == -0.4 and res.estimate[3] == 0.7
+
+
+@pytest.mark.parametrize(
+    ("overrides", "exc", "field"),
+    [
+        ({"density_estimator": "mdn"}, ValueError, "density_estimator"),
+        ({"space": "polar"}, ValueError, "space"),
+        ({"embedding": "cnn"}, ValueError, "embedding"),
+        ({"theta_transform": "probit"}, ValueError, "theta_transform"),
+        ({"n_points": 0}, ValueError, "n_points"),
+        ({"max_epochs": 1.5}, TypeError, "max_epochs"),
+        ({"learning_rate": -1e-3}, ValueError, "learning_rate"),
+        ({"validation_fraction": 0.7}, ValueError, "validation_fraction"),
+        ({"defensive_fraction": 1.0}, ValueError, "defensive_fraction"),
+        ({"is_rounds": -1}, ValueError, "is_rounds"),
+        ({"estimator": "mode"}, ValueError, "estimator"),
+        ({"device": "gpu0"}, ValueError, "device"),
+        ({"n_threads": 0}, ValueError, "n_threads"),
+        ({"epochs": 3}, ValueError, "config"),
+    ],
+)
+def test_bad_configs_rejected(overrides, exc, field):
+    with pytest.raises(exc, match=f"^{field}"):
+        make_config("npe", **overrides)
+
+
+def test_bad_run_arguments_rejected(toy):
+    with pytest.raises(ValueError, match="^budget"):
+        run_method("npe", toy, budget=10, seed=0, config=TINY)
+    with pytest.raises(TypeError, match="^config"):
+        npe.run(toy, toy.observations, budget=300, seed=0, config={"n_points": 3})
+    with pytest.raises(ValueError, match="^seed"):
+        npe.run(toy, toy.observations, budget=300, seed=-2, config=NpeConfig(**TINY))
+
+
+def test_smoke_recovery_toy(toy):
+    """A short training (budget 800 per task, 3 tasks) lands within 0.25 rad of the truth."""
+    cfg = {**TINY, "max_epochs": 60, "stop_after_epochs": 10, "hidden_features": 32,
+           "n_posterior_samples": 2000}
+    res = run_method("npe", toy, budget=800, seed=0, config=cfg)
+    np.testing.assert_allclose(res.estimate, TRUE.numpy(), atol=0.25)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("space", ["joint", "cartesian"])
+def test_recovery_toy_slow(toy, space):
+    """Default settings, budget 2000 per task, 3 tasks: within 0.08 rad of the truth."""
+    res = run_method("npe", toy, budget=2000, seed=1, config={"space": space})
+    np.testing.assert_allclose(res.estimate, TRUE.numpy(), atol=0.08)
+    assert res.extras["ess"] > 100
+
+
+@pytest.mark.slow
+def test_recovery_panda_slow():
+    """Panda, 5 observed reaches, budget 2000 per task: the estimate beats the prior mean."""
+    from camo_sbi.scenarios.reaching import make_reaching_task
+    from camo_sbi.simulators import panda
+
+    sim = panda()
+    lim = torch.stack([0.6 * sim.bounds[:, 0] + 0.4 * sim.start, 0.6 * sim.bounds[:, 1] + 0.4 * sim.start], 1)
+    true = lim.reshape(-1)
+    task = make_reaching_task(sim, true, n_train=5, n_test=5, seed=0)
+    res = run_method("npe", task, budget=2000, seed=0)
+    prior_mean = ((task.prior.low + task.prior.high) / 2).numpy()
+    err = np.abs(res.estimate - true.numpy()).mean()
+    assert err < 0.8 * np.abs(prior_mean - true.numpy()).mean()
+    assert res.extras["ess"] > 20
