@@ -28,7 +28,8 @@ def as_tensor(x, name: str, *, dtype=None, device=None) -> torch.Tensor:
         t = x
     elif isinstance(x, (np.ndarray, list, tuple, numbers.Real)):
         try:
-            t = torch.from_numpy(np.array(x, dtype=np.float64))
+            a = np.asarray(x, dtype=np.float64)
+            t = torch.from_numpy(a if a.flags.writeable else a.copy())
         except (TypeError, ValueError) as exc:
             raise TypeError(f"{name}: cannot convert to a float tensor ({exc})") from exc
     else:

@@ -1,7 +1,7 @@
 """Static checks of notebooks/*.ipynb (executing them is nbmake's job: ``pytest --nbmake``).
 
-Each notebook is committed clean (no outputs, no execution counts or timings, so nothing
-stale can disagree with the code), starts with a parameters cell reading
+Each notebook is committed clean (no outputs, no execution counts, so nothing stale can
+disagree with the code), starts with a parameters cell reading
 ``CAMO_SBI_SCALE`` (the tests run the "small" settings), runs on the stock ``python3``
 kernel, and uses only camo_sbi's public API: no ``_``-prefixed module or name is
 imported, and no ``_``-prefixed attribute is touched.
@@ -86,10 +86,8 @@ def test_committed_without_outputs(notebook):
             dirty.append(f"cell {i}: {len(cell['outputs'])} output(s)")
         if cell.get("execution_count") is not None:
             dirty.append(f"cell {i}: execution_count = {cell['execution_count']}")
-        if "execution" in cell.get("metadata", {}):
-            dirty.append(f"cell {i}: execution timings in its metadata")
-    assert not dirty, (f"{name} is committed with outputs; strip them (e.g. `jupyter nbconvert "
-                       f"--clear-output --inplace notebooks/{name}`):\n  " + "\n  ".join(dirty))
+    assert not dirty, (f"{name} is committed with outputs; clear them (Jupyter: Edit > Clear Outputs "
+                       f"of All Cells, then save):\n  " + "\n  ".join(dirty))
 
 
 def test_runs_on_the_stock_kernel(notebook):

@@ -44,6 +44,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from camo_sbi.inference.camo import CamoConfig
+
 __all__ = [
     "METRICS",
     "PRIORS",
@@ -277,7 +279,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-best", type=_positive("--keep-best"), default=500,
                    help="CAMO keeps at most the k best draws per task")
     p.add_argument("--epsilon", type=float, default=None, help="CAMO DTW acceptance threshold (default: none)")
-    p.add_argument("--bandwidth", type=float, default=0.005, help="CAMO kernel variance h [rad^2]")
+    p.add_argument("--bandwidth", type=float, default=CamoConfig().bandwidth, help="CAMO kernel variance h [rad^2]")
     p.add_argument("--space", choices=("joint", "cartesian"), default="joint", help="CAMO observation space")
     p.add_argument("--priors", default=",".join(PRIORS), help="comma-separated subset of strong,weak")
     p.add_argument("--subject", default="frozen_shoulder",

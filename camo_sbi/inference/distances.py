@@ -14,11 +14,14 @@ the same length; DTW generalises the comparison to trajectories of different len
 (section IV-A). For equal lengths the diagonal path is one of the candidates, so
 DTW <= sum_t ||x_t - y_t|| (a sum of point distances, not Eq. 2's root of summed squares).
 
-`dtw_distances` compares one observed trajectory with a batch of simulated ones with numba:
-candidates are processed in blocks of ``_LANES``, one candidate per SIMD lane, blocks spread
-over the threads. Every value it reports is the exact DTW, computed with the operations of the
-plain recursion, so results do not depend on pruning, ordering or the number of threads
-(bit for bit). Optional pruning reports +inf for candidates whose value is not needed:
+`dtw_distances` compares one observed trajectory with a batch of simulated ones with numba
+(float64 throughout): candidates are processed in blocks of ``_LANES``, one candidate per SIMD
+lane (small tables: one candidate at a time with the scalar recursion). The blocks are dealt
+round-robin to ``workers`` chunks run by ``nogil`` kernels on a thread pool (rather than a
+``parallel=True`` prange, whose compilation alone took ~20 s here, against ~12 s for everything
+else). Every value it reports is the exact DTW, computed with the operations of the plain
+recursion, so results do not depend on pruning, ordering or the number of threads (bit for
+bit). Optional pruning reports +inf for candidates whose value is not needed:
 
 * ``epsilon``: candidates with DTW >= epsilon are +inf (ABC acceptance ``L < epsilon`` only
   needs the others);
@@ -60,11 +63,13 @@ plain recursion would keep.
 from __future__ import annotations
 
 import numbers
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
-import numba
 import numpy as np
 import torch
-from numba import njit, prange
+from numba import njit
 
 from camo_sbi._validation import as_tensor, check_finite, check_positive_float, check_positive_int
 
@@ -74,7 +79,7 @@ __all__ = ["dtw_distances", "dtw_reference", "l2_distance"]
 # registers and hide the latency of the D(i, j-1) -> D(i, j) dependency.
 _LANES = 16
 # Points per segment of the piecewise bounding-box envelope of the fine lower bounds.
-_SEG = 10
+_SEG = 20
 # Relative shrink applied to every lower bound, relative slack added to every threshold: float
 # rounding of sums taken in a different order can then never prune a cell or a candidate that
 # the plain recursion would keep (their rounding errors are ~(n + m) * 1.1e-16 relative).
@@ -82,6 +87,9 @@ _SHRINK = 1.0 - 1e-9
 _SLACK = 1.0 + 1e-10
 # Columns added at a time when a row extends beyond the previous row's alive window.
 _EXTEND = 8
+# Blocks whose DP tables (n x longest candidate) are smaller than this go through a scalar
+# recursion one candidate at a time: for them, gathering lanes and bounds costs more than it saves.
+_MIN_CELLS_FOR_LANES = 1024
 
 
 # ----------------------------------------------------------------------------------------------
@@ -92,12 +100,13 @@ _EXTEND = 8
 
 
 @njit(cache=True, nogil=True)
-def _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad):
+def _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, want_box, bad):
     """Copy candidates ``ids[start:start+count]`` into the lane block Yf.
 
     Points j < the block's largest length (returned) are written; steps >= a candidate's length
     repeat its last valid point whatever the input padding holds; unused lanes replicate the
-    first one. box[0, k, lane] / box[1, k, lane] receive the lane's bounding box. A NaN/inf
+    first one. With ``want_box``, box[0, k, lane] / box[1, k, lane] receive the lane's
+    bounding box. A NaN/inf
     among the valid points is recorded in bad[0] (as b * T + step) and replaced by 0 (the
     caller raises).
     """
@@ -127,15 +136,18 @@ def _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad):
             off[lane] = base[lane] + (j if j < m else m - 1) * D
         t = j * nl
         for k in range(D):
-            lo = box[0, k]
-            hi = box[1, k]
             Yk = Yf[k, t : t + nl]
             for lane in range(nl):
                 v = flat[off[lane] + k]
                 Yk[lane] = v
                 chk[lane] += v * 0.0  # NaN as soon as one value is NaN or inf
-                lo[lane] = v if v < lo[lane] else lo[lane]
-                hi[lane] = v if v > hi[lane] else hi[lane]
+            if want_box:
+                lo = box[0, k]
+                hi = box[1, k]
+                for lane in range(nl):
+                    v = Yk[lane]
+                    lo[lane] = v if v < lo[lane] else lo[lane]
+                    hi[lane] = v if v > hi[lane] else hi[lane]
     for lane in range(count):
         if chk[lane] != 0.0:
             b = ids[start + lane]
@@ -502,6 +514,54 @@ def _row_pass(x, i, Yf, prev, cur, cost, c0, c1):
 
 
 @njit(cache=True, nogil=True)
+def _dtw_scalar(x, sim, b, m, thr, prev, cur, bad):
+    """DTW of x against sim[b, :m] if it is <= thr, else +inf (abandoned when a row is dead).
+
+    The plain recursion with the operations of `_row_pass` (same values, bit for bit).
+    prev, cur: scratch of at least m + 1. Records a NaN/inf in a valid step in bad[0].
+    """
+    n, D = x.shape
+    inf = np.inf
+    chk = 0.0
+    for j in range(m):
+        for k in range(D):
+            chk += sim[b, j, k] * 0.0
+    if chk != 0.0:
+        if bad[0] < 0:
+            for j in range(m):
+                for k in range(D):
+                    if not np.isfinite(sim[b, j, k]) and bad[0] < 0:
+                        bad[0] = b * sim.shape[1] + j
+        return inf
+    thr_eff = thr * _SLACK
+    for j in range(m + 1):
+        prev[j] = inf
+    prev[0] = 0.0
+    for i in range(n):
+        cur[0] = inf
+        rmin = inf
+        for j in range(m):
+            d = x[i, 0] - sim[b, j, 0]
+            acc = d * d
+            for k in range(1, D):
+                d = x[i, k] - sim[b, j, k]
+                acc += d * d
+            p = prev[j]
+            q = prev[j + 1]
+            e = cur[j]
+            mn = p if p < q else q
+            mn = mn if mn < e else e
+            v = np.sqrt(acc) + mn
+            cur[j + 1] = v
+            rmin = v if v < rmin else rmin
+        if not rmin <= thr_eff:
+            return inf
+        prev, cur = cur, prev
+    v = prev[m]
+    return v if v <= thr else inf
+
+
+@njit(cache=True, nogil=True)
 def _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, scol, prev, cur, cost, thr_eff, out):
     """Exact DTW of the observed ``x`` (n, D) against the ``_LANES`` candidates of a block.
 
@@ -586,31 +646,30 @@ def _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, scol, prev, cur, cost, thr_ef
     return True
 
 
-@njit(cache=True, parallel=True)
-def _coarse_bounds(x, sim, lengths, ids, lb, ub, bad):
+@njit(cache=True, nogil=True)
+def _coarse_chunk(c, n_chunks, x, sim, lengths, ids, lb, ub, bad):
     """Cheap lower bound (one box per trajectory, LB_Kim ends) and upper bound of candidates
-    ``ids`` (sorted by length for short blocks), written to lb[b], ub[b]."""
+    ``ids`` (sorted by length for short blocks), written to lb[b], ub[b]; blocks c,
+    c + n_chunks, ... here."""
     n, D = x.shape
     T = sim.shape[1]
     n_ids = ids.shape[0]
     xT = np.ascontiguousarray(x.T)
     olo, ohi = _seg_boxes(x, n)
-    n_blocks = (n_ids + _LANES - 1) // _LANES
-    for blk in prange(n_blocks):
-        Yf = np.empty((D, T * _LANES))
-        mlen = np.empty(_LANES, dtype=np.int64)
-        box = np.empty((2, D, _LANES))
-        acc_r = np.empty(n)
-        acc_c = np.empty(T * _LANES)
-        best_c = np.empty(T * _LANES)
-        scol = np.empty((T + 1) * _LANES)
-        rows = np.empty(_LANES)
-        cols = np.empty(_LANES)
-        lbb = np.empty(_LANES)
-        ubb = np.empty(_LANES)
-        start = blk * _LANES
+    Yf = np.empty((D, T * _LANES))
+    mlen = np.empty(_LANES, dtype=np.int64)
+    box = np.empty((2, D, _LANES))
+    acc_r = np.empty(n)
+    acc_c = np.empty(T * _LANES)
+    best_c = np.empty(T * _LANES)
+    scol = np.empty((T + 1) * _LANES)
+    rows = np.empty(_LANES)
+    cols = np.empty(_LANES)
+    lbb = np.empty(_LANES)
+    ubb = np.empty(_LANES)
+    for start in range(c * _LANES, n_ids, n_chunks * _LANES):
         count = min(_LANES, n_ids - start)
-        mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad)
+        mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, True, bad)
         _box_rows_bound(xT, box, acc_r, rows)
         _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols, scol)
         _combine_bounds(x, Yf, mlen, rows, cols, lbb)
@@ -645,7 +704,7 @@ def _fine_bounds(x, sim, lengths, seg, lb, ub, suffix, col_suffix):
     bad = np.full(1, -1)
     for start in range(0, B, _LANES):
         count = min(_LANES, B - start)
-        mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad)
+        mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, False, bad)
         _rows_bound(xT, Yf, mlen, seg, acc_r, best_r, suffix_blk, rows)
         _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols, scol)
         _combine_bounds(x, Yf, mlen, rows, cols, lbb)
@@ -678,9 +737,9 @@ def _sift_down(heap, i, v):
     heap[i] = v
 
 
-@njit(cache=True, parallel=True)
-def _dtw_blocks(x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, n_chunks, out, bad):
-    """DTW of candidates ``ids`` in blocks of ``_LANES``, dealt round-robin to ``n_chunks``.
+@njit(cache=True, nogil=True)
+def _dtw_chunk(c, n_chunks, x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, out, bad):
+    """DTW of candidates ``ids`` in blocks of ``_LANES``: blocks c, c + n_chunks, ... here.
 
     mode 0 (all exact): each lane's threshold is its own upper bound, so every result is exact
         and cells that cannot lie on an optimal path are skipped; ids sorted by length.
@@ -692,6 +751,8 @@ def _dtw_blocks(x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, n_chunks, out,
         dead from the start and a block without live lanes skips the DP. In mode 2 ids are in
         ascending coarse bound lb0 and a chunk stops at its first block whose bounds all exceed
         tau.
+    Blocks whose tables are below ``_MIN_CELLS_FOR_LANES`` cells use `_dtw_scalar` instead
+    (threshold: +inf in mode 0, min(tau, upper bound) otherwise; the coarse bound decides).
     out[b] = exact DTW if <= the lane's threshold, else +inf.
     """
     n, D = x.shape
@@ -701,71 +762,87 @@ def _dtw_blocks(x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, n_chunks, out,
     xT = np.ascontiguousarray(x.T)
     olo, ohi = _seg_boxes(x, _SEG)
     n_blocks = (n_ids + _LANES - 1) // _LANES
-    for c in prange(n_chunks):
-        Yf = np.empty((D, T * _LANES))
-        mlen = np.empty(_LANES, dtype=np.int64)
-        box = np.empty((2, D, _LANES))
-        acc_r = np.empty(n)
-        best_r = np.empty(n)
-        acc_c = np.empty(T * _LANES)
-        best_c = np.empty(T * _LANES)
-        scol = np.empty((T + 1) * _LANES)
-        suffix_blk = np.empty((n + 1, _LANES))
-        rows = np.empty(_LANES)
-        cols = np.empty(_LANES)
-        lbb = np.empty(_LANES)
-        prev = np.empty((T + 2) * _LANES)
-        cur = np.empty((T + 2) * _LANES)
-        cost = np.empty(T * _LANES)
-        thr = np.empty(_LANES)
-        thr_eff = np.empty(_LANES)
-        res = np.empty(_LANES)
-        heap = heap0.copy()
-        for h in range(k // 2 - 1, -1, -1):
-            _sift_down(heap, h, heap[h])
-        for blk in range(c, n_blocks, n_chunks):
-            start = blk * _LANES
-            count = min(_LANES, n_ids - start)
-            tau = thr0
-            if k > 0 and heap[0] < tau:
-                tau = heap[0]
-            if mode == 2 and lb0[ids[start]] > tau:
-                # every later block of the chunk has larger coarse bounds: all out
-                for b2 in range(blk, n_blocks, n_chunks):
-                    s2 = b2 * _LANES
-                    for lane in range(min(_LANES, n_ids - s2)):
-                        out[ids[s2 + lane]] = np.inf
-                break
-            mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, bad)
-            _rows_bound(xT, Yf, mlen, _SEG, acc_r, best_r, suffix_blk, rows)
-            if mode == 0:
-                _upper_bound(x, Yf, mlen, thr, cols)
-            else:
-                for lane in range(_LANES):
-                    u = ub[ids[start + (lane if lane < count else 0)]]
-                    thr[lane] = u if u < tau else tau
-            for lane in range(count, _LANES):
-                thr[lane] = -1.0  # padding lane
-            _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols, scol)
-            if mode != 0:
-                _combine_bounds(x, Yf, mlen, rows, cols, lbb)
-                for lane in range(_LANES):
-                    if lbb[lane] > thr[lane]:
-                        thr[lane] = -1.0  # dead from the start
-            alive = False
-            for lane in range(_LANES):
-                if thr[lane] >= 0.0:
-                    alive = True
-            if alive:
-                _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, scol, prev, cur, cost, thr_eff, res)
-            else:
-                for lane in range(_LANES):
-                    res[lane] = np.inf
+    Yf = np.empty((D, T * _LANES))
+    mlen = np.empty(_LANES, dtype=np.int64)
+    box = np.empty((2, D, _LANES))
+    acc_r = np.empty(n)
+    best_r = np.empty(n)
+    acc_c = np.empty(T * _LANES)
+    best_c = np.empty(T * _LANES)
+    scol = np.empty((T + 1) * _LANES)
+    suffix_blk = np.empty((n + 1, _LANES))
+    rows = np.empty(_LANES)
+    cols = np.empty(_LANES)
+    lbb = np.empty(_LANES)
+    prev = np.empty((T + 2) * _LANES)
+    cur = np.empty((T + 2) * _LANES)
+    cost = np.empty(T * _LANES)
+    thr = np.empty(_LANES)
+    thr_eff = np.empty(_LANES)
+    res = np.empty(_LANES)
+    heap = heap0.copy()
+    for h in range(k // 2 - 1, -1, -1):
+        _sift_down(heap, h, heap[h])
+    for blk in range(c, n_blocks, n_chunks):
+        start = blk * _LANES
+        count = min(_LANES, n_ids - start)
+        tau = thr0
+        if k > 0 and heap[0] < tau:
+            tau = heap[0]
+        if mode == 2 and lb0[ids[start]] > tau:
+            # every later block of the chunk has larger coarse bounds: all out
+            for b2 in range(blk, n_blocks, n_chunks):
+                s2 = b2 * _LANES
+                for lane in range(min(_LANES, n_ids - s2)):
+                    out[ids[s2 + lane]] = np.inf
+            break
+        mmax = 1
+        for lane in range(count):
+            mmax = max(mmax, lengths[ids[start + lane]])
+        if n * mmax < _MIN_CELLS_FOR_LANES:
+            # small tables: one candidate at a time, no gather, no bounds
             for lane in range(count):
-                v = res[lane]
-                out[ids[start + lane]] = v
+                b = ids[start + lane]
+                t_b = np.inf if mode == 0 else min(tau, ub[b])
+                v = np.inf
+                if mode == 0 or lb0[b] <= t_b:
+                    v = _dtw_scalar(x, sim, b, lengths[b], t_b, prev, cur, bad)
+                out[b] = v
                 if k > 0 and v < heap[0]:
                     _sift_down(heap, 0, v)
+                    if heap[0] < tau:
+                        tau = heap[0]
+            continue
+        mmax = _gather_block(sim, lengths, ids, start, count, Yf, mlen, box, False, bad)
+        _rows_bound(xT, Yf, mlen, _SEG, acc_r, best_r, suffix_blk, rows)
+        _cols_bound(olo, ohi, Yf, mlen, mmax, acc_c, best_c, cols, scol)
+        if mode == 0:
+            _upper_bound(x, Yf, mlen, thr, cols)
+        else:
+            for lane in range(_LANES):
+                u = ub[ids[start + (lane if lane < count else 0)]]
+                thr[lane] = u if u < tau else tau
+        for lane in range(count, _LANES):
+            thr[lane] = -1.0  # padding lane
+        if mode != 0:
+            _combine_bounds(x, Yf, mlen, rows, cols, lbb)
+            for lane in range(_LANES):
+                if lbb[lane] > thr[lane]:
+                    thr[lane] = -1.0  # dead from the start
+        alive = False
+        for lane in range(_LANES):
+            if thr[lane] >= 0.0:
+                alive = True
+        if alive:
+            _dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, scol, prev, cur, cost, thr_eff, res)
+        else:
+            for lane in range(_LANES):
+                res[lane] = np.inf
+        for lane in range(count):
+            v = res[lane]
+            out[ids[start + lane]] = v
+            if k > 0 and v < heap[0]:
+                _sift_down(heap, 0, v)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -773,23 +850,25 @@ def _dtw_blocks(x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, n_chunks, out,
 # ----------------------------------------------------------------------------------------------
 
 
-def _as_points(x, name: str, ndim: int) -> torch.Tensor:
-    t = as_tensor(x, name)
-    if t.dim() != ndim:
+def _as_points(x, name: str, ndim: int) -> np.ndarray:
+    """A C-contiguous float32/float64 numpy view of x (no copy when it already is one)."""
+    if isinstance(x, torch.Tensor):
+        t = x.detach()
+        if t.device.type != "cpu":
+            t = t.cpu()
+        if t.dtype not in (torch.float32, torch.float64):
+            t = as_tensor(t, name).to(torch.float64)
+        a = t.numpy()
+    elif isinstance(x, np.ndarray) and x.dtype in (np.float32, np.float64):
+        a = x
+    else:
+        a = as_tensor(x, name).numpy()
+    if a.ndim != ndim:
         want = "(T, D)" if ndim == 2 else "(B, T, D)"
-        raise ValueError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
-    if t.shape[-2] < 1 or t.shape[-1] < 1 or (ndim == 3 and t.shape[0] < 1):
-        raise ValueError(f"{name}: expected non-empty dimensions, got shape {tuple(t.shape)}")
-    return t
-
-
-def _to_numpy(t: torch.Tensor) -> np.ndarray:
-    t = t.detach()
-    if t.device.type != "cpu":
-        t = t.cpu()
-    if t.dtype not in (torch.float32, torch.float64):
-        t = t.to(torch.float64)
-    return np.ascontiguousarray(t.numpy())
+        raise ValueError(f"{name}: expected shape {want}, got {tuple(a.shape)}")
+    if a.shape[-2] < 1 or a.shape[-1] < 1 or (ndim == 3 and a.shape[0] < 1):
+        raise ValueError(f"{name}: expected non-empty dimensions, got shape {tuple(a.shape)}")
+    return np.ascontiguousarray(a)
 
 
 def _check_lengths(lengths, B: int, T: int) -> np.ndarray:
@@ -837,23 +916,38 @@ def _raise_nonfinite(sim: np.ndarray, lengths: np.ndarray, name: str) -> None:
     raise ValueError(f"{name}: contains NaN or inf values (sample {int(b)}, step {int(t)})")
 
 
-class _Threads:
-    """Context manager setting numba's thread count for one call."""
+_POOL: ThreadPoolExecutor | None = None
+_POOL_SIZE = 0
+_POOL_LOCK = threading.Lock()
 
-    def __init__(self, workers):
-        self.workers = workers
-        self.old = None
 
-    def __enter__(self):
-        if self.workers is not None:
-            self.old = numba.get_num_threads()
-            numba.set_num_threads(self.workers)
-        return numba.get_num_threads()
+def _default_workers() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
 
-    def __exit__(self, *exc):
-        if self.old is not None:
-            numba.set_num_threads(self.old)
-        return False
+
+def _run_chunks(fn, n_chunks: int, *args) -> None:
+    """fn(c, n_chunks, *args) for c in range(n_chunks), chunk 0 in the calling thread.
+
+    The kernels are ``nogil``: the chunks run truly in parallel on a shared thread pool. Each
+    chunk's work depends only on (c, n_chunks), never on thread timing.
+    """
+    global _POOL, _POOL_SIZE
+    if n_chunks > 1:
+        with _POOL_LOCK:
+            if _POOL is None or _POOL_SIZE < n_chunks - 1:
+                if _POOL is not None:
+                    _POOL.shutdown(wait=False)
+                _POOL = ThreadPoolExecutor(max_workers=n_chunks - 1, thread_name_prefix="dtw")
+                _POOL_SIZE = n_chunks - 1
+            pool = _POOL
+        futures = [pool.submit(fn, c, n_chunks, *args) for c in range(1, n_chunks)]
+    fn(0, n_chunks, *args)
+    if n_chunks > 1:
+        for f in futures:
+            f.result()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -885,7 +979,8 @@ def dtw_distances(
         keep_best: if given (k >= 1), only the k smallest distances (ties: lower index first) are
             returned exactly, all other entries are +inf. With ``epsilon`` too, the k best among
             those < epsilon.
-        workers: numba threads to use (default: numba's current setting).
+        workers: threads to use (default: the CPUs this process may run on). Each thread
+            takes a fixed share of the blocks, so the values never depend on it.
 
     Returns:
         (B,) float64 CPU tensor: DTW = min over warping paths of the sum of Euclidean point
@@ -895,41 +990,31 @@ def dtw_distances(
     Raises:
         ValueError/TypeError whose message starts with the offending argument's name.
     """
-    obs_t = _as_points(observed, "observed", 2)
-    sim_t = _as_points(simulated, "simulated", 3)
-    B, T, D = (int(s) for s in sim_t.shape)
-    if obs_t.shape[1] != D:
-        raise ValueError(
-            f"simulated: point dimension {D} differs from observed's {int(obs_t.shape[1])}"
-        )
-    n = _check_observed_length(observed_length, int(obs_t.shape[0]))
+    obs = _as_points(observed, "observed", 2)
+    sim = _as_points(simulated, "simulated", 3)
+    B, T, D = sim.shape
+    if obs.shape[1] != D:
+        raise ValueError(f"simulated: point dimension {D} differs from observed's {obs.shape[1]}")
+    n = _check_observed_length(observed_length, obs.shape[0])
     lens = _check_lengths(lengths, B, T)
     eps = None if epsilon is None else check_positive_float(epsilon, "epsilon")
     k = None if keep_best is None else check_positive_int(keep_best, "keep_best")
-    if workers is not None:
-        workers = check_positive_int(workers, "workers")
-        if workers > numba.config.NUMBA_NUM_THREADS:
-            raise ValueError(
-                f"workers: must be <= {numba.config.NUMBA_NUM_THREADS} (numba's thread pool), "
-                f"got {workers}"
-            )
-    obs_t = obs_t[:n]
-    check_finite(obs_t, "observed")
-
-    sim = _to_numpy(sim_t)
-    x = np.ascontiguousarray(_to_numpy(obs_t).astype(np.float64))
+    n_threads = _default_workers() if workers is None else check_positive_int(workers, "workers")
+    x = np.ascontiguousarray(obs[:n], dtype=np.float64)
+    if not np.isfinite(x).all():
+        raise ValueError("observed: contains NaN or inf values")
     out = np.empty(B, dtype=np.float64)
     bad = np.full(1, -1, dtype=np.int64)  # set by the kernels on NaN/inf in a valid step
 
-    with _Threads(workers) as n_threads:
-        if eps is None and (k is None or k >= B):
-            ids = np.argsort(lens, kind="stable").astype(np.int64)
-            none = np.empty(0)
-            _dtw_blocks(x, sim, lens, ids, 0, none, none, np.inf, none, n_threads, out, bad)
-            if bad[0] >= 0:
-                _raise_nonfinite(sim, lens, "simulated")
-        else:
-            _dtw_with_pruning(x, sim, lens, eps, k, n_threads, out, bad)
+    if eps is None and (k is None or k >= B):
+        ids = np.argsort(lens, kind="stable").astype(np.int64)
+        none = np.empty(0)
+        n_chunks = max(1, min(n_threads, -(-B // _LANES)))
+        _run_chunks(_dtw_chunk, n_chunks, x, sim, lens, ids, 0, none, none, np.inf, none, out, bad)
+        if bad[0] >= 0:
+            _raise_nonfinite(sim, lens, "simulated")
+    else:
+        _dtw_with_pruning(x, sim, lens, eps, k, n_threads, out, bad)
 
     if eps is not None:
         out[out >= eps] = np.inf
@@ -947,7 +1032,8 @@ def _dtw_with_pruning(x, sim, lens, eps, k, n_threads, out, bad) -> None:
     lb0 = np.empty(B)
     ub = np.empty(B)
     by_length = np.argsort(lens, kind="stable").astype(np.int64)
-    _coarse_bounds(x, sim, lens, by_length, lb0, ub, bad)
+    n_chunks = max(1, min(n_threads, -(-B // _LANES)))
+    _run_chunks(_coarse_chunk, n_chunks, x, sim, lens, by_length, lb0, ub, bad)
     if bad[0] >= 0:
         _raise_nonfinite(sim, lens, "simulated")
     out[:] = np.inf
@@ -961,14 +1047,14 @@ def _dtw_with_pruning(x, sim, lens, eps, k, n_threads, out, bad) -> None:
         first = np.argsort(ub, kind="stable")[:k]
         thr0 = min(thr0, float(ub[first[-1]]))
         first = first[np.argsort(lens[first], kind="stable")].astype(np.int64)
-        _dtw_blocks(x, sim, lens, first, 1, lb0, ub, thr0, heap0, n_threads, out, bad)
+        _run_chunks(_dtw_chunk, n_chunks, x, sim, lens, first, 1, lb0, ub, thr0, heap0, out, bad)
         heap0 = np.ascontiguousarray(out[first])
         todo[first] = False
     # phase 2: the others by ascending coarse bound; those above the threshold never get there
     rest = np.flatnonzero(todo & (lb0 <= thr0))
     rest = rest[np.argsort(lb0[rest], kind="stable")].astype(np.int64)
     if rest.size:
-        _dtw_blocks(x, sim, lens, rest, 2, lb0, ub, thr0, heap0, n_threads, out, bad)
+        _run_chunks(_dtw_chunk, n_chunks, x, sim, lens, rest, 2, lb0, ub, thr0, heap0, out, bad)
 
 
 def _candidate_bounds(observed, simulated, lengths=None, *, seg=_SEG):
@@ -992,7 +1078,7 @@ def _candidate_bounds(observed, simulated, lengths=None, *, seg=_SEG):
     coarse = np.empty(B)
     ub2 = np.empty(B)
     ids = np.argsort(lens, kind="stable").astype(np.int64)
-    _coarse_bounds(x, sim, lens, ids, coarse, ub2, np.full(1, -1, dtype=np.int64))
+    _coarse_chunk(0, 1, x, sim, lens, ids, coarse, ub2, np.full(1, -1, dtype=np.int64))
     return {"lb": lb, "coarse_lb": coarse, "ub": ub, "row_suffix": suffix, "col_suffix": col_suffix}
 
 
@@ -1023,7 +1109,7 @@ def l2_distance(observed, simulated) -> torch.Tensor:
     observed: (T, D); simulated: (B, T, D) (or (T, D) for one). Returns (B,) float64:
     ``sqrt(sum_t ||observed_t - simulated_b,t||^2)``. ValueError if the lengths differ.
     """
-    obs_t = _as_points(observed, "observed", 2).detach().cpu().to(torch.float64)
+    obs_t = torch.from_numpy(_as_points(observed, "observed", 2)).to(torch.float64)
     sim_t = as_tensor(simulated, "simulated").detach().cpu().to(torch.float64)
     if sim_t.dim() == 2:
         sim_t = sim_t.unsqueeze(0)

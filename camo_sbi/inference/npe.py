@@ -73,6 +73,9 @@ _FORMAT = "camo_sbi.npe.posterior/1"
 _U_EPS = 1e-6
 # log-prob evaluations per chunk (samples x tasks)
 _CHUNK = 8192
+# covariance inflation of the Gaussian importance proposals (product approximation, refits)
+_IS_INFLATE_PRODUCT = 2.0
+_IS_INFLATE = 1.5
 
 
 @dataclass(frozen=True)
@@ -370,18 +373,54 @@ class NpePosterior:
     def _mixture_counts(n: int, k: int) -> list[int]:
         return [n // k + (1 if i < n % k else 0) for i in range(k)]
 
+    def _product_gaussian(self, z: torch.Tensor, counts: list[int]):
+        """Gaussian approximation of the target from each flow's own draws (moment matching):
+        precision sum_i P_i - (k - 1) P_prior (the prior term dropped if that is not positive
+        definite), mean the precision-weighted combination. None if degenerate."""
+        k, d = self.n_tasks, self.n_free
+        eye = torch.eye(d, dtype=torch.float64)
+        prec_sum, shift = torch.zeros(d, d, dtype=torch.float64), torch.zeros(d, dtype=torch.float64)
+        s = 0
+        for c in counts:
+            zi = z[s : s + c]
+            s += c
+            if c < d + 2:
+                return None
+            mu_i = zi.mean(0)
+            p_i = torch.linalg.inv(torch.cov(zi.T).reshape(d, d) + 1e-9 * eye)
+            prec_sum += p_i
+            shift += p_i @ mu_i
+        if self.theta_transform == "logit":
+            # standard logistic prior: variance pi^2 / 3, mean 0
+            prec = prec_sum - (k - 1) * (3.0 / math.pi**2) * eye
+            if bool((torch.linalg.eigvalsh(prec) <= 0).any()):
+                prec = prec_sum
+        else:
+            prec = prec_sum
+        try:
+            cov = torch.linalg.inv(prec)
+            return cov @ shift, 0.5 * (cov + cov.T)
+        except RuntimeError:
+            return None
+
     @torch.no_grad()
     def sample(self, n: int, seed: int, *, is_rounds: int = 2, defensive_fraction: float = 0.2) -> ImportanceSample:
         """``n`` weighted draws per round by importance sampling (see the module docstring).
 
-        Deterministic given ``seed``; the global torch RNG is restored afterwards.
+        Round 0 proposes from the equal mixture of the k flows. Round 1 (k > 1) proposes from
+        a Gaussian approximation of the product (each flow's draws moment-matched, precisions
+        added), later rounds from a Gaussian fitted to the best round's weighted draws; both
+        with inflated covariance and a defensive share of flow-mixture draws. Returns the
+        round with the largest ESS. Deterministic given ``seed``; the global torch RNG is
+        restored afterwards.
         """
         n = check_positive_int(n, "n", minimum=2)
         seed = check_positive_int(seed, "seed", minimum=0)
         is_rounds = check_positive_int(is_rounds, "is_rounds", minimum=0)
         k, d = self.n_tasks, self.n_free
         gen = torch.Generator().manual_seed(seed)
-        best, ess_rounds = None, []
+        best, ess_rounds, product = None, [], None
+        eye = torch.eye(d, dtype=torch.float64)
         with torch.random.fork_rng(devices=[]), _torch_threads(self.n_threads):
             torch.manual_seed(seed)
             for r in range(is_rounds + 1):
@@ -392,20 +431,26 @@ class NpePosterior:
                     log_mix = torch.tensor([math.log(c / n) if c else -math.inf for c in counts],
                                            dtype=torch.float64)
                     log_r = torch.logsumexp(lq + log_mix[:, None], dim=0)
+                    if k > 1:
+                        product = self._product_gaussian(z, counts)
                 else:
-                    if best is None:
+                    if r == 1 and product is not None:
+                        mu, cov = product
+                        cov = _IS_INFLATE_PRODUCT * cov
+                    elif best is not None:
+                        w = torch.from_numpy(best["weights"])
+                        mu = w @ best["z"]
+                        zc = best["z"] - mu
+                        cov = _IS_INFLATE * ((zc * w[:, None]).T @ zc)
+                    else:
                         break
-                    w = torch.from_numpy(best["weights"])
-                    zb = best["z"]
-                    mu = w @ zb
-                    zc = zb - mu
-                    cov = (zc * w[:, None]).T @ zc + 1e-6 * torch.eye(d, dtype=torch.float64)
+                    cov = 0.5 * (cov + cov.T) + 1e-9 * eye
                     gauss = torch.distributions.MultivariateNormal(mu, covariance_matrix=cov)
                     n_def = max(int(round(defensive_fraction * n)), k)
                     n_gauss = n - n_def
                     counts = self._mixture_counts(n_def, k)
                     eps = torch.randn(n_gauss, d, generator=gen, dtype=torch.float64)
-                    z = torch.cat([mu + eps @ torch.linalg.cholesky(cov).T, self._sample_flows(counts)])
+                    z = torch.cat([mu + eps @ gauss.scale_tril.T, self._sample_flows(counts)])
                     lq = self.task_log_probs(z)
                     log_mix = torch.tensor([math.log(c / n) if c else -math.inf for c in counts],
                                            dtype=torch.float64)
