@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from camo_sbi.inference import npe
-from camo_sbi.inference.methods import make_config, run_method
+from camo_sbi.inference.methods import make_config, run_method, run_method_sequence
 from camo_sbi.inference.npe import NpeConfig, NpePosterior, load_posterior, summarize
 from camo_sbi.inference.priors import BoxPrior
 from tests.test_abc_smc import TRUE, toy_task
@@ -140,6 +140,15 @@ def test_run_budget_seeding_and_rng_isolation(toy):
     assert not np.array_equal(r1.samples, r3.samples)
 
 
+def test_run_sequence_equals_reruns(toy):
+    seq = run_method_sequence("npe", toy, budget=300, seed=2, config=TINY)
+    assert [r.n_tasks for r in seq] == [1, 2, 3]
+    assert [r.n_simulations for r in seq] == [300, 600, 900]
+    again = run_method("npe", toy, toy.observations[:2], budget=300, seed=2, config=TINY)
+    np.testing.assert_array_equal(seq[1].samples, again.samples)
+    np.testing.assert_array_equal(seq[1].weights, again.weights)
+
+
 def test_save_load_round_trip(toy, tmp_path):
     res = run_method("npe", toy, toy.observations[:2], budget=300, seed=0,
                      config={**TINY, "workdir": str(tmp_path), "embedding": "mlp", "embedding_dim": 8})
@@ -223,24 +232,30 @@ def test_smoke_recovery_toy(toy):
 @pytest.mark.slow
 @pytest.mark.parametrize("space", ["joint", "cartesian"])
 def test_recovery_toy_slow(toy, space):
-    """Default settings, budget 2000 per task, 3 tasks: within 0.08 rad of the truth."""
+    """Default settings, budget 2000 per task, 3 tasks: within 0.08 rad of the truth
+    (measured 0.005), ESS > 100 (measured ~2500 of 10000)."""
     res = run_method("npe", toy, budget=2000, seed=1, config={"space": space})
     np.testing.assert_allclose(res.estimate, TRUE.numpy(), atol=0.08)
     assert res.extras["ess"] > 100
 
 
 @pytest.mark.slow
-def test_recovery_panda_slow():
-    """Panda, 5 observed reaches, budget 2000 per task: the estimate beats the prior mean."""
-    from camo_sbi.scenarios.reaching import make_reaching_task
-    from camo_sbi.simulators import panda
+def test_panda_slow():
+    """Panda, 5 reaches, budget 2000 per task, default settings: the estimate predicts
+    held-out reaches better than the prior mean (measured: cumulative joint error 0.55 vs
+    1.46 rad per reach); ESS of the combined posterior > 20 (measured 50-230 of 10000)."""
+    from camo_sbi.scenarios.reaching import cumulative_joint_error, predict
+    from tests.test_abc_smc import impaired_panda_task
 
-    sim = panda()
-    lim = torch.stack([0.6 * sim.bounds[:, 0] + 0.4 * sim.start, 0.6 * sim.bounds[:, 1] + 0.4 * sim.start], 1)
-    true = lim.reshape(-1)
-    task = make_reaching_task(sim, true, n_train=5, n_test=5, seed=0)
+    task = impaired_panda_task()
+    sim = task.simulator
     res = run_method("npe", task, budget=2000, seed=0)
-    prior_mean = ((task.prior.low + task.prior.high) / 2).numpy()
-    err = np.abs(res.estimate - true.numpy()).mean()
-    assert err < 0.8 * np.abs(prior_mean - true.numpy()).mean()
+    truth = predict(sim, task.true_theta, task.test_starts, task.test_goals)
+
+    def err(theta):
+        pred = predict(sim, torch.as_tensor(theta), task.test_starts, task.test_goals)
+        return float(cumulative_joint_error(truth, pred).mean())
+
+    prior_mean = (task.prior.low + task.prior.high) / 2
+    assert err(res.estimate) < 0.8 * err(prior_mean)
     assert res.extras["ess"] > 20
