@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 __all__ = ["main"]
@@ -45,6 +46,14 @@ def build_parser() -> argparse.ArgumentParser:
         compare.add_arguments(p)
         p.set_defaults(func=compare.main)
     try:
+        from camo_sbi.experiments import calibrate
+    except ImportError:  # pragma: no cover
+        calibrate = None
+    if calibrate is not None:
+        p = sub.add_parser("calibrate", help="coverage and SBC of each method over synthetic subjects")
+        calibrate.add_arguments(p)
+        p.set_defaults(func=calibrate.main)
+    try:
         from camo_sbi.diagnostics import report
     except ImportError:  # pragma: no cover
         report = None
@@ -74,6 +83,10 @@ def _report(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import matplotlib
+
+    if "MPLBACKEND" not in os.environ:
+        matplotlib.use("Agg")  # figures go to files; a library import never switches backends
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

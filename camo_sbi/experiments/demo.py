@@ -5,15 +5,12 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
+import torch
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-
-from camo_sbi.experiments.plots import save_figure  # noqa: E402
-from camo_sbi.experiments.subjects import build_model  # noqa: E402
-from camo_sbi.inference.priors import BoxPrior  # noqa: E402
+from camo_sbi.experiments.plots import save_figure
+from camo_sbi.experiments.subjects import build_model
+from camo_sbi.inference.priors import BoxPrior
 
 __all__ = ["main"]
 

@@ -56,6 +56,7 @@ __all__ = [
     "main",
     "make_figure",
     "make_prior",
+    "naive_estimate",
     "render_main",
     "run_one",
 ]

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-from scipy import stats  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+from matplotlib.ticker import MaxNLocator
+from scipy import stats
 
 __all__ = ["mean_ci", "plot_bars", "plot_lines", "save_figure"]
 
@@ -42,8 +40,13 @@ def plot_lines(df: pd.DataFrame, *, x: str = "n_tasks", hue: str = "method", ax=
     for h, g in s.groupby(hue, sort=True):
         g = g.sort_values(x)
         ax.plot(g[x], g["mean"], marker="o", ms=3, label=str(h))
-        ax.fill_between(g[x], g["mean"] - g["ci"], g["mean"] + g["ci"], alpha=0.2)
+        lower = g["mean"] - g["ci"]
+        if bool((df["value"] >= 0).all()):  # a non-negative metric: do not draw the band below 0
+            lower = lower.clip(lower=0)
+        ax.fill_between(g[x], lower, g["mean"] + g["ci"], alpha=0.2)
     ax.set_xlabel(x.replace("_", " "))
+    if pd.api.types.is_integer_dtype(df[x]):
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel(ylabel)
     if title:
         ax.set_title(title)

@@ -705,10 +705,7 @@ class BlockStackingScene:
             camera: optional dict for computeViewMatrixFromYawPitchRoll
                 (target, distance, yaw, pitch).
         """
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
         from matplotlib.patches import Patch
 
         self._check_open()
@@ -766,7 +763,8 @@ class BlockStackingScene:
             p.resetBasePositionAndOrientation(self.gripper_id, self.gripper_home.tolist(), [0, 0, 0, 1],
                                               physicsClientId=cid)
             self.set_posture(self.simulator.start)
-        fig, ax = plt.subplots(figsize=(width / 100, height / 100 + 0.4), dpi=100)
+        fig = Figure(figsize=(width / 100, height / 100 + 0.4), dpi=100)  # no pyplot: backend untouched
+        ax = fig.subplots()
         ax.imshow(rgb)
         ax.set_axis_off()
         handles = []
@@ -782,7 +780,6 @@ class BlockStackingScene:
         out = os.fspath(out_png)
         os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
         fig.savefig(out, format="png")
-        plt.close(fig)
         return out
 
     def __repr__(self) -> str:
