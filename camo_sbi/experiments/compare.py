@@ -21,12 +21,13 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from camo_sbi.distributed import DEFAULT_RETRIES, dask_client, map_unordered, parse_scheduler
 from camo_sbi.experiments.manipulator import derive_seed, evaluate_estimate
 from camo_sbi.experiments.plots import plot_lines, save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
 from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
 
-__all__ = ["add_arguments", "main", "run_cell", "cell_specs"]
+__all__ = ["add_arguments", "main", "run_cell", "run_cells_on", "cell_specs"]
 
 _SIMS: dict[str, object] = {}
 
@@ -179,6 +180,21 @@ def make_figures(df, out: Path) -> list[Path]:
     return paths
 
 
+def run_cells_on(client, specs: list[dict], out, *, retries: int = DEFAULT_RETRIES, on_done=None) -> list[str]:
+    """Run cells on a Dask client; a cell whose worker dies is retried (``retries``).
+
+    A retried cell rewrites the same atomic file, so the store never holds a duplicate or
+    a partial cell. Returns the finished keys in completion order.
+    """
+    client.run(_init_worker)
+    keys = []
+    for key in map_unordered(run_cell, specs, client, retries=retries, out=str(out)):
+        keys.append(key)
+        if on_done is not None:
+            on_done(key)
+    return keys
+
+
 def _init_worker():
     os.environ.setdefault("NUMBA_NUM_THREADS", "1")
     torch.set_num_threads(1)
@@ -193,7 +209,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-goals", type=int, default=10)
     p.add_argument("--subjects", default=None, help="comma-separated subject profiles (default: the first)")
     p.add_argument("--space", choices=("joint", "cartesian"), default="joint")
-    p.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (without --scheduler)")
+    p.add_argument("--scheduler", default=None,
+                   help="run the cells on Dask: 'local:N' (a LocalCluster with N worker processes) or "
+                        "a scheduler address 'tcp://host:8786'; default: in-process / --workers")
     p.add_argument("--seed", type=int, default=0, help="base seed")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     p.add_argument("--out", type=Path, default=Path("runs/compare"))
@@ -204,6 +223,11 @@ def main(args) -> int:
     specs = cell_specs(args)
     if args.workers < 1:
         raise ValueError("--workers: must be >= 1")
+    scheduler = getattr(args, "scheduler", None)
+    try:
+        parse_scheduler(scheduler)
+    except ValueError as exc:
+        raise ValueError(f"--{exc}") from exc
     out = Path(args.out)
     store = ResultStore(out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
@@ -211,7 +235,10 @@ def main(args) -> int:
     todo = [s for s in specs if not store.done(s["key"])]
     print(f"{len(specs)} cells, {len(specs) - len(todo)} already finished")
     bar = tqdm(total=len(todo), desc="compare", unit="cell")
-    if args.workers == 1:
+    if parse_scheduler(scheduler) is not None:
+        with dask_client(scheduler) as client:
+            run_cells_on(client, todo, out, on_done=lambda _key: bar.update())
+    elif args.workers == 1:
         for spec in todo:
             bar.set_postfix_str(f"{spec['method']} b={spec['budget']} s={spec['seed']}")
             run_cell(spec, str(out))

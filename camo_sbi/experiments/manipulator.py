@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from camo_sbi.distributed import dask_client, parse_scheduler
 from camo_sbi.experiments.plots import plot_bars, plot_lines, save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
 from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
@@ -54,7 +55,8 @@ def evaluate_estimate(task, estimate, true_test) -> dict[str, float]:
 
 def _method_configs(args) -> dict[str, tuple[str, dict]]:
     camo = {"epsilon": args.epsilon, "keep_best": args.keep_best, "bandwidth": args.bandwidth,
-            "bandwidth_mode": args.bandwidth_mode, "sampling": args.sampling}
+            "bandwidth_mode": args.bandwidth_mode, "sampling": args.sampling,
+            "scheduler": getattr(args, "scheduler", None)}
     table = {
         "camo-js": ("camo", {**camo, "space": "joint"}),
         "camo-cs": ("camo", {**camo, "space": "cartesian"}),
@@ -123,6 +125,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"comma-separated subset of {','.join(METHOD_LABELS)}")
     p.add_argument("--subjects", default=None, help="comma-separated ground-truth profiles (default: all, cycled)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scheduler", default=None,
+                   help="run CAMO's candidate chunks on Dask: 'local:N' or 'tcp://host:8786' "
+                        "(same numbers as in-process)")
     p.add_argument("--out", type=Path, default=Path("runs/reproduce_panda"))
 
 
@@ -134,6 +139,10 @@ def main(args) -> int:
     for name in ("runs", "tasks", "test_goals", "samples"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
+    try:
+        parse_scheduler(getattr(args, "scheduler", None))
+    except ValueError as exc:
+        raise ValueError(f"--{exc}") from exc
     t0 = time.perf_counter()
     sim = build_model(args.model)
     subjects = args.subjects.split(",") if args.subjects else subject_names(args.model)
@@ -143,12 +152,13 @@ def main(args) -> int:
     store = ResultStore(out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "reproduce panda", **settings}, indent=2))
-    for run in tqdm(range(args.runs), desc=f"reproduce {args.model}", unit="run"):
-        subject = subjects[run % len(subjects)]
-        key = cell_key({"run": run, "subject": subject})
-        if store.done(key):
-            continue
-        store.put(key, run_one(sim, args.model, subject, run, args))
+    with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
+        for run in tqdm(range(args.runs), desc=f"reproduce {args.model}", unit="run"):
+            subject = subjects[run % len(subjects)]
+            key = cell_key({"run": run, "subject": subject})
+            if store.done(key):
+                continue
+            store.put(key, run_one(sim, args.model, subject, run, args))
     df = store.write_table()
     figs = make_figures(df, out)
     wall = time.perf_counter() - t0

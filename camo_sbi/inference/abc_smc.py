@@ -66,6 +66,7 @@ import pandas as pd
 import torch
 
 from camo_sbi._validation import check_positive_float, check_positive_int
+from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
 from camo_sbi.inference.distances import dtw_distances
 from camo_sbi.inference.priors import BoxPrior
 from camo_sbi.inference.result import PosteriorResult
@@ -137,6 +138,13 @@ class AbcSmcConfig:
         log_level: level of pyabc's "ABC" logger during the run ("INFO" shows generations).
         workdir: None -> the pyabc history lives in a temporary directory removed after
             the run; else the directory (created) receiving ``abc_smc_k{k}_seed{seed}.db``.
+        chunk_size: a batch is simulated and scored in chunks of this many particles (our
+            batched sampler's simulate + distance calls, in-process or on Dask workers).
+            Proposals are drawn on the driver (seeded) and a particle's acceptance, distance
+            and simulation count do not depend on the chunks, so neither do the results.
+        scheduler: None (in-process), "local:N" or a Dask scheduler address: where the
+            chunks run (see `camo_sbi.distributed`). pyabc's own ``DaskDistributedSampler``
+            is not used: it reseeds from the OS, so its results would not be reproducible.
     """
 
     space: str = "joint"
@@ -154,6 +162,8 @@ class AbcSmcConfig:
     sim_dtype: str = "float32"
     log_level: str = "WARNING"
     workdir: str | os.PathLike | None = None
+    chunk_size: int = 1024
+    scheduler: str | None = None
 
     def __post_init__(self):
         if self.space not in _SPACES:
@@ -187,6 +197,8 @@ class AbcSmcConfig:
             raise ValueError(f"log_level: expected a logging level name, got {self.log_level!r}")
         if self.workdir is not None and not isinstance(self.workdir, (str, os.PathLike)):
             raise TypeError(f"workdir: expected a path or None, got {type(self.workdir).__name__}")
+        check_positive_int(self.chunk_size, "chunk_size")
+        parse_scheduler(self.scheduler)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -268,10 +280,16 @@ class JointDistance:
         dtype: simulation dtype.
         budget: simulated trajectories this object may request in total; it never requests
             more (``remaining``).
+        chunk_size: particles per chunk (see `AbcSmcConfig.chunk_size`).
+        scheduler: None (in-process) or a Dask scheduler spec for the chunks.
     """
 
-    def __init__(self, simulator, prior: BoxPrior, observations, *, space: str, dtype, budget: int):
+    def __init__(self, simulator, prior: BoxPrior, observations, *, space: str, dtype, budget: int,
+                 chunk_size: int = 1024, scheduler: str | None = None):
         self.simulator, self.prior, self.space, self.dtype = simulator, prior, space, dtype
+        self.chunk_size = check_positive_int(chunk_size, "chunk_size")
+        parse_scheduler(scheduler)
+        self.scheduler = scheduler
         self.budget = int(budget)
         self.n_simulations = 0
         self.time_simulate = 0.0
@@ -312,31 +330,21 @@ class JointDistance:
         """
         theta = self.prior.expand(torch.as_tensor(free_theta, dtype=torch.float64))
         B = theta.shape[0]
-        total = np.zeros(B)
-        alive = np.ones(B, dtype=bool)
-        for start, goal, traj in self._tasks:
-            idx = np.flatnonzero(alive)
-            if idx.size == 0:
-                break
-            th = theta[torch.from_numpy(idx)]
-            # the observed start bounds the limits (as CAMO and `predict` do)
-            th[:, 0::2] = torch.minimum(th[:, 0::2], start)
-            th[:, 1::2] = torch.maximum(th[:, 1::2], start)
-            t0 = time.perf_counter()
-            sims = self.simulator.simulate(th.to(self.dtype), goal=goal.to(self.dtype), start=start.to(self.dtype))
-            self.n_simulations += int(idx.size)
-            t1 = time.perf_counter()
-            x = sims.q if self.space == "joint" else sims.ee
-            allowance = None
-            if math.isfinite(eps):
-                # DTW >= epsilon comes back as inf: nextafter makes that "> allowance"
-                allowance = float(np.nextafter(max(eps - float(total[idx].min()), 0.0), np.inf))
-            d = dtw_distances(traj, x, sims.length, epsilon=allowance).numpy()
-            self.time_simulate += t1 - t0
-            self.time_distance += time.perf_counter() - t1
-            total[idx] += d
-            if math.isfinite(eps):
-                alive &= total <= eps
+        chunks = [theta[s : s + self.chunk_size] for s in range(0, B, self.chunk_size)]
+        client = get_client(self.scheduler)
+        # in-process every chunk goes through the (counting) simulator; on workers the
+        # unwrapped simulator runs and the driver's counter is charged with what they ran
+        target = self.simulator if client is None else unwrap_simulator(self.simulator)
+        parts = map_ordered(_distance_chunk, chunks, client, simulator=target, tasks=self._tasks,
+                            space=self.space, dtype=self.dtype, eps=eps)
+        n_sims = sum(p[2] for p in parts)
+        if client is not None:
+            charge(self.simulator, n_sims)
+        self.n_simulations += n_sims
+        self.time_simulate += sum(p[3] for p in parts)
+        self.time_distance += sum(p[4] for p in parts)
+        total = np.concatenate([p[0] for p in parts])
+        alive = np.concatenate([p[1] for p in parts])
         self.n_particles += B
         complete = alive | ~math.isfinite(eps)
         return total, complete
@@ -348,6 +356,46 @@ class JointDistance:
             raise _OutOfBudget
         d, _ = self(np.array([[parameter[k] for k in names]]))
         return {_DISTANCE_KEY: float(d[0])}
+
+
+def _distance_chunk(theta: torch.Tensor, *, simulator, tasks, space: str, dtype, eps: float):
+    """Summed DTW of one chunk of full theta vectors over ``tasks`` (in-process or on a worker).
+
+    Returns (total (b,), alive (b,) bool, simulations run, simulate time, distance time). With
+    a finite ``eps`` a particle's remaining tasks are skipped once its partial sum exceeds eps;
+    an accepted particle's distance is exact whatever the chunk (its every term is below the
+    chunk's allowance), so only rejected particles' lower bounds depend on the chunking.
+    """
+    from camo_sbi.inference.budget import CountingSimulator
+
+    counter = CountingSimulator(simulator, None)
+    B = theta.shape[0]
+    total = np.zeros(B)
+    alive = np.ones(B, dtype=bool)
+    t_sim = t_dist = 0.0
+    for start, goal, traj in tasks:
+        idx = np.flatnonzero(alive)
+        if idx.size == 0:
+            break
+        th = theta[torch.from_numpy(idx)]
+        # the observed start bounds the limits (as CAMO and `predict` do)
+        th[:, 0::2] = torch.minimum(th[:, 0::2], start)
+        th[:, 1::2] = torch.maximum(th[:, 1::2], start)
+        t0 = time.perf_counter()
+        sims = counter.simulate(th.to(dtype), goal=goal.to(dtype), start=start.to(dtype))
+        t1 = time.perf_counter()
+        x = sims.q if space == "joint" else sims.ee
+        allowance = None
+        if math.isfinite(eps):
+            # DTW >= epsilon comes back as inf: nextafter makes that "> allowance"
+            allowance = float(np.nextafter(max(eps - float(total[idx].min()), 0.0), np.inf))
+        d = dtw_distances(traj, x, sims.length, epsilon=allowance).numpy()
+        t_sim += t1 - t0
+        t_dist += time.perf_counter() - t1
+        total[idx] += d
+        if math.isfinite(eps):
+            alive &= total <= eps
+    return total, alive, counter.n_simulations, t_sim, t_dist
 
 
 class _OutOfBudget(Exception):
@@ -571,7 +619,8 @@ def run(task, observations, *, budget: int, seed: int, config: AbcSmcConfig | No
     k = len(observations)
     t_start = time.perf_counter()
     distance = JointDistance(task.simulator, prior, observations, space=config.space,
-                             dtype=_DTYPES[config.sim_dtype], budget=budget * k)
+                             dtype=_DTYPES[config.sim_dtype], budget=budget * k,
+                             chunk_size=config.chunk_size, scheduler=config.scheduler)
     names = parameter_names(prior)
     pyabc_prior = to_pyabc_prior(prior)
     low = prior.low[prior.free_mask].numpy()
@@ -605,7 +654,10 @@ def run(task, observations, *, budget: int, seed: int, config: AbcSmcConfig | No
             eps=eps,
             sampler=sampler,
         )
-        abc.new("sqlite:///" + str(db_path), {_DISTANCE_KEY: 0.0})
+        history = abc.new("sqlite:///" + str(db_path), {_DISTANCE_KEY: 0.0})
+        # the only summary statistic is the distance itself, already stored per particle:
+        # not writing it again cuts pyabc's per-particle database cost
+        history.stores_sum_stats = False
         history = abc.run(
             minimum_epsilon=config.min_epsilon,
             max_nr_populations=config.max_populations,

@@ -12,6 +12,11 @@ For each observed task n (start, goal, trajectory):
 The joint log-density table is updated incrementally: a new task only evaluates its
 own KDE at the old kept vectors and every KDE at its new vectors (matrix products),
 so earlier tasks are never re-simulated and task n costs O(|Q_n| * |Q_all|).
+
+Step 1 runs in fixed-size chunks (``CamoConfig.chunk_size``): chunk c of task n draws from
+``default_rng([seed, n, c])`` and is simulated and scored on its own, in-process or on Dask
+workers (``CamoConfig.scheduler``), so the result never depends on the number of workers.
+Each chunk scores its own best k exactly, and the task's best k are among those.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ import numpy as np
 import torch
 
 from camo_sbi._validation import as_tensor, check_finite, check_positive_float, check_positive_int
+from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
 from camo_sbi.inference.distances import dtw_distances
 from camo_sbi.inference.kde import GaussianKDE, scott_bandwidth
 from camo_sbi.inference.priors import BoxPrior
@@ -53,6 +59,13 @@ class CamoConfig:
         space: "joint" (CAMO-JS) or "cartesian" (CAMO-CS) observations.
         sampling: "uniform" or "lhs" (Latin hypercube) prior draws.
         sim_dtype: "float32" or "float64" for the candidate simulations.
+        chunk_size: candidates per chunk. Chunk c of task n draws its candidates from
+            ``numpy.random.default_rng([seed, n, c])`` and is simulated and scored on its own,
+            in-process or on a Dask worker, so the numbers never depend on the number of
+            workers. A constant: changing it changes the draws (as does ``sampling="lhs"``,
+            which stratifies per chunk).
+        scheduler: None (in-process), "local:N" (a Dask LocalCluster with N workers) or a
+            Dask scheduler address ("tcp://host:8786"); see `camo_sbi.distributed`.
     """
 
     n_samples: int = 2000
@@ -64,6 +77,8 @@ class CamoConfig:
     space: str = "joint"
     sampling: str = "uniform"
     sim_dtype: str = "float32"
+    chunk_size: int = 1000
+    scheduler: str | None = None
 
     def __post_init__(self):
         check_positive_int(self.n_samples, "n_samples")
@@ -83,6 +98,8 @@ class CamoConfig:
             raise ValueError(f"sampling: expected 'uniform' or 'lhs', got {self.sampling!r}")
         if self.sim_dtype not in _DTYPES:
             raise ValueError(f"sim_dtype: expected one of {tuple(_DTYPES)}, got {self.sim_dtype!r}")
+        check_positive_int(self.chunk_size, "chunk_size")
+        parse_scheduler(self.scheduler)
 
 
 @dataclass(frozen=True)
@@ -107,8 +124,9 @@ class Camo:
         simulator: a `Simulator` (possibly a budget-counting wrapper).
         prior: `BoxPrior`; fixed (known) coordinates are excluded from the KDE.
         config: `CamoConfig`.
-        seed: int; task n draws from ``numpy.random.default_rng([seed, n])`` so each
-            task's stream is independent of how many tasks came before it.
+        seed: int; chunk c of task n draws from ``numpy.random.default_rng([seed, n, c])``
+            so each task's stream is independent of how many tasks came before it and of
+            where (which worker) its chunks run.
     """
 
     def __init__(self, simulator, prior: BoxPrior, config: CamoConfig = CamoConfig(), *, seed: int):
@@ -160,20 +178,27 @@ class Camo:
         for t, name in ((start, "start"), (goal, "goal"), (traj, "trajectory")):
             check_finite(t, name)
         idx = self.n_tasks
-        rng = np.random.default_rng([self.seed, idx])
 
         t0 = time.perf_counter()
-        theta = self.prior.sample(cfg.n_samples, rng)
-        dtype = _DTYPES[cfg.sim_dtype]
-        # limits must contain this task's start posture (it is observed)
-        lo = torch.minimum(theta[:, 0::2], start)
-        hi = torch.maximum(theta[:, 1::2], start)
-        theta[:, 0::2], theta[:, 1::2] = lo, hi
-        sims = sim.simulate(theta.to(dtype), goal.to(dtype), start.to(dtype))
-        t1 = time.perf_counter()
-        sim_traj = sims.q if cfg.space == "joint" else sims.ee
-        dist = dtw_distances(traj, sim_traj, sims.length, epsilon=cfg.epsilon, keep_best=cfg.keep_best)
-        t2 = time.perf_counter()
+        sizes = [min(cfg.chunk_size, cfg.n_samples - c) for c in range(0, cfg.n_samples, cfg.chunk_size)]
+        jobs = [(self.seed, idx, c, b) for c, b in enumerate(sizes)]
+        client = get_client(cfg.scheduler)
+        if client is None:
+            target = sim  # in-process: every chunk goes through the (counting) simulator
+        else:
+            charge(sim, cfg.n_samples)  # counted here, before anything runs on a worker
+            target = unwrap_simulator(sim)
+        parts = map_ordered(_candidate_chunk, jobs, client, simulator=target, prior=self.prior,
+                            start=start, goal=goal, trajectory=traj, config=cfg)
+        theta = torch.cat([p["theta"] for p in parts])
+        dist = torch.cat([p["dist"] for p in parts])
+        t_sim = sum(p["time_simulate"] for p in parts)
+        t_dist = sum(p["time_distance"] for p in parts)
+        # wall-clock split in proportion to the chunks' own timings
+        wall = time.perf_counter() - t0
+        share = t_sim / (t_sim + t_dist) if t_sim + t_dist > 0 else 1.0
+        t1 = t0 + wall * share
+        t2 = t0 + wall
 
         order = torch.argsort(dist, stable=True)
         fallback, n_eps = False, None
@@ -189,10 +214,10 @@ class Camo:
                     f"(best distance {float(dist[order[0]]):.4g}); keeping the best {cfg.fallback_keep}",
                     RuntimeWarning, stacklevel=2,
                 )
-                # pruned distances beyond epsilon are +inf: recompute the best k exactly
-                dist = dtw_distances(traj, sim_traj, sims.length, keep_best=cfg.fallback_keep)
+                # pruned distances beyond epsilon are +inf: each chunk (none of which accepted
+                # anything) also scored its best k exactly; the global best k are among them
+                dist = torch.cat([p["dist_fallback"] for p in parts])
                 keep = torch.argsort(dist, stable=True)[: cfg.fallback_keep]
-                t2 = time.perf_counter()
         else:
             keep = order[: cfg.keep_best]
         if not bool(torch.isfinite(dist[keep]).all()):
@@ -254,6 +279,35 @@ class Camo:
                 "time_kde": sum(r.time_kde for r in self.records),
             },
         )
+
+
+def _candidate_chunk(job, *, simulator, prior: BoxPrior, start, goal, trajectory, config: CamoConfig) -> dict:
+    """One chunk of one task's candidates: draw, simulate, score (runs in-process or on a worker).
+
+    ``job`` = (seed, task index, chunk index, size); the draws come from
+    ``default_rng([seed, task, chunk])`` only. Returns theta (b, 2n) float64, dist (b,)
+    (exact for the chunk's best ``keep_best`` / those < ``epsilon``, else +inf), dist_fallback
+    (exact for the chunk's best ``fallback_keep``, only when ``epsilon`` accepted none of
+    the chunk, else None) and the chunk's simulate / distance times.
+    """
+    seed, task_index, chunk_index, b = job
+    cfg = config
+    rng = np.random.default_rng([seed, task_index, chunk_index])
+    t0 = time.perf_counter()
+    theta = prior.sample(b, rng)
+    dtype = _DTYPES[cfg.sim_dtype]
+    # limits must contain this task's start posture (it is observed)
+    theta[:, 0::2] = torch.minimum(theta[:, 0::2], start)
+    theta[:, 1::2] = torch.maximum(theta[:, 1::2], start)
+    sims = simulator.simulate(theta.to(dtype), goal.to(dtype), start.to(dtype))
+    t1 = time.perf_counter()
+    sim_traj = sims.q if cfg.space == "joint" else sims.ee
+    dist = dtw_distances(trajectory, sim_traj, sims.length, epsilon=cfg.epsilon, keep_best=cfg.keep_best)
+    dist_fallback = None
+    if cfg.epsilon is not None and not bool((dist < cfg.epsilon).any()):
+        dist_fallback = dtw_distances(trajectory, sim_traj, sims.length, keep_best=cfg.fallback_keep)
+    return {"theta": theta, "dist": dist, "dist_fallback": dist_fallback,
+            "time_simulate": t1 - t0, "time_distance": time.perf_counter() - t1}
 
 
 def _camo_for(task, config: CamoConfig, budget: int, seed: int) -> Camo:

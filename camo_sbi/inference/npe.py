@@ -58,6 +58,7 @@ import torch
 from torch import nn
 
 from camo_sbi._validation import as_tensor, check_positive_float, check_positive_int
+from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
 from camo_sbi.inference.priors import BoxPrior
 from camo_sbi.inference.result import PosteriorResult
 
@@ -110,7 +111,9 @@ class NpeConfig:
         defensive_fraction: share of each adaptive round drawn from the flow mixture.
         estimator: point estimate: "mean" (weighted), "median" (coordinate-wise weighted) or
             "map" (sample with the highest combined density).
-        simulation_batch_size: prior draws per ``simulate`` call.
+        simulation_batch_size: prior draws per ``simulate`` call: the chunks that
+            ``scheduler`` distributes (the draws themselves are made up front, so the training
+            data never depend on where the chunks run).
         sim_dtype: "float32" or "float64" for the simulations.
         workdir: None, or a directory (created) receiving ``npe_posterior_k{k}_seed{seed}.pt``
             (reload with `load_posterior`).
@@ -118,6 +121,8 @@ class NpeConfig:
         n_threads: torch intra-op threads while training and sampling (restored afterwards);
             None keeps the current setting. Small flows train fastest on one thread: with
             OpenMP's busy-waiting, 2 threads were ~10x slower per batch on a loaded 2-core box.
+        scheduler: None (in-process), "local:N" or a Dask scheduler address: where the
+            training-data simulation chunks run (see `camo_sbi.distributed`).
     """
 
     space: str = "joint"
@@ -143,6 +148,7 @@ class NpeConfig:
     workdir: str | os.PathLike | None = None
     device: str = "cpu"
     n_threads: int | None = 1
+    scheduler: str | None = None
 
     def __post_init__(self):
         if self.space not in _SPACES:
@@ -186,6 +192,7 @@ class NpeConfig:
             torch.device(self.device)
         except RuntimeError as exc:
             raise ValueError(f"device: {exc}") from exc
+        parse_scheduler(self.scheduler)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -611,6 +618,16 @@ def _check_run_args(task, observations, budget, seed, config):
     return observations, budget, seed, config
 
 
+def _simulate_summaries(theta, *, simulator, start, goal, dtype, config: NpeConfig) -> torch.Tensor:
+    """Summaries of one chunk of draws simulated to one task (in-process or on a Dask worker)."""
+    th = theta.clone()
+    th[:, 0::2] = torch.minimum(th[:, 0::2], start)
+    th[:, 1::2] = torch.maximum(th[:, 1::2], start)
+    out = simulator.simulate(th.to(dtype), goal=goal.to(dtype), start=start.to(dtype))
+    x = out.q if config.space == "joint" else out.ee
+    return summarize(x, out.length, n_points=config.n_points, include_length=config.include_length)
+
+
 def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
     """Yield (estimator, observed summary, info) per task, in order (arguments checked).
 
@@ -626,16 +643,17 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
         traj_obs = torch.as_tensor(obs.trajectory(config.space), dtype=torch.float64).cpu()
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0, i)))
         theta = prior.sample(budget, rng)
-        feats = []
         t0 = time.perf_counter()
-        for s in range(0, budget, config.simulation_batch_size):
-            th = theta[s : s + config.simulation_batch_size].clone()
-            th[:, 0::2] = torch.minimum(th[:, 0::2], start)
-            th[:, 1::2] = torch.maximum(th[:, 1::2], start)
-            out = sim.simulate(th.to(dtype), goal=goal.to(dtype), start=start.to(dtype))
-            x = out.q if config.space == "joint" else out.ee
-            feats.append(summarize(x, out.length, n_points=config.n_points,
-                                   include_length=config.include_length))
+        chunks = [theta[s : s + config.simulation_batch_size]
+                  for s in range(0, budget, config.simulation_batch_size)]
+        client = get_client(config.scheduler)
+        if client is None:
+            target = sim  # in-process: every chunk goes through the (counting) simulator
+        else:
+            charge(sim, budget)  # counted here, before anything runs on a worker
+            target = unwrap_simulator(sim)
+        feats = map_ordered(_simulate_summaries, chunks, client, simulator=target, start=start,
+                            goal=goal, dtype=dtype, config=config)
         t_sim = time.perf_counter() - t0
         x = torch.cat(feats)
         xo = summarize(traj_obs, torch.tensor([traj_obs.shape[0]]), n_points=config.n_points,
