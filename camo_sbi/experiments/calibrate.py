@@ -63,7 +63,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
 from camo_sbi.diagnostics.calibration import (
     DEFAULT_ALPHAS,

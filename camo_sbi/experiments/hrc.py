@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
 from camo_sbi.inference.camo import CamoConfig
 

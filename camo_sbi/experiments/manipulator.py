@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
 from camo_sbi.distributed import dask_client, parse_scheduler
 from camo_sbi.experiments.plots import plot_bars, plot_lines, save_figure
@@ -26,6 +26,10 @@ from camo_sbi.experiments.subjects import build_model, subject_names, subject_th
 __all__ = ["add_arguments", "main", "run_one", "evaluate_estimate"]
 
 METHOD_LABELS = ("camo-js", "camo-cs", "naive")
+# settings that change a run's rows: part of each cell's key, so a re-run with other
+# settings into the same directory computes new cells instead of reusing old ones
+_CELL_SETTINGS = ("model", "tasks", "test_goals", "samples", "epsilon", "keep_best", "bandwidth",
+                  "bandwidth_mode", "sampling", "methods", "seed")
 
 
 def derive_seed(*parts: int) -> int:
@@ -155,7 +159,7 @@ def main(args) -> int:
     with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
         for run in tqdm(range(args.runs), desc=f"reproduce {args.model}", unit="run"):
             subject = subjects[run % len(subjects)]
-            key = cell_key({"run": run, "subject": subject})
+            key = cell_key({"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}})
             if store.done(key):
                 continue
             store.put(key, run_one(sim, args.model, subject, run, args))

@@ -135,7 +135,9 @@ class AbcSmcConfig:
         estimator: point estimate from the last population: "mean" (weighted mean),
             "median" (coordinate-wise weighted median) or "best" (smallest distance).
         sim_dtype: "float32" or "float64" for the simulations (CAMO's default: float32).
-        log_level: level of pyabc's "ABC" logger during the run ("INFO" shows generations).
+        log_level: level of pyabc's "ABC" logger during the run ("INFO" shows generations;
+            "WARNING" also shows pyabc's near-zero population weight warnings, whose cause,
+            weight degeneracy, is reported as ``extras["ess"]`` instead).
         workdir: None -> the pyabc history lives in a temporary directory removed after
             the run; else the directory (created) receiving ``abc_smc_k{k}_seed{seed}.db``.
         chunk_size: a batch is simulated and scored in chunks of this many particles (our
@@ -160,7 +162,7 @@ class AbcSmcConfig:
     max_batch_size: int = 4096
     estimator: str = "mean"
     sim_dtype: str = "float32"
-    log_level: str = "WARNING"
+    log_level: str = "ERROR"
     workdir: str | os.PathLike | None = None
     chunk_size: int = 1024
     scheduler: str | None = None
