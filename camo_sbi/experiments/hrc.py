@@ -28,9 +28,9 @@ limits, the others the observed min/max. When nothing has been observed yet
 Rows: run, subject, prior, method, n_tasks, metric, value in ``<out>/results.csv``:
 precision, recall, f1, accuracy (methods camo, naive, majority), limit_error (camo,
 naive: mean absolute error of the prior's free limits, radians) and person_fraction
-(method truth: the person's share of the test blocks); the figure ``fig5_allocation.png``; with
-``--scene-png`` one picture per run of the first test trial under CAMO's final
-(strong-prior) allocation.
+(method truth: the person's share of the test blocks); the figure ``fig5_allocation.png``;
+``scene_run00.png`` (with ``--scene-png``, one per run): the first test trial under CAMO's
+final (strong-prior) allocation.
 """
 
 from __future__ import annotations
@@ -285,7 +285,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--priors", default=",".join(PRIORS), help="comma-separated subset of strong,weak")
     p.add_argument("--subject", default="frozen_shoulder",
                    help="ground-truth impairment profile (e.g. frozen_shoulder, elbow_flexion_contracture)")
-    p.add_argument("--scene-png", action="store_true", help="save a scene picture per run")
+    p.add_argument("--scene-png", action="store_true",
+                   help="save a scene picture for every run (the first run's is always saved)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("runs/reproduce_hrc"))
 
@@ -338,12 +339,14 @@ def main(args) -> int:
     with BlockStackingScene(sim, seed=args.seed) as scene:
         for run in tqdm(range(args.runs), desc=f"reproduce hrc ({args.subject})", unit="run"):
             key = cell_key({"run": run, **{k: settings[k] for k in _CELL_SETTINGS}})
-            if store.done(key) and not args.scene_png:
+            png = out / f"scene_run{run:02d}.png"
+            want_png = args.scene_png or run == 0  # the first run's scene is always drawn
+            if store.done(key) and (not want_png or png.exists()):
                 continue
             rows, extras = run_one(scene, sim, args.subject, run, args)
-            store.put(key, rows)
-            if args.scene_png:
-                _render_run(scene, extras, out / f"scene_run{run:02d}.png")
+            store.put(key, rows)  # deterministic: a recomputed run rewrites identical rows
+            if want_png:
+                _render_run(scene, extras, png)
     df = store.write_table()
     fig = make_figure(df, out)
     wall = time.perf_counter() - t0
