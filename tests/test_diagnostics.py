@@ -7,6 +7,7 @@ tests do not depend on the simulators or inference methods. Runs in well under 6
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import re
 
@@ -425,3 +426,24 @@ def test_report_bad_inputs(tmp_path):
         report.write_report(tmp_path, tmp_path)
     with pytest.raises(TypeError, match="^title"):
         report.write_report(tmp_path, tmp_path / "r.html", title=5)
+
+
+def test_posterior_comparison_identical_vs_shifted(prior, truth):
+    """Same draws: W1 = 0 and C2ST at chance; shifted by 5 sd: large W1 and C2ST near 1."""
+    base = _informative_result(prior, truth, method="camo", seed=1)
+    same = dataclasses.replace(base, method="abc-smc")
+    shifted_s = base.samples.copy()
+    shifted_s[:, prior.free_mask.numpy()] += 0.25
+    shifted = dataclasses.replace(base, method="npe", samples=shifted_s)
+    posts = []
+    for r in (base, same, shifted):
+        idata = arviz_io.to_inference_data(r, JOINTS, seed=0, attrs={"subject": "s0"})
+        posts.append((None, idata, ""))
+    table = report._posterior_comparison_table(posts)
+    assert len(table) == 3 and "<table" in report._posterior_comparison(posts, "")
+    row = table[(table["method A"] == "abc-smc") & (table["method B"] == "camo")].iloc[0]
+    assert row["mean W1 over free marginals"] == pytest.approx(0.0, abs=1e-12)
+    assert 0.35 < row["C2ST accuracy"] < 0.65
+    row = table[(table["method A"] == "camo") & (table["method B"] == "npe")].iloc[0]
+    assert row["mean W1 over free marginals"] == pytest.approx(0.25, rel=0.05)
+    assert row["C2ST accuracy"] > 0.95

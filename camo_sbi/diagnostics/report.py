@@ -40,11 +40,13 @@ SECTIONS: tuple[tuple[str, str], ...] = (
     ("error-vs-tasks", "Error vs tasks"),
     ("error-vs-budget", "Error vs budget"),
     ("posteriors", "Posteriors"),
+    ("posterior-comparison", "Posterior comparison"),
     ("calibration", "Calibration"),
     ("diagnostics", "Diagnostics"),
 )
 RESULTS_COLUMNS = ("task", "subject", "method", "budget", "seed", "n_tasks", "metric", "value")
 _MAX_TABLE_ROWS = 400
+_MAX_C2ST_PAIRS = 12  # each costs ~1 s (500 draws per side, 5-fold random forest)
 _MAX_METRIC_PANELS = 9
 
 _CSS = """
@@ -324,6 +326,55 @@ def _calibration(run_dir: Path) -> str:
     return "".join(out)
 
 
+def _posterior_comparison_table(posts) -> pd.DataFrame:
+    """Pairwise W1 / C2ST between methods' posteriors for the same subject, budget, seed, tasks."""
+    import itertools
+
+    from camo_sbi.diagnostics import arviz_io
+    from camo_sbi.diagnostics.calibration import c2st
+
+    groups: dict[tuple, list] = {}
+    for _, idata, _ in posts:
+        if idata is None:
+            continue
+        a = idata.posterior.attrs
+        draws = np.asarray(idata.posterior["limits"].values)
+        draws = draws.reshape(-1, draws.shape[-2] * draws.shape[-1])
+        if draws.shape[0] < 20:  # a point estimate (naive) is not a posterior to compare
+            continue
+        key = (a.get("subject", "–"), a.get("budget", "–"), a.get("seed", "–"), a.get("n_tasks", "–"))
+        groups.setdefault(key, []).append((str(a.get("method", "?")), idata, draws))
+    rows, n_c2st = [], 0
+    for (subject, budget, seed, n_tasks), members in sorted(groups.items(), key=lambda kv: str(kv[0])):
+        for (ma, ia, da), (mb, ib, db) in itertools.combinations(sorted(members, key=lambda m: m[0]), 2):
+            free = (da.std(axis=0) > 0) | (db.std(axis=0) > 0)
+            w1 = arviz_io.compare_marginals(ia, ib)["wasserstein"].to_numpy()[free]
+            acc = float("nan")
+            if n_c2st < _MAX_C2ST_PAIRS:
+                acc = c2st(da[:, free], db[:, free], 0, max_samples=500)
+                n_c2st += 1
+            rows.append({"subject": subject, "budget": budget, "seed": seed, "n_tasks": n_tasks,
+                         "method A": ma, "method B": mb, "mean W1 over free marginals": float(w1.mean()),
+                         "max W1": float(w1.max()), "C2ST accuracy": acc})
+    return pd.DataFrame(rows)
+
+
+def _posterior_comparison(posts, why: str) -> str:
+    if not posts:
+        return _note(why)
+    table = _posterior_comparison_table(posts)
+    if table.empty:
+        return _note("needs at least two sampled posteriors (not point estimates) for the same "
+                     "subject, budget and seed")
+    return ('<p class="meta">Wasserstein-1 distance between the two methods\' marginals over the '
+            "free limits (same units as the posteriors), and classifier two-sample test accuracy "
+            "(C2ST, sbi's random-forest metric on 500 draws per side: 0.5 = indistinguishable, 1 = "
+            f"disjoint; computed for the first {_MAX_C2ST_PAIRS} pairs). Point estimates are left out. "
+            "No method is a ground-truth reference here: compare with the calibration section to "
+            "see which posteriors are trustworthy.</p>"
+            + _table_html(table, index=False))
+
+
 def _diagnostics(posts, why: str) -> str:
     if not posts:
         return _note(why)
@@ -368,7 +419,7 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
 
     Returns:
         The path written. Sections (ids): settings, comparison-table, error-vs-tasks,
-        error-vs-budget, posteriors, calibration, diagnostics.
+        error-vs-budget, posteriors, posterior-comparison, calibration, diagnostics.
     """
     if not isinstance(run_dir, (str, os.PathLike)):
         raise TypeError(f"run_dir: expected str or PathLike, got {type(run_dir).__name__}")
@@ -397,6 +448,7 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
         "error-vs-tasks": _guard(lambda: _xy_figures(res, res_why, "n_tasks", "budget", "number of observed tasks")),
         "error-vs-budget": _guard(lambda: _xy_figures(res, res_why, "budget", "n_tasks", "simulation budget")),
         "posteriors": _guard(lambda: _posteriors(posts, post_why)),
+        "posterior-comparison": _guard(lambda: _posterior_comparison(posts, post_why)),
         "calibration": _guard(lambda: _calibration(run_dir)),
         "diagnostics": _guard(lambda: _diagnostics(posts, post_why)),
     }
