@@ -24,13 +24,14 @@ import html
 import io
 import json
 import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
+
+from camo_sbi._io import atomic_write_text
 
 __all__ = ["SECTIONS", "RESULTS_COLUMNS", "write_report"]
 
@@ -463,15 +464,5 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
         f'<p class="meta">run directory: {_esc(run_dir.resolve())} · generated {stamp}</p>'
         f"<nav><ul>{nav}</ul></nav>\n{sections}</body></html>\n"
     )
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out_path.name}.", suffix=".tmp", dir=out_path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(doc)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a report is meant to be shared
-        os.replace(tmp, out_path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
-        raise
+    atomic_write_text(out_path, doc)
     return out_path

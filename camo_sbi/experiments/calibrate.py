@@ -52,9 +52,7 @@ ABC methods and checked with the same coverage/SBC code.
 from __future__ import annotations
 
 import argparse
-import io
 import json
-import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
@@ -72,8 +70,10 @@ from camo_sbi.diagnostics.calibration import (
     sbc_ranks,
     sbc_uniformity,
 )
+from camo_sbi.experiments.compare import _init_worker
 from camo_sbi.experiments.manipulator import derive_seed
-from camo_sbi.experiments.store import ResultStore, atomic_write_bytes, atomic_write_text, cell_key
+from camo_sbi.experiments.plots import save_figure
+from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
 from camo_sbi.experiments.subjects import build_model
 
 __all__ = [
@@ -356,17 +356,6 @@ def _at(g: pd.DataFrame, alpha: float) -> float:
     return float(g["coverage"].iloc[i])
 
 
-def _save_png(fig, path: Path) -> None:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=150)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def _init_worker():
-    os.environ.setdefault("NUMBA_NUM_THREADS", "1")
-    torch.set_num_threads(1)
-
-
 # ------------------------------------------------------------------------------ CLI
 
 
@@ -430,7 +419,7 @@ def main(args) -> int:
     fig = plot_coverage(labelled, coordinate="overall",
                         title=f"Coverage of central intervals, {args.model}: {n_subj} prior subjects, "
                               f"{args.tasks} tasks, budget {args.budget}", figsize=(6.0, 6.0))
-    _save_png(fig, out / "coverage.png")
+    save_figure(fig, out / "coverage.png")
     redrawn = int((ranks.drop_duplicates(["method", "subject"]).groupby("subject")["attempt"].first() > 0).sum())
     cell_time = float(df.loc[(df["record"] == "meta") & (df["name"] == "wall_time"), "value"].sum())
     text = _format_summary(summary, args, redrawn, time.perf_counter() - t0, cell_time)

@@ -68,6 +68,7 @@ import torch
 from camo_sbi._validation import check_positive_float, check_positive_int
 from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
 from camo_sbi.inference.distances import dtw_distances
+from camo_sbi.inference.methods import check_run_args
 from camo_sbi.inference.priors import BoxPrior
 from camo_sbi.inference.result import PosteriorResult
 
@@ -598,17 +599,8 @@ def run(task, observations, *, budget: int, seed: int, config: AbcSmcConfig | No
     (``time_simulate``, ``time_distance``, ``time_total``, ``overhead_per_particle``),
     ``db`` (history path when ``config.workdir`` is set).
     """
-    config = AbcSmcConfig() if config is None else config
-    if not isinstance(config, AbcSmcConfig):
-        raise TypeError(f"config: expected AbcSmcConfig, got {type(config).__name__}")
-    budget = check_positive_int(budget, "budget")
-    seed = check_positive_int(seed, "seed", minimum=0)
-    observations = tuple(observations)
-    if not observations:
-        raise ValueError("observations: at least one observed task is required")
-    prior = task.prior
-    if not isinstance(prior, BoxPrior):
-        raise TypeError(f"task.prior: expected a BoxPrior, got {type(prior).__name__}")
+    config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
+                                                               AbcSmcConfig)
     n_pop = config.population_size
     if config.initial_epsilon == "from_sample":
         n_pop = 2 * n_pop  # calibration sample + a first population at ~50% acceptance

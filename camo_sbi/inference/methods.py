@@ -20,7 +20,8 @@ from camo_sbi._validation import check_positive_int
 from camo_sbi.inference.budget import CountingSimulator
 from camo_sbi.inference.result import PosteriorResult
 
-__all__ = ["METHODS", "MethodSpec", "get_method", "make_config", "run_method", "run_method_sequence"]
+__all__ = ["METHODS", "MethodSpec", "check_run_args", "get_method", "make_config", "run_method",
+           "run_method_sequence"]
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,28 @@ METHODS: dict[str, MethodSpec] = {
     "abc-smc": MethodSpec("abc-smc", "camo_sbi.inference.abc_smc", config_name="AbcSmcConfig"),
     "npe": MethodSpec("npe", "camo_sbi.inference.npe", config_name="NpeConfig"),
 }
+
+
+def check_run_args(task, observations, budget, seed, config, config_cls):
+    """Validate a method's ``run`` arguments; returns (config, budget, seed, observations, prior).
+
+    ``config`` None -> ``config_cls()``. Errors name the argument (config, budget, seed,
+    observations, task.prior).
+    """
+    from camo_sbi.inference.priors import BoxPrior
+
+    config = config_cls() if config is None else config
+    if not isinstance(config, config_cls):
+        raise TypeError(f"config: expected {config_cls.__name__}, got {type(config).__name__}")
+    budget = check_positive_int(budget, "budget")
+    seed = check_positive_int(seed, "seed", minimum=0)
+    observations = tuple(observations)
+    if not observations:
+        raise ValueError("observations: at least one observed task is required")
+    prior = task.prior
+    if not isinstance(prior, BoxPrior):
+        raise TypeError(f"task.prior: expected a BoxPrior, got {type(prior).__name__}")
+    return config, budget, seed, observations, prior
 
 
 def get_method(name: str) -> MethodSpec:

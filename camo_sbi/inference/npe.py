@@ -59,6 +59,7 @@ from torch import nn
 
 from camo_sbi._validation import as_tensor, check_positive_float, check_positive_int
 from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
+from camo_sbi.inference.methods import check_run_args
 from camo_sbi.inference.priors import BoxPrior
 from camo_sbi.inference.result import PosteriorResult
 
@@ -596,17 +597,8 @@ def _train_flow(theta_z: torch.Tensor, x: torch.Tensor, config: NpeConfig, seed:
 
 
 def _check_run_args(task, observations, budget, seed, config):
-    config = NpeConfig() if config is None else config
-    if not isinstance(config, NpeConfig):
-        raise TypeError(f"config: expected NpeConfig, got {type(config).__name__}")
-    budget = check_positive_int(budget, "budget")
-    seed = check_positive_int(seed, "seed", minimum=0)
-    observations = tuple(observations)
-    if not observations:
-        raise ValueError("observations: at least one observed task is required")
-    prior = task.prior
-    if not isinstance(prior, BoxPrior):
-        raise TypeError(f"task.prior: expected a BoxPrior, got {type(prior).__name__}")
+    config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
+                                                               NpeConfig)
     if prior.n_free == 0:
         raise ValueError("task.prior: every coordinate is fixed; there is nothing to infer")
     n_val = int(budget * config.validation_fraction)
