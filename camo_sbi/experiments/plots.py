@@ -84,7 +84,8 @@ def save_figure(fig, path) -> None:
     from camo_sbi.experiments.store import atomic_write_bytes
 
     buf = io.BytesIO()
-    fig.tight_layout()
+    if fig.get_layout_engine() is None:  # keep a figure's own (e.g. constrained) layout
+        fig.tight_layout()
     fig.savefig(buf, format="png", dpi=150)
     plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())
