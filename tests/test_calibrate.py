@@ -161,11 +161,9 @@ def test_bad_model_exits_2():
     assert exc.value.code == 2
 
 
-def test_cli_exit_code_2_if_wired(tmp_path, capsys):
+def test_cli_exit_code_2(tmp_path, capsys):
     from camo_sbi.experiments import cli
 
-    if "calibrate" not in cli.build_parser()._subparsers._group_actions[0].choices:
-        pytest.skip("calibrate is not wired into camo-sbi yet")
     with pytest.raises(SystemExit) as exc:
         cli.main(["calibrate", "--subjects", "0", "--out", str(tmp_path)])
     assert exc.value.code == 2

@@ -16,7 +16,7 @@ def _demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from camo_sbi.experiments import manipulator
+    from camo_sbi.experiments import calibrate, compare, hrc, manipulator
 
     parser = argparse.ArgumentParser(prog="camo-sbi", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -26,49 +26,35 @@ def build_parser() -> argparse.ArgumentParser:
     p = rsub.add_parser("panda", help="manipulator experiment (paper Fig. 2-3); --model human also works")
     manipulator.add_arguments(p)
     p.set_defaults(func=manipulator.main)
-    try:
-        from camo_sbi.experiments import hrc
-    except ImportError:  # pragma: no cover - scenario module missing
-        hrc = None
-    if hrc is not None:
-        p = rsub.add_parser("hrc", help="human-robot block stacking (paper Fig. 5)")
-        hrc.add_arguments(p)
-        p.set_defaults(func=hrc.main)
-        p = sub.add_parser("render-scene", help="render the block-stacking scene to a PNG")
-        hrc.add_render_arguments(p)
-        p.set_defaults(func=hrc.render_main)
-    try:
-        from camo_sbi.experiments import compare
-    except ImportError:  # pragma: no cover
-        compare = None
-    if compare is not None:
-        p = sub.add_parser("compare", help="compare inference methods on a grid (resumable)")
-        compare.add_arguments(p)
-        p.set_defaults(func=compare.main)
-    try:
-        from camo_sbi.experiments import calibrate
-    except ImportError:  # pragma: no cover
-        calibrate = None
-    if calibrate is not None:
-        p = sub.add_parser("calibrate", help="coverage and SBC of each method over synthetic subjects")
-        calibrate.add_arguments(p)
-        p.set_defaults(func=calibrate.main)
-    try:
-        from camo_sbi.diagnostics import report
-    except ImportError:  # pragma: no cover
-        report = None
-    if report is not None:
-        p = sub.add_parser("report", help="write a self-contained HTML report of a run directory")
-        p.add_argument("run_dir")
-        p.add_argument("-o", "--output", default=None, help="HTML path (default: RUN_DIR/report.html)")
-        p.set_defaults(func=_report)
-    p = sub.add_parser("demo", help="simulate a batch of reaches and plot them")
+    p = rsub.add_parser("hrc", help="human-robot block stacking (paper Fig. 5)")
+    hrc.add_arguments(p)
+    p.set_defaults(func=hrc.main)
+
+    commands = (
+        ("render-scene", "render the block-stacking scene to a PNG", hrc.add_render_arguments, hrc.render_main),
+        ("compare", "compare inference methods on a grid (resumable)", compare.add_arguments, compare.main),
+        ("calibrate", "coverage and SBC of each method over synthetic subjects", calibrate.add_arguments,
+         calibrate.main),
+        ("report", "write a self-contained HTML report of a run directory", _report_arguments, _report),
+        ("demo", "simulate a batch of reaches and plot them", _demo_arguments, _demo),
+    )
+    for name, help_text, add_arguments, func in commands:
+        p = sub.add_parser(name, help=help_text)
+        add_arguments(p)
+        p.set_defaults(func=func)
+    return parser
+
+
+def _report_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run_dir")
+    p.add_argument("-o", "--output", default=None, help="HTML path (default: RUN_DIR/report.html)")
+
+
+def _demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", choices=("panda", "human"), default="panda")
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/demo")
-    p.set_defaults(func=_demo)
-    return parser
 
 
 def _report(args) -> int:

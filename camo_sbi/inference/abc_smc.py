@@ -70,7 +70,7 @@ from camo_sbi.distributed import charge, get_client, map_ordered, parse_schedule
 from camo_sbi.inference.distances import dtw_distances
 from camo_sbi.inference.methods import check_run_args
 from camo_sbi.inference.priors import BoxPrior
-from camo_sbi.inference.result import PosteriorResult
+from camo_sbi.inference.result import PosteriorResult, weighted_median
 
 
 def _import_pyabc():
@@ -579,16 +579,6 @@ class BudgetedSingleCoreSampler(Sampler):
 # ----------------------------------------------------------------------------------------------
 
 
-def _weighted_median(x: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Coordinate-wise weighted median of x (N, D) with weights w (N,)."""
-    out = np.empty(x.shape[1])
-    for j in range(x.shape[1]):
-        order = np.argsort(x[:, j], kind="stable")
-        cw = np.cumsum(w[order])
-        out[j] = x[order[np.searchsorted(cw, 0.5 * cw[-1])], j]
-    return out
-
-
 def run(task, observations, *, budget: int, seed: int, config: AbcSmcConfig | None = None) -> PosteriorResult:
     """ABC-SMC on the joint posterior given ``observations``, within ``budget`` per task.
 
@@ -673,7 +663,7 @@ def run(task, observations, *, budget: int, seed: int, config: AbcSmcConfig | No
     if config.estimator == "mean":
         estimate = w @ samples
     elif config.estimator == "median":
-        estimate = _weighted_median(samples, w)
+        estimate = weighted_median(samples, w)
     else:
         estimate = samples[int(np.argmin(dist))]
     fixed = ~prior.free_mask.numpy()

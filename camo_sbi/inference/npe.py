@@ -61,7 +61,7 @@ from camo_sbi._validation import as_tensor, check_positive_float, check_positive
 from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
 from camo_sbi.inference.methods import check_run_args
 from camo_sbi.inference.priors import BoxPrior
-from camo_sbi.inference.result import PosteriorResult
+from camo_sbi.inference.result import PosteriorResult, weighted_median
 
 __all__ = [
     "ImportanceSample",
@@ -685,15 +685,6 @@ def fit(task, observations, *, budget: int, seed: int, config: NpeConfig | None 
     return posterior, {"time_simulate": sum(i["time_simulate"] for i in infos), "tasks": infos}
 
 
-def _weighted_median(x: np.ndarray, w: np.ndarray) -> np.ndarray:
-    out = np.empty(x.shape[1])
-    for j in range(x.shape[1]):
-        order = np.argsort(x[:, j], kind="stable")
-        cw = np.cumsum(w[order])
-        out[j] = x[order[np.searchsorted(cw, 0.5 * cw[-1])], j]
-    return out
-
-
 def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed: int,
             t_start: float) -> PosteriorResult:
     """Sample the combined posterior and package it (saved to the workdir if any)."""
@@ -705,7 +696,7 @@ def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed:
     if config.estimator == "mean":
         estimate = w @ draws.theta
     elif config.estimator == "median":
-        estimate = _weighted_median(draws.theta, w)
+        estimate = weighted_median(draws.theta, w)
     else:
         estimate = draws.theta[int(np.argmax(draws.log_prob))]
     fixed = ~posterior.free_mask.numpy()

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["PosteriorResult"]
+__all__ = ["PosteriorResult", "weighted_median"]
 
 
 @dataclass(frozen=True)
@@ -69,3 +69,13 @@ class PosteriorResult:
         """(n, 2n) equally weighted draws (multinomial resampling by ``weights``)."""
         idx = rng.choice(self.samples.shape[0], size=n, replace=True, p=self.normalized_weights())
         return self.samples[idx]
+
+
+def weighted_median(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Coordinate-wise weighted median of ``x`` (N, D) with weights ``w`` (N,) -> (D,)."""
+    out = np.empty(x.shape[1])
+    for j in range(x.shape[1]):
+        order = np.argsort(x[:, j], kind="stable")
+        cw = np.cumsum(w[order])
+        out[j] = x[order[np.searchsorted(cw, 0.5 * cw[-1])], j]
+    return out
