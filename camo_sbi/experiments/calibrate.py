@@ -54,8 +54,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -70,7 +68,7 @@ from camo_sbi.diagnostics.calibration import (
     sbc_ranks,
     sbc_uniformity,
 )
-from camo_sbi.experiments.compare import _init_worker
+from camo_sbi.experiments.compare import run_in_processes
 from camo_sbi.experiments.manipulator import derive_seed
 from camo_sbi.experiments.plots import save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
@@ -396,11 +394,7 @@ def main(args) -> int:
         finally:
             torch.set_num_threads(threads)
     else:
-        with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn"), initializer=_init_worker) as ex:
-            futures = [ex.submit(run_cell, spec, str(out)) for spec in todo]
-            for f in as_completed(futures):
-                f.result()
-                bar.update()
+        run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
     bar.close()
     keys = {s["key"] for s in specs}
     missing = keys - store.finished_keys()

@@ -200,6 +200,18 @@ def _init_worker():
     torch.set_num_threads(1)
 
 
+def run_in_processes(cell_fn, specs: list[dict], out, workers: int, *, on_done) -> None:
+    """Run ``cell_fn(spec, str(out))`` for every spec in ``workers`` spawned processes.
+
+    Each cell writes its own rows atomically; ``on_done()`` is called as cells finish and the
+    first failing cell's exception is re-raised. ``cell_fn`` must be a module-level function.
+    """
+    with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker) as ex:
+        for f in as_completed([ex.submit(cell_fn, spec, str(out)) for spec in specs]):
+            f.result()
+            on_done()
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", choices=("panda", "human"), default="panda")
     p.add_argument("--methods", default="camo,naive,abc-smc,npe", help="comma-separated method names")
@@ -244,11 +256,7 @@ def main(args) -> int:
             run_cell(spec, str(out))
             bar.update()
     else:
-        with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn"), initializer=_init_worker) as ex:
-            futures = [ex.submit(run_cell, spec, str(out)) for spec in todo]
-            for f in as_completed(futures):
-                f.result()
-                bar.update()
+        run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
     bar.close()
     df = store.write_table()
     keys = {s["key"] for s in specs}
