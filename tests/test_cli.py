@@ -59,7 +59,8 @@ def repro(tmp_path_factory):
 def test_reproduce_writes_every_row_once(repro):
     out, df = repro
     assert list(df.columns) == ["run", "model", "subject", "method", "n_tasks", "metric", "value"]
-    expected = {(r, m, k, x) for r in (0, 1) for m in ("camo-js", "camo-cs", "naive") for k in (1, 2)
+    expected = {(r, m, k, x) for r in (0, 1) for m in ("camo-js", "camo-cs", "camo-hull", "naive")
+                for k in (1, 2)
                 for x in REPRO_METRICS}
     got = list(zip(df.run, df.method, df.n_tasks, df.metric, strict=True))
     assert len(got) == len(set(got)) == len(expected)
@@ -74,6 +75,7 @@ def test_reproduce_writes_every_row_once(repro):
         for k in (1, 2):
             assert v[(r, "camo-js", k, "n_simulations")] == 200 * k
             assert v[(r, "camo-cs", k, "n_simulations")] == 200 * k
+            assert v[(r, "camo-hull", k, "n_simulations")] == 200 * k
             assert v[(r, "naive", k, "n_simulations")] == 0
     errs = df[df.metric.isin(["cartesian_error", "joint_error", "limit_error"])].value
     assert (errs >= 0).all() and (errs > 0).any()

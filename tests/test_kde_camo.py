@@ -173,3 +173,50 @@ def test_no_warning_when_accepting():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         camo.observe(o.start, o.goal, o.q)
+
+
+# --- contain_observed: the prior conditioned on the observed postures ---------------------
+
+
+def test_contain_observed_keeps_only_vectors_that_contain_every_observed_posture():
+    sim, prior, camo = _camo(n_samples=400, keep_best=40, bandwidth=0.01, contain_observed=True)
+    true = torch.tensor([-0.3, 0.4, -0.5, 0.6], dtype=torch.float64)
+    goals = torch.tensor([[0.9, 0.9, 0], [-0.9, -0.9, 0], [0.2, -0.9, 0]], dtype=torch.float64)
+    seen = [sim.start.unsqueeze(0)]
+    for i, o in enumerate(observe(sim, true, goals)):
+        rec = camo.observe(o.start, o.goal, o.q)
+        seen.append(o.q)
+        q = torch.cat(seen)
+        lo_ok = (rec.kept[:, 0::2] <= q.min(0).values).all()
+        hi_ok = (rec.kept[:, 1::2] >= q.max(0).values).all()
+        assert bool(lo_ok and hi_ok), f"task {i}: a new candidate excludes an observed posture"
+        kept, logp = camo.kept, camo.joint_log_density
+        contains = (kept[:, 0::2] <= q.min(0).values).all(1) & (kept[:, 1::2] >= q.max(0).values).all(1)
+        assert bool(torch.isfinite(logp[contains]).all()) and bool(torch.isinf(logp[~contains]).all())
+        est = camo.estimate()
+        assert (est[0::2] <= q.min(0).values.numpy()).all() and (est[1::2] >= q.max(0).values.numpy()).all()
+    assert int((~contains).sum()) > 0  # earlier tasks' vectors were ruled out by later postures
+    res = camo.result()
+    assert np.isclose(res.weights.sum(), 1.0) and res.weights[~contains.numpy()].max() == 0.0
+
+
+def test_contain_observed_changes_draws_only_when_on_and_is_seeded():
+    sim = ToySimulator()
+    from camo_sbi.scenarios.reaching import make_reaching_task
+
+    true = torch.tensor([-0.3, 0.4, -0.5, 0.6], dtype=torch.float64)
+    task = make_reaching_task(sim, true, n_train=3, n_test=2, seed=0)
+    cfg = {"keep_best": 20, "contain_observed": True}
+    a = run_method("camo", task, budget=200, seed=5, config=cfg)
+    b = run_method("camo", task, budget=200, seed=5, config=cfg)
+    off = run_method("camo", task, budget=200, seed=5, config={"keep_best": 20})
+    np.testing.assert_array_equal(a.samples, b.samples)
+    np.testing.assert_array_equal(a.weights, b.weights)
+    assert not np.array_equal(a.samples, off.samples)
+
+
+def test_contain_observed_config_errors():
+    with pytest.raises(ValueError, match="contain_observed"):
+        CamoConfig(contain_observed=True, space="cartesian")
+    with pytest.raises(TypeError, match="contain_observed"):
+        CamoConfig(contain_observed=1)

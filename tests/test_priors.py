@@ -290,3 +290,47 @@ def test_bad_sample_and_evaluation_inputs():
 def test_free_rejects_wrong_width_with_named_error():
     with pytest.raises(ValueError, match="theta"):
         _prior().free(torch.zeros(3, 5))
+
+
+# --- conditioning on observed postures (BoxPrior.containing) ------------------------------
+
+
+@pytest.mark.parametrize("sampling", ["uniform", "lhs"])
+def test_containing_draws_contain_every_observed_posture(sampling):
+    prior = _prior(sampling=sampling)
+    q = torch.tensor([[0.1, -0.4, 0.9], [0.7, 0.5, 0.2], [0.4, -0.2, 0.95]], dtype=torch.float64)
+    post = prior.containing(q)
+    a = torch.minimum(q.min(0).values, START)
+    b = torch.maximum(q.max(0).values, START)
+    torch.testing.assert_close(post.inner, torch.stack([a, b], dim=1))
+    torch.testing.assert_close(post.low[0::2], BOUNDS[:, 0])
+    torch.testing.assert_close(post.high[0::2], a)
+    torch.testing.assert_close(post.low[1::2], b)
+    torch.testing.assert_close(post.high[1::2], BOUNDS[:, 1])
+    draws = post.sample(500, 1)
+    assert bool((draws[:, 0::2] <= a).all()) and bool((draws[:, 1::2] >= b).all())
+    assert bool(post.contains(draws).all()) and bool(prior.contains(draws).all())
+    # conditioning twice on the same evidence changes nothing; on more, it narrows further
+    torch.testing.assert_close(post.containing(q).inner, post.inner)
+    more = post.containing(torch.tensor([[-1.5, 2.0, -0.9]], dtype=torch.float64))
+    assert float(more.high[0]) == -1.5 and float(more.low[3]) == 2.0
+    # the original is untouched and sampling / fixed are carried over
+    torch.testing.assert_close(prior.inner, torch.stack([START, START], dim=1))
+    assert post.sampling == sampling and post.with_sampling("uniform").inner.equal(post.inner)
+
+
+def test_containing_respects_fixed_joints_and_rejects_impossible_postures():
+    prior = _prior(fixed={1: (-0.3, 0.5)})
+    inside = prior.containing(torch.tensor([[0.0, 0.5 + 1e-7, 0.0]], dtype=torch.float64))
+    assert float(inside.low[2]) == float(inside.high[2]) == -0.3  # fixed joint stays fixed
+    assert float(inside.low[3]) == float(inside.high[3]) == 0.5  # float32 rounding clipped onto it
+    with pytest.raises(ValueError, match="postures: joint 1"):
+        prior.containing(torch.tensor([[0.0, 0.8, 0.0]], dtype=torch.float64))
+    with pytest.raises(ValueError, match="postures: joint 0"):
+        prior.containing(torch.tensor([[-2.5, 0.0, 0.0]], dtype=torch.float64))
+    with pytest.raises(ValueError, match="postures"):
+        prior.containing(torch.zeros(4, 2))
+    with pytest.raises(ValueError, match="postures"):
+        prior.containing(torch.tensor([[0.0, float("nan"), 0.0]]))
+    with pytest.raises(ValueError, match="inner"):
+        BoxPrior(BOUNDS, START, inner=torch.tensor([[0.5, 0.6], [-1.0, 1.0], [0.0, 1.0]]))

@@ -6,11 +6,21 @@ after another, the person picks the blocks they can reach and carry; each pick i
 observed task (the reach from the start posture to the block, in joint space), as in
 the paper's code. ``--tasks`` picks are observed (``--task-unit trial``: the first
 ``--tasks`` trials instead, however many picks they hold). After each observed task
-CAMO and the naive min/max baseline estimate the limits; each estimate predicts, for
-every block of ``--test-trials`` unseen trials, whether the person can take it (same
-reachability test as the truth), and precision / recall / F1 ("person" = positive) are
-recorded. The majority-class baseline (always the more frequent true label) is
-recorded alongside.
+the methods estimate the limits; each estimate predicts, for every block of
+``--test-trials`` unseen trials, whether the person can take it (same reachability
+test as the truth), and precision / recall / F1 ("person" = positive) are recorded.
+The majority-class baseline (always the more frequent true label) is recorded alongside.
+
+Methods:
+
+* ``camo``: the paper's algorithm (argmax of the product of per-task KDEs).
+* ``camo-hull`` (joint space only; ``--no-hull`` skips it): the same, with the prior
+  conditioned on the observed postures (``CamoConfig.contain_observed``): the controller
+  clamps to the limits, so every observed joint posture lies inside them. Without it the
+  argmax sits inside the flat part of the posterior of limits that no reach has pushed
+  against, often narrower than postures already seen, and blocks the person can take
+  are given to the robot (recall ~0.85 under the weak prior).
+* ``naive``: observed min/max per joint (the paper's baseline).
 
 Priors (both Latin hypercube, ``--samples`` draws per task, at most ``--keep-best`` kept):
 
@@ -26,11 +36,11 @@ limits, the others the observed min/max. When nothing has been observed yet
 (``--task-unit trial`` only) an estimator allocates every block to the robot.
 
 Rows: run, subject, prior, method, n_tasks, metric, value in ``<out>/results.csv``:
-precision, recall, f1, accuracy (methods camo, naive, majority), limit_error (camo,
-naive: mean absolute error of the prior's free limits, radians) and person_fraction
+precision, recall, f1, accuracy (methods camo, camo-hull, naive, majority), limit_error
+(estimators: mean absolute error of the prior's free limits, radians) and person_fraction
 (method truth: the person's share of the test blocks); the figure ``fig5_allocation.png``;
-``scene_run00.png`` (with ``--scene-png``, one per run): the first test trial under CAMO's
-final (strong-prior) allocation.
+``scene_run00.png`` (with ``--scene-png``, one per run): the first test trial under the
+final strong-prior allocation of camo-hull (camo with ``--no-hull``).
 """
 
 from __future__ import annotations
@@ -62,14 +72,16 @@ __all__ = [
 ]
 
 PRIORS = ("strong", "weak")
-METHODS = ("camo", "naive")
+CAMO_VARIANTS = {"camo": False, "camo-hull": True}
+"""CAMO methods of this experiment -> CamoConfig.contain_observed."""
+METHODS = (*CAMO_VARIANTS, "naive")
 METRICS = ("precision", "recall", "f1", "accuracy")
 STRONG_PRIOR_FIXED = ("torso_flexion", "torso_rotation", "forearm_pronation", "wrist_flexion",
                       "wrist_deviation")
 """Joints whose limits the strong prior knows (fixed to the subject's true limits)."""
 TASK_UNITS = ("pick", "trial")
 _CELL_SETTINGS = ("subject", "seed", "tasks", "task_unit", "test_trials", "samples", "keep_best", "epsilon",
-                  "bandwidth", "space", "priors")
+                  "bandwidth", "space", "priors", "no_hull")
 
 
 def derive_seed(*parts: int) -> int:
@@ -111,6 +123,12 @@ def naive_estimate(observations, prior) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 # One run
 # --------------------------------------------------------------------------------------
+
+
+def camo_methods(args) -> list[str]:
+    """The CAMO variants this run computes (camo-hull needs joint-space observations)."""
+    hull = args.space == "joint" and not getattr(args, "no_hull", False)
+    return [m for m in CAMO_VARIANTS if m == "camo" or hull]
 
 
 def collect_run(scene, true_theta, *, n_tasks: int, n_test: int, seed: int, task_unit: str = "pick",
@@ -191,10 +209,15 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
             name="hrc", subject=subject, simulator=sim, prior=prior, observations=tuple(observations),
             test_starts=sim.start.to(torch.float64).expand(grasp.shape[0], -1).clone(),
             test_goals=grasp.clone(), true_theta=true_theta)
-        camo = run_method_sequence("camo", task, budget=args.samples, seed=derive_seed(args.seed, run, PRIORS.index(kind)),
-                                   config=camo_cfg) if observations else []
-        naive = [naive_estimate(observations[: i + 1], prior) for i in range(len(observations))]
-        for method, ests in (("camo", [r.estimate for r in camo]), ("naive", naive)):
+        sequences = {}
+        for method in camo_methods(args):
+            cfg = {**camo_cfg, "contain_observed": CAMO_VARIANTS[method]}
+            results = run_method_sequence(
+                "camo", task, budget=args.samples, seed=derive_seed(args.seed, run, PRIORS.index(kind)),
+                config=cfg) if observations else []
+            sequences[method] = [r.estimate for r in results]
+        sequences["naive"] = [naive_estimate(observations[: i + 1], prior) for i in range(len(observations))]
+        for method, ests in sequences.items():
             # the estimate after task k: the one after that task's last observation
             per_task = []
             for k in range(1, args.tasks + 1):
@@ -281,7 +304,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="CAMO keeps at most the k best draws per task")
     p.add_argument("--epsilon", type=float, default=None, help="CAMO DTW acceptance threshold (default: none)")
     p.add_argument("--bandwidth", type=float, default=CamoConfig().bandwidth, help="CAMO kernel variance h [rad^2]")
-    p.add_argument("--space", choices=("joint", "cartesian"), default="joint", help="CAMO observation space")
+    p.add_argument("--space", choices=("joint", "cartesian"), default="joint",
+                   help="CAMO observation space (cartesian: no camo-hull)")
+    p.add_argument("--no-hull", action="store_true",
+                   help="skip camo-hull (CAMO with the prior conditioned on the observed postures)")
     p.add_argument("--priors", default=",".join(PRIORS), help="comma-separated subset of strong,weak")
     p.add_argument("--subject", default="frozen_shoulder",
                    help="ground-truth impairment profile (e.g. frozen_shoulder, elbow_flexion_contracture)")
@@ -309,7 +335,9 @@ def _render_run(scene, extras, path: Path) -> None:
     from camo_sbi.scenarios.block_stacking import COLOURS, PERSON, ROBOT
 
     trial = extras["test_trials"][0]
-    key = ("strong", "camo") if ("strong", "camo") in extras["predictions"] else next(iter(extras["predictions"]))
+    preds = extras["predictions"]
+    key = next((k for k in (("strong", "camo-hull"), ("strong", "camo"), ("weak", "camo-hull"), ("weak", "camo"))
+                if k in preds), next(iter(preds)))
     pred = extras["predictions"][key][-1][0]
     truth = extras["y_true"][0]
     scene.set_trial(trial)

@@ -2,9 +2,10 @@
 
 For each run a ground-truth subject (a named restricted-limit profile) reaches
 ``--tasks`` training goals and ``--test-goals`` held-out goals, all sampled inside its
-true limits. CAMO-JS (joint observations), CAMO-CS (Cartesian observations) and the
-naive min/max baseline estimate the limits after every observed task; each estimate
-predicts the held-out trajectories. Rows: run, subject, method, n_tasks, metric, value.
+true limits. CAMO-JS (joint observations), CAMO-CS (Cartesian observations), camo-hull
+(CAMO-JS with the prior conditioned on the observed postures, `CamoConfig.contain_observed`;
+not in the paper) and the naive min/max baseline estimate the limits after every observed
+task; each estimate predicts the held-out trajectories. Rows: run, subject, method, n_tasks, metric, value.
 """
 
 from __future__ import annotations
@@ -25,7 +26,9 @@ from camo_sbi.experiments.subjects import build_model, subject_names, subject_th
 
 __all__ = ["add_arguments", "main", "run_one", "evaluate_estimate"]
 
-METHOD_LABELS = ("camo-js", "camo-cs", "naive")
+METHOD_LABELS = ("camo-js", "camo-cs", "camo-hull", "naive")
+"""The paper's three curves and camo-hull: CAMO-JS with the prior conditioned on the observed
+postures (CamoConfig.contain_observed; not in the paper)."""
 # settings that change a run's rows: part of each cell's key, so a re-run with other
 # settings into the same directory computes new cells instead of reusing old ones
 _CELL_SETTINGS = ("model", "tasks", "test_goals", "samples", "epsilon", "keep_best", "bandwidth",
@@ -64,6 +67,7 @@ def _method_configs(args) -> dict[str, tuple[str, dict]]:
     table = {
         "camo-js": ("camo", {**camo, "space": "joint"}),
         "camo-cs": ("camo", {**camo, "space": "cartesian"}),
+        "camo-hull": ("camo", {**camo, "space": "joint", "contain_observed": True}),
         "naive": ("naive", {}),
     }
     return {m: table[m] for m in args.methods}

@@ -17,6 +17,11 @@ Step 1 runs in fixed-size chunks (``CamoConfig.chunk_size``): chunk c of task n 
 ``default_rng([seed, n, c])`` and is simulated and scored on its own, in-process or on Dask
 workers (``CamoConfig.scheduler``), so the result never depends on the number of workers.
 Each chunk scores its own best k exactly, and the task's best k are among those.
+
+One opt-in extension, not in the paper (``CamoConfig.contain_observed``, joint space):
+step 1 draws from the prior conditioned on every posture observed so far lying inside
+the limits (`BoxPrior.containing`), and step 3 gives zero density to kept vectors that
+exclude a posture observed later. The default is the paper's algorithm.
 """
 
 from __future__ import annotations
@@ -66,6 +71,11 @@ class CamoConfig:
             which stratifies per chunk).
         scheduler: None (in-process), "local:N" (a Dask LocalCluster with N workers) or a
             Dask scheduler address ("tcp://host:8786"); see `camo_sbi.distributed`.
+        contain_observed: joint space only; not in the paper. The controller clamps to the
+            limits, so every observed posture lies inside them. When True, task n draws
+            its candidates from the prior conditioned on that (`BoxPrior.containing` the
+            postures of tasks 1..n) and kept vectors of earlier tasks that exclude a
+            posture observed later get zero joint density. False: the paper's algorithm.
     """
 
     n_samples: int = 2000
@@ -79,6 +89,7 @@ class CamoConfig:
     sim_dtype: str = "float32"
     chunk_size: int = 1000
     scheduler: str | None = None
+    contain_observed: bool = False
 
     def __post_init__(self):
         check_positive_int(self.n_samples, "n_samples")
@@ -100,6 +111,11 @@ class CamoConfig:
             raise ValueError(f"sim_dtype: expected one of {tuple(_DTYPES)}, got {self.sim_dtype!r}")
         check_positive_int(self.chunk_size, "chunk_size")
         parse_scheduler(self.scheduler)
+        if not isinstance(self.contain_observed, bool):
+            raise TypeError(f"contain_observed: expected a bool, got {type(self.contain_observed).__name__}")
+        if self.contain_observed and self.space != "joint":
+            raise ValueError("contain_observed: needs space='joint' (Cartesian observations do not "
+                             "show the joint postures)")
 
 
 @dataclass(frozen=True)
@@ -139,6 +155,7 @@ class Camo:
         self.simulator, self.config, self.seed = simulator, config, check_positive_int(seed, "seed", minimum=0)
         self.prior = prior if prior.sampling == config.sampling else prior.with_sampling(config.sampling)
         self._free = self.prior.free_mask
+        self._draw_prior = self.prior  # conditioned on the observed postures (contain_observed)
         self.records: list[TaskRecord] = []
         self._kdes: list[GaussianKDE] = []
         self._kept = torch.empty(0, self.prior.dim, dtype=torch.float64)  # Q_all (M, 2n)
@@ -178,6 +195,8 @@ class Camo:
         for t, name in ((start, "start"), (goal, "goal"), (traj, "trajectory")):
             check_finite(t, name)
         idx = self.n_tasks
+        if cfg.contain_observed:
+            self._draw_prior = self._draw_prior.containing(torch.cat([start.unsqueeze(0), traj]))
 
         t0 = time.perf_counter()
         sizes = [min(cfg.chunk_size, cfg.n_samples - c) for c in range(0, cfg.n_samples, cfg.chunk_size)]
@@ -188,7 +207,7 @@ class Camo:
         else:
             charge(sim, cfg.n_samples)  # counted here, before anything runs on a worker
             target = unwrap_simulator(sim)
-        parts = map_ordered(_candidate_chunk, jobs, client, simulator=target, prior=self.prior,
+        parts = map_ordered(_candidate_chunk, jobs, client, simulator=target, prior=self._draw_prior,
                             start=start, goal=goal, trajectory=traj, config=cfg)
         theta = torch.cat([p["theta"] for p in parts])
         dist = torch.cat([p["dist"] for p in parts])
@@ -234,6 +253,8 @@ class Camo:
         old_free = self._kept[:, self._free]
         if old_free.shape[0]:
             self._logp = self._logp + kde.log_density(old_free)
+            if cfg.contain_observed:  # vectors that exclude a posture seen now are impossible
+                self._logp[~self._draw_prior.contains(self._kept)] = -torch.inf
         self._kdes.append(kde)
         logp_new = torch.zeros(free_new.shape[0], dtype=torch.float64)
         for k in self._kdes:

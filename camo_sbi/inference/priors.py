@@ -10,6 +10,12 @@ which is a box in theta space: ``lo < hi`` holds by construction, and the box
 converts exactly to pyabc's / sbi's independent uniforms. A "strong prior" fixes
 some joints' limits to known values (those coordinates have zero width and are
 excluded from the free parameters that ABC-SMC and NPE see).
+
+The same argument holds for every observed posture, not only the start: the
+controller clamps to the limits, so a joint-space observation ``q_t`` proves
+``lo_i <= q_t,i <= hi_i``. `BoxPrior.containing` returns the box split at the
+hull of the start and such postures ``[a_i, b_i]``: ``lo_i ~ U[L_i, a_i]``,
+``hi_i ~ U[b_i, U_i]`` (the prior conditioned on that hard evidence).
 """
 
 from __future__ import annotations
@@ -35,10 +41,12 @@ class BoxPrior:
         start: (n,) observed start posture, L_i <= s_i <= U_i; None -> midpoint of bounds.
         fixed: optional {joint index: (lo, hi)} of known limits (strong prior).
         sampling: "uniform" (i.i.d.) or "lhs" (scipy Latin hypercube).
+        inner: optional (n, 2) [a_i, b_i] with a_i <= s_i <= b_i, postures known to lie
+            inside the limits (see `containing`); the split is at it instead of at the start.
     """
 
     def __init__(self, bounds, start=None, *, fixed: Mapping[int, tuple[float, float]] | None = None,
-                 sampling: str = "uniform"):
+                 sampling: str = "uniform", inner=None):
         b = as_tensor(bounds, "bounds", dtype=torch.float64).cpu()
         if b.dim() != 2 or b.shape[1] != 2:
             raise ValueError(f"bounds: expected shape (n, 2), got {tuple(b.shape)}")
@@ -54,10 +62,21 @@ class BoxPrior:
             raise ValueError("start: posture lies outside bounds")
         if sampling not in _SAMPLING:
             raise ValueError(f"sampling: expected one of {_SAMPLING}, got {sampling!r}")
+        if inner is None:
+            box = torch.stack([s, s], dim=1)
+        else:
+            box = as_tensor(inner, "inner", dtype=torch.float64).cpu()
+            if box.shape != (n, 2):
+                raise ValueError(f"inner: expected shape ({n}, 2), got {tuple(box.shape)}")
+            check_finite(box, "inner")
+            if bool(((box[:, 0] > s) | (box[:, 1] < s)).any()):
+                raise ValueError("inner: every [a_i, b_i] must contain the start posture")
+            if bool(((box[:, 0] < b[:, 0]) | (box[:, 1] > b[:, 1])).any()):
+                raise ValueError("inner: lies outside bounds")
         low = torch.empty(2 * n, dtype=torch.float64)
         high = torch.empty(2 * n, dtype=torch.float64)
-        low[0::2], high[0::2] = b[:, 0], s
-        low[1::2], high[1::2] = s, b[:, 1]
+        low[0::2], high[0::2] = b[:, 0], box[:, 0]
+        low[1::2], high[1::2] = box[:, 1], b[:, 1]
         if fixed is not None and not isinstance(fixed, Mapping):
             raise TypeError(f"fixed: expected a mapping {{joint index: (lo, hi)}}, got {type(fixed).__name__}")
         fixed = dict(fixed or {})
@@ -70,14 +89,16 @@ class BoxPrior:
                 raise ValueError(f"fixed: joint {j} needs a pair of numbers (lo, hi), got {pair!r}") from exc
             if not (np.isfinite(lo) and np.isfinite(hi)):
                 raise ValueError(f"fixed: joint {j} limits must be finite")
-            if not (b[j, 0] <= lo <= s[j] <= hi <= b[j, 1]):
+            if not (b[j, 0] <= lo <= box[j, 0] <= box[j, 1] <= hi <= b[j, 1]):
                 raise ValueError(
                     f"fixed: joint {j} limits ({lo:.4g}, {hi:.4g}) must satisfy "
                     f"bound_lo <= lo <= start <= hi <= bound_hi"
+                    + ("" if inner is None else " and contain the inner box")
                 )
             low[2 * j] = high[2 * j] = lo
             low[2 * j + 1] = high[2 * j + 1] = hi
         self.bounds, self.start, self.fixed, self.sampling = b, s, fixed, sampling
+        self.inner = box  # (n, 2) postures known to lie inside the limits
         self.low, self.high = low, high
         self.free_mask = high > low
 
@@ -96,7 +117,35 @@ class BoxPrior:
 
     def with_sampling(self, sampling: str) -> BoxPrior:
         """The same box with another sampling scheme."""
-        return BoxPrior(self.bounds, self.start, fixed=self.fixed, sampling=sampling)
+        return BoxPrior(self.bounds, self.start, fixed=self.fixed, sampling=sampling, inner=self.inner)
+
+    def containing(self, postures, *, tol: float = 1e-5) -> BoxPrior:
+        """The prior conditioned on observed joint-space postures lying inside the limits.
+
+        postures: (L, n) observed joint positions (any number of rows). Returns a new
+        `BoxPrior` whose inner box is the hull of the current one and ``postures``, so
+        ``lo_i <= min_t q_t,i`` and ``hi_i >= max_t q_t,i`` for every draw. Postures
+        beyond a bound or a fixed (known) limit by at most ``tol`` (float32 rounding of a
+        clamped simulation) are clipped onto it; farther ones raise ValueError.
+        """
+        q = as_tensor(postures, "postures", dtype=torch.float64).cpu()
+        if q.dim() != 2 or q.shape[1] != self.n_joints:
+            raise ValueError(f"postures: expected shape (L, {self.n_joints}), got {tuple(q.shape)}")
+        check_finite(q, "postures")
+        if q.shape[0] == 0:
+            return self
+        a = torch.minimum(self.inner[:, 0], q.min(dim=0).values)
+        b = torch.maximum(self.inner[:, 1], q.max(dim=0).values)
+        outer_lo, outer_hi = self.low[0::2].clone(), self.high[1::2].clone()  # bounds or fixed limits
+        if bool(((a < outer_lo - tol) | (b > outer_hi + tol)).any()):
+            j = int(torch.nonzero((a < outer_lo - tol) | (b > outer_hi + tol))[0])
+            raise ValueError(
+                f"postures: joint {j} moves to [{float(a[j]):.6g}, {float(b[j]):.6g}], outside its "
+                f"possible limits [{float(outer_lo[j]):.6g}, {float(outer_hi[j]):.6g}]")
+        a = torch.maximum(a, outer_lo)
+        b = torch.minimum(b, outer_hi)
+        return BoxPrior(self.bounds, self.start, fixed=self.fixed, sampling=self.sampling,
+                        inner=torch.stack([a, b], dim=1))
 
     def sample(self, n: int, seed) -> torch.Tensor:
         """(n, 2n) float64 draws; ``seed``: int or numpy Generator. Fixed coordinates are constant."""
