@@ -127,7 +127,7 @@ def naive_estimate(observations, prior) -> np.ndarray:
 
 def camo_methods(args) -> list[str]:
     """The CAMO variants this run computes (camo-hull needs joint-space observations)."""
-    hull = args.space == "joint" and not getattr(args, "no_hull", False)
+    hull = args.space == "joint" and not args.no_hull
     return [m for m in CAMO_VARIANTS if m == "camo" or hull]
 
 
@@ -338,7 +338,7 @@ def _render_run(scene, extras, path: Path) -> None:
     preds = extras["predictions"]
     key = next((k for k in (("strong", "camo-hull"), ("strong", "camo"), ("weak", "camo-hull"), ("weak", "camo"))
                 if k in preds), next(iter(preds)))
-    pred = extras["predictions"][key][-1][0]
+    pred = preds[key][-1][0]
     truth = extras["y_true"][0]
     scene.set_trial(trial)
     wrong = [c for c, a, b in zip(COLOURS, pred, truth, strict=True) if a != b]

@@ -136,9 +136,10 @@ class BoxPrior:
             return self
         a = torch.minimum(self.inner[:, 0], q.min(dim=0).values)
         b = torch.maximum(self.inner[:, 1], q.max(dim=0).values)
-        outer_lo, outer_hi = self.low[0::2].clone(), self.high[1::2].clone()  # bounds or fixed limits
-        if bool(((a < outer_lo - tol) | (b > outer_hi + tol)).any()):
-            j = int(torch.nonzero((a < outer_lo - tol) | (b > outer_hi + tol))[0])
+        outer_lo, outer_hi = self.low[0::2], self.high[1::2]  # bounds or fixed limits
+        outside = (a < outer_lo - tol) | (b > outer_hi + tol)
+        if bool(outside.any()):
+            j = int(torch.nonzero(outside)[0])
             raise ValueError(
                 f"postures: joint {j} moves to [{float(a[j]):.6g}, {float(b[j]):.6g}], outside its "
                 f"possible limits [{float(outer_lo[j]):.6g}, {float(outer_hi[j]):.6g}]")
