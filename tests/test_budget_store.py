@@ -276,7 +276,7 @@ def test_run_method_sequence_continual_shares_one_capped_counter(fake_method, to
 def test_get_method_known_and_unknown():
     assert get_method("camo").module == "camo_sbi.inference.camo"
     assert get_method("naive").name == "naive"
-    with pytest.raises(ValueError, match=r"method: unknown method 'camoo'.*camo, naive"):
+    with pytest.raises(ValueError, match=r"method: unknown method 'camoo'.*camo, camo-hull, naive"):
         get_method("camoo")
     with pytest.raises(ValueError, match="method"):
         get_method(None)

@@ -213,6 +213,13 @@ def test_contain_observed_changes_draws_only_when_on_and_is_seeded():
     np.testing.assert_array_equal(a.samples, b.samples)
     np.testing.assert_array_equal(a.weights, b.weights)
     assert not np.array_equal(a.samples, off.samples)
+    # the registry's camo-hull is exactly CAMO with contain_observed=True
+    assert make_config("camo-hull").contain_observed and not make_config("camo").contain_observed
+    hull = run_method("camo-hull", task, budget=200, seed=5, config={"keep_best": 20})
+    np.testing.assert_array_equal(hull.samples, a.samples)
+    assert hull.method == "camo-hull" and a.method == "camo"
+    with pytest.raises(ValueError, match="contain_observed"):
+        make_config("camo-hull", {"space": "cartesian"})
 
 
 def test_contain_observed_config_errors():

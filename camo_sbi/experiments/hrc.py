@@ -15,7 +15,7 @@ Methods:
 
 * ``camo``: the paper's algorithm (argmax of the product of per-task KDEs).
 * ``camo-hull`` (joint space only; ``--no-hull`` skips it): the same, with the prior
-  conditioned on the observed postures (``CamoConfig.contain_observed``): the controller
+  conditioned on the observed postures (``CamoConfig(contain_observed=True)``): the controller
   clamps to the limits, so every observed joint posture lies inside them. Without it the
   argmax sits inside the flat part of the posterior of limits that no reach has pushed
   against, often narrower than postures already seen, and blocks the person can take
@@ -72,9 +72,9 @@ __all__ = [
 ]
 
 PRIORS = ("strong", "weak")
-CAMO_VARIANTS = {"camo": False, "camo-hull": True}
-"""CAMO methods of this experiment -> CamoConfig.contain_observed."""
-METHODS = (*CAMO_VARIANTS, "naive")
+CAMO_METHODS = ("camo", "camo-hull")
+"""Registry names of the CAMO variants this experiment runs (`camo_sbi.inference.methods`)."""
+METHODS = (*CAMO_METHODS, "naive")
 METRICS = ("precision", "recall", "f1", "accuracy")
 STRONG_PRIOR_FIXED = ("torso_flexion", "torso_rotation", "forearm_pronation", "wrist_flexion",
                       "wrist_deviation")
@@ -128,7 +128,7 @@ def naive_estimate(observations, prior) -> np.ndarray:
 def camo_methods(args) -> list[str]:
     """The CAMO variants this run computes (camo-hull needs joint-space observations)."""
     hull = args.space == "joint" and not args.no_hull
-    return [m for m in CAMO_VARIANTS if m == "camo" or hull]
+    return [m for m in CAMO_METHODS if m == "camo" or hull]
 
 
 def collect_run(scene, true_theta, *, n_tasks: int, n_test: int, seed: int, task_unit: str = "pick",
@@ -211,10 +211,9 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
             test_goals=grasp.clone(), true_theta=true_theta)
         sequences = {}
         for method in camo_methods(args):
-            cfg = {**camo_cfg, "contain_observed": CAMO_VARIANTS[method]}
             results = run_method_sequence(
-                "camo", task, budget=args.samples, seed=derive_seed(args.seed, run, PRIORS.index(kind)),
-                config=cfg) if observations else []
+                method, task, budget=args.samples, seed=derive_seed(args.seed, run, PRIORS.index(kind)),
+                config=camo_cfg) if observations else []
             sequences[method] = [r.estimate for r in results]
         sequences["naive"] = [naive_estimate(observations[: i + 1], prior) for i in range(len(observations))]
         for method, ests in sequences.items():

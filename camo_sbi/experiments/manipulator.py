@@ -67,7 +67,7 @@ def _method_configs(args) -> dict[str, tuple[str, dict]]:
     table = {
         "camo-js": ("camo", {**camo, "space": "joint"}),
         "camo-cs": ("camo", {**camo, "space": "cartesian"}),
-        "camo-hull": ("camo", {**camo, "space": "joint", "contain_observed": True}),
+        "camo-hull": ("camo-hull", {**camo, "space": "joint"}),
         "naive": ("naive", {}),
     }
     return {m: table[m] for m in args.methods}

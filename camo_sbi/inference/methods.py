@@ -13,8 +13,9 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 from camo_sbi._validation import check_positive_int
 from camo_sbi.inference.budget import CountingSimulator
@@ -26,12 +27,14 @@ __all__ = ["METHODS", "MethodSpec", "check_run_args", "get_method", "make_config
 
 @dataclass(frozen=True)
 class MethodSpec:
-    """A registered method: its module (imported lazily) and the names of its run/config."""
+    """A registered method: its module (imported lazily), the names of its run/config, and
+    config defaults that differ from the config class's own (a variant of another method)."""
 
     name: str
     module: str
     run_name: str = "run"
     config_name: str = "Config"
+    defaults: Mapping[str, Any] = field(default_factory=dict)
 
     def load(self) -> tuple[Callable, type]:
         mod = importlib.import_module(self.module)
@@ -44,6 +47,9 @@ class MethodSpec:
 
 METHODS: dict[str, MethodSpec] = {
     "camo": MethodSpec("camo", "camo_sbi.inference.camo", config_name="CamoConfig"),
+    # not in the paper: CAMO with the prior conditioned on the observed joint postures
+    "camo-hull": MethodSpec("camo-hull", "camo_sbi.inference.camo", config_name="CamoConfig",
+                            defaults={"contain_observed": True}),
     "naive": MethodSpec("naive", "camo_sbi.inference.naive", config_name="NaiveConfig"),
     "abc-smc": MethodSpec("abc-smc", "camo_sbi.inference.abc_smc", config_name="AbcSmcConfig"),
     "npe": MethodSpec("npe", "camo_sbi.inference.npe", config_name="NpeConfig"),
@@ -82,9 +88,12 @@ def get_method(name: str) -> MethodSpec:
 def make_config(name: str, config=None, **overrides):
     """The method's frozen config, from defaults, an existing config, or a dict, plus overrides.
 
-    Unknown fields raise ValueError naming them (never silently ignored).
+    Defaults are the config class's, then the registry entry's ``defaults`` (camo-hull:
+    ``contain_observed=True``). Unknown fields raise ValueError naming them (never silently
+    ignored).
     """
-    _, config_cls = get_method(name).load()
+    spec = get_method(name)
+    _, config_cls = spec.load()
     if isinstance(config, dict):
         overrides = {**config, **overrides}
         config = None
@@ -94,8 +103,9 @@ def make_config(name: str, config=None, **overrides):
     unknown = sorted(set(overrides) - known)
     if unknown:
         raise ValueError(f"config: unknown field(s) {unknown} for method {name!r}; known: {sorted(known)}")
-    base = config if config is not None else config_cls()
-    return replace(base, **overrides) if overrides else base
+    if config is not None:
+        return replace(config, **overrides) if overrides else config
+    return config_cls(**{**spec.defaults, **overrides})
 
 
 def run_method(name: str, task, observations: Sequence | None = None, *, budget: int, seed: int,
