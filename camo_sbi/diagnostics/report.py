@@ -282,7 +282,10 @@ def _posteriors(posts, why: str) -> str:
         groups.setdefault(key, []).append((str(a.get("method", path.stem)), idata, path.stem))
     for (task, subject, _), members in groups.items():
         names = [m for m, _, _ in members]
-        if len(set(names)) < len(names):  # same method twice (e.g. seeds): disambiguate by file
+        if len(set(names)) < len(names):  # same method twice: disambiguate by budget / seed
+            names = [" ".join([m] + [f"{k}={d.posterior.attrs[k]}" for k in ("budget", "seed")
+                                     if k in d.posterior.attrs]) for m, d, _ in members]
+        if len(set(names)) < len(names):  # still ambiguous: by file
             names = [f"{m} ({stem})" for m, _, stem in members]
         label = ", ".join(x for x in (f"task {task}" if task else "", f"subject {subject}" if subject else "") if x)
         try:
