@@ -89,8 +89,8 @@ def make_config(name: str, config=None, **overrides):
     """The method's frozen config, from defaults, an existing config, or a dict, plus overrides.
 
     Defaults are the config class's, then the registry entry's ``defaults`` (camo-hull:
-    ``contain_observed=True``). Unknown fields raise ValueError naming them (never silently
-    ignored).
+    ``contain_observed=True``); a config object passed in is used as given (plus
+    ``overrides``). Unknown fields raise ValueError naming them (never silently ignored).
     """
     spec = get_method(name)
     _, config_cls = spec.load()
