@@ -48,6 +48,20 @@ def check_finite(t: torch.Tensor, name: str) -> torch.Tensor:
     return t
 
 
+def check_bool(x, name: str) -> bool:
+    """Validate a bool (TypeError naming ``name`` otherwise; 0/1 are not bools)."""
+    if not isinstance(x, bool):
+        raise TypeError(f"{name}: expected a bool, got {type(x).__name__}")
+    return x
+
+
+def check_choice(x, choices, name: str):
+    """Validate that ``x`` is one of ``choices`` (ValueError naming ``name`` and listing them)."""
+    if x not in choices:
+        raise ValueError(f"{name}: expected one of {tuple(choices)}, got {x!r}")
+    return x
+
+
 def check_positive_int(x, name: str, *, minimum: int = 1) -> int:
     """Validate an integer >= ``minimum`` (bools rejected)."""
     if isinstance(x, bool) or not isinstance(x, numbers.Integral):

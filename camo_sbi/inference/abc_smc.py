@@ -65,7 +65,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from camo_sbi._validation import check_positive_float, check_positive_int
+from camo_sbi._validation import check_bool, check_choice, check_positive_float, check_positive_int
 from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
 from camo_sbi.inference.distances import dtw_distances
 from camo_sbi.inference.methods import check_run_args
@@ -169,8 +169,7 @@ class AbcSmcConfig:
     scheduler: str | None = None
 
     def __post_init__(self):
-        if self.space not in _SPACES:
-            raise ValueError(f"space: expected one of {_SPACES}, got {self.space!r}")
+        check_choice(self.space, _SPACES, "space")
         check_positive_int(self.population_size, "population_size", minimum=2)
         check_positive_int(self.max_populations, "max_populations")
         check_positive_float(self.min_epsilon, "min_epsilon", allow_zero=True)
@@ -182,20 +181,16 @@ class AbcSmcConfig:
                 f"initial_epsilon: expected 'inf' or 'from_sample', got {self.initial_epsilon!r}"
             )
         check_positive_float(self.median_multiplier, "median_multiplier")
-        if not isinstance(self.early_rejection, bool):
-            raise TypeError(f"early_rejection: expected a bool, got {type(self.early_rejection).__name__}")
-        if self.sampler not in _SAMPLERS:
-            raise ValueError(f"sampler: expected one of {_SAMPLERS}, got {self.sampler!r}")
+        check_bool(self.early_rejection, "early_rejection")
+        check_choice(self.sampler, _SAMPLERS, "sampler")
         check_positive_int(self.min_batch_size, "min_batch_size")
         check_positive_int(self.max_batch_size, "max_batch_size")
         if self.max_batch_size < self.min_batch_size:
             raise ValueError(
                 f"max_batch_size: must be >= min_batch_size ({self.min_batch_size}), got {self.max_batch_size}"
             )
-        if self.estimator not in _ESTIMATORS:
-            raise ValueError(f"estimator: expected one of {_ESTIMATORS}, got {self.estimator!r}")
-        if self.sim_dtype not in _DTYPES:
-            raise ValueError(f"sim_dtype: expected one of {tuple(_DTYPES)}, got {self.sim_dtype!r}")
+        check_choice(self.estimator, _ESTIMATORS, "estimator")
+        check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
         if self.log_level not in ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"):
             raise ValueError(f"log_level: expected a logging level name, got {self.log_level!r}")
         if self.workdir is not None and not isinstance(self.workdir, (str, os.PathLike)):

@@ -33,7 +33,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from camo_sbi._validation import as_tensor, check_finite, check_positive_float, check_positive_int
+from camo_sbi._validation import (
+    as_tensor,
+    check_bool,
+    check_choice,
+    check_finite,
+    check_positive_float,
+    check_positive_int,
+)
 from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
 from camo_sbi.inference.distances import dtw_distances
 from camo_sbi.inference.kde import GaussianKDE, scott_bandwidth
@@ -101,18 +108,14 @@ class CamoConfig:
             check_positive_int(self.keep_best, "keep_best")
         check_positive_int(self.fallback_keep, "fallback_keep")
         check_positive_float(self.bandwidth, "bandwidth")
-        if self.bandwidth_mode not in _BANDWIDTH_MODES:
-            raise ValueError(f"bandwidth_mode: expected one of {_BANDWIDTH_MODES}, got {self.bandwidth_mode!r}")
-        if self.space not in _SPACES:
-            raise ValueError(f"space: expected one of {_SPACES}, got {self.space!r}")
+        check_choice(self.bandwidth_mode, _BANDWIDTH_MODES, "bandwidth_mode")
+        check_choice(self.space, _SPACES, "space")
         if self.sampling not in ("uniform", "lhs"):
             raise ValueError(f"sampling: expected 'uniform' or 'lhs', got {self.sampling!r}")
-        if self.sim_dtype not in _DTYPES:
-            raise ValueError(f"sim_dtype: expected one of {tuple(_DTYPES)}, got {self.sim_dtype!r}")
+        check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
         check_positive_int(self.chunk_size, "chunk_size")
         parse_scheduler(self.scheduler)
-        if not isinstance(self.contain_observed, bool):
-            raise TypeError(f"contain_observed: expected a bool, got {type(self.contain_observed).__name__}")
+        check_bool(self.contain_observed, "contain_observed")
         if self.contain_observed and self.space != "joint":
             raise ValueError("contain_observed: needs space='joint' (Cartesian observations do not "
                              "show the joint postures)")

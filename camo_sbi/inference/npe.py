@@ -57,7 +57,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from camo_sbi._validation import as_tensor, check_positive_float, check_positive_int
+from camo_sbi._validation import (
+    as_tensor,
+    check_bool,
+    check_choice,
+    check_positive_float,
+    check_positive_int,
+)
 from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
 from camo_sbi.inference.methods import check_run_args
 from camo_sbi.inference.priors import BoxPrior
@@ -152,20 +158,15 @@ class NpeConfig:
     scheduler: str | None = None
 
     def __post_init__(self):
-        if self.space not in _SPACES:
-            raise ValueError(f"space: expected one of {_SPACES}, got {self.space!r}")
+        check_choice(self.space, _SPACES, "space")
         check_positive_int(self.n_points, "n_points")
-        if not isinstance(self.include_length, bool):
-            raise TypeError(f"include_length: expected a bool, got {type(self.include_length).__name__}")
-        if self.embedding not in _EMBEDDINGS:
-            raise ValueError(f"embedding: expected one of {_EMBEDDINGS}, got {self.embedding!r}")
+        check_bool(self.include_length, "include_length")
+        check_choice(self.embedding, _EMBEDDINGS, "embedding")
         check_positive_int(self.embedding_dim, "embedding_dim")
-        if self.density_estimator not in _MODELS:
-            raise ValueError(f"density_estimator: expected one of {_MODELS}, got {self.density_estimator!r}")
+        check_choice(self.density_estimator, _MODELS, "density_estimator")
         check_positive_int(self.hidden_features, "hidden_features")
         check_positive_int(self.num_transforms, "num_transforms")
-        if self.theta_transform not in _TRANSFORMS:
-            raise ValueError(f"theta_transform: expected one of {_TRANSFORMS}, got {self.theta_transform!r}")
+        check_choice(self.theta_transform, _TRANSFORMS, "theta_transform")
         check_positive_int(self.training_batch_size, "training_batch_size", minimum=2)
         check_positive_float(self.learning_rate, "learning_rate")
         check_positive_float(self.validation_fraction, "validation_fraction")
@@ -178,11 +179,9 @@ class NpeConfig:
         check_positive_float(self.defensive_fraction, "defensive_fraction")
         if self.defensive_fraction >= 1:
             raise ValueError(f"defensive_fraction: must be in (0, 1), got {self.defensive_fraction}")
-        if self.estimator not in _ESTIMATORS:
-            raise ValueError(f"estimator: expected one of {_ESTIMATORS}, got {self.estimator!r}")
+        check_choice(self.estimator, _ESTIMATORS, "estimator")
         check_positive_int(self.simulation_batch_size, "simulation_batch_size")
-        if self.sim_dtype not in _DTYPES:
-            raise ValueError(f"sim_dtype: expected one of {tuple(_DTYPES)}, got {self.sim_dtype!r}")
+        check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
         if self.workdir is not None and not isinstance(self.workdir, (str, os.PathLike)):
             raise TypeError(f"workdir: expected a path or None, got {type(self.workdir).__name__}")
         if self.n_threads is not None:
@@ -294,8 +293,7 @@ class NpePosterior:
                  n_threads: int | None = 1):
         if len(estimators) != len(x_obs) or not estimators:
             raise ValueError("estimators: need one estimator per observed summary (at least one)")
-        if theta_transform not in _TRANSFORMS:
-            raise ValueError(f"theta_transform: expected one of {_TRANSFORMS}, got {theta_transform!r}")
+        check_choice(theta_transform, _TRANSFORMS, "theta_transform")
         self.estimators = [e.eval() for e in estimators]
         self.x_obs = [torch.as_tensor(x, dtype=torch.float32).reshape(1, -1) for x in x_obs]
         self.low = torch.as_tensor(low, dtype=torch.float64).cpu()
