@@ -30,10 +30,10 @@ from camo_sbi.simulators import panda  # noqa: E402
 
 
 def fast_run(sim, task, n_samples, keep_best):
-    camo = Camo(sim, task.prior, CamoConfig(n_samples=n_samples, keep_best=keep_best), seed=0)
+    camo = Camo(sim, task.prior, CamoConfig(keep_best=keep_best), n_samples=n_samples, seed=0)
     obs = task.observations
     camo.observe(obs[0].start, obs[0].goal, obs[0].q)  # warm-up: JIT compile
-    camo = Camo(sim, task.prior, CamoConfig(n_samples=n_samples, keep_best=keep_best), seed=0)
+    camo = Camo(sim, task.prior, CamoConfig(keep_best=keep_best), n_samples=n_samples, seed=0)
     t0 = time.perf_counter()
     for o in obs:
         camo.observe(o.start, o.goal, o.q)

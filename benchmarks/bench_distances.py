@@ -113,7 +113,7 @@ def bench_case(obs, traj, length, B, args, dtw_ndim):
 
 def panda_tasks(n_tasks, B, seed):
     """[(name, observed q, observed ee, Trajectories, simulate seconds)] for real Panda reaches."""
-    from camo_sbi.inference.priors import BoxPrior
+    from camo_sbi.priors import BoxPrior
     from camo_sbi.scenarios.reaching import make_reaching_task
     from camo_sbi.simulators import panda
 

@@ -17,6 +17,7 @@ __all__ = [
     "check_positive_int",
     "check_positive_float",
     "check_theta",
+    "derive_seed",
     "numpy_generator",
     "torch_generator",
 ]
@@ -124,3 +125,12 @@ def torch_generator(seed_or_gen, name: str = "seed", device="cpu") -> torch.Gene
     g = torch.Generator(device=device)
     g.manual_seed(int(seed_or_gen))
     return g
+
+
+def derive_seed(*parts: int) -> int:
+    """A 63-bit integer seed derived from the non-negative integers ``parts`` (numpy SeedSequence).
+
+    Distinct part tuples give independent streams; used to give every run, cell and method
+    its own seed from one base seed.
+    """
+    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(2, np.uint64)[0] >> 1)

@@ -20,8 +20,10 @@ import re
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 
-__all__ = ["DEFAULT_RETRIES", "charge", "dask_client", "get_client", "map_ordered", "map_unordered", "parse_scheduler",
-           "unwrap_simulator", "worker_count"]
+from camo_sbi.budget import charge, unwrap_simulator
+
+__all__ = ["DEFAULT_RETRIES", "dask_client", "get_client", "map_ordered", "map_unordered", "parse_scheduler",
+           "run_chunks", "worker_count"]
 
 DEFAULT_RETRIES = 2
 
@@ -156,34 +158,21 @@ def map_unordered(fn: Callable, items: Iterable, client=None, *, retries: int = 
         yield future.result()
 
 
-def unwrap_simulator(simulator):
-    """The simulator under any budget-counting wrappers (what is shipped to workers)."""
-    while hasattr(simulator, "wrapped") and hasattr(simulator, "n_simulations"):
-        simulator = simulator.wrapped
-    return simulator
+def run_chunks(fn: Callable, jobs: Iterable, *, simulator, n_simulations: int, scheduler: str | None,
+               **shared) -> list:
+    """The one Dask path every method uses: ``[fn(job, simulator=..., **shared) for job in jobs]``.
 
-
-def charge(simulator, n: int) -> None:
-    """Count ``n`` simulations run elsewhere against a counting wrapper's budget, beforehand.
-
-    Mirrors `CountingSimulator.simulate`: raises `BudgetExceededError` if the budget would
-    be exceeded, before anything is simulated. A plain simulator is not counted.
+    In-process (``scheduler`` None) every chunk calls the given, budget-counting simulator,
+    which counts (and refuses) each call before it simulates. On Dask, ``n_simulations``
+    (what the chunks will simulate in total) is charged to the counting wrappers FIRST,
+    before anything runs, and the workers get the unwrapped simulator. Results come back
+    in the order of ``jobs``.
     """
-    from camo_sbi.inference.budget import BudgetExceededError
-
-    n = int(n)
-    wrappers = []
-    while hasattr(simulator, "wrapped") and hasattr(simulator, "n_simulations"):
-        wrappers.append(simulator)
-        simulator = simulator.wrapped
-    for w in wrappers:
-        budget = getattr(w, "budget", None)
-        if budget is not None and w.n_simulations + n > budget:
-            raise BudgetExceededError(
-                f"budget: {w.n_simulations} simulations used, {n} more requested, budget is {budget}"
-            )
-    for w in wrappers:  # only after every wrapper accepted the request
-        w.n_simulations += n
+    client = get_client(scheduler)
+    if client is None:
+        return map_ordered(fn, jobs, None, simulator=simulator, **shared)
+    charge(simulator, n_simulations)
+    return map_ordered(fn, jobs, client, simulator=unwrap_simulator(simulator), **shared)
 
 
 def worker_count(client) -> int:

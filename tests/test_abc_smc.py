@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from camo_sbi.budget import BudgetExceededError, CountingSimulator
 from camo_sbi.inference import abc_smc
 from camo_sbi.inference.abc_smc import (
     AbcSmcConfig,
@@ -13,10 +14,10 @@ from camo_sbi.inference.abc_smc import (
     parameter_names,
     to_pyabc_prior,
 )
-from camo_sbi.inference.budget import BudgetExceededError, CountingSimulator
-from camo_sbi.inference.methods import make_config, run_method
-from camo_sbi.inference.priors import BoxPrior
-from camo_sbi.scenarios.reaching import ReachingTask, observe
+from camo_sbi.inference.registry import make_config, run_method
+from camo_sbi.priors import BoxPrior
+from camo_sbi.scenarios.reaching import observe
+from camo_sbi.task import Task
 from tests.toy_sim import ToySimulator
 
 TRUE = torch.tensor([-0.6, 0.5, -0.4, 0.7], dtype=torch.float64)
@@ -28,7 +29,7 @@ def toy_task(prior=None, n_train=3):
     sim = ToySimulator(n=2)
     obs = observe(sim, TRUE, GOALS[:n_train])
     prior = BoxPrior(sim.bounds, sim.start) if prior is None else prior
-    return ReachingTask("toy", "toy", sim, prior, obs, sim.start.expand(2, -1).clone(),
+    return Task("toy", "toy", sim, prior, obs, sim.start.expand(2, -1).clone(),
                         GOALS[:2].clone(), TRUE.clone())
 
 

@@ -279,11 +279,17 @@ def test_hrc_experiment_small_is_seeded(tmp_path):
     b = pd.read_csv(tmp_path / "b" / "results.csv")
     pd.testing.assert_frame_equal(a, b)
     assert {"run", "prior", "method", "n_tasks", "metric", "value"} <= set(a.columns)
-    assert set(a["method"]) == {"camo", "camo-hull", "naive", "majority", "truth"}
+    assert set(a["method"]) == {"camo-js", "camo-hull", "naive", "nominal", "oracle", "majority", "truth"}
     assert set(a["prior"]) == {"strong", "weak"} and set(a["n_tasks"]) == {1, 2}
     scores = a[a["metric"].isin(["precision", "recall", "f1", "accuracy", "person_fraction"])]
     assert scores["value"].between(0, 1).all()
-    assert set(a.loc[a["method"] == "camo", "metric"]) == {"precision", "recall", "f1", "accuracy", "limit_error"}
+    alloc = {"precision", "recall", "f1", "accuracy", "limit_error_deg"}
+    for m in ("camo-js", "naive", "nominal", "oracle"):
+        assert alloc <= set(a.loc[a["method"] == m, "metric"]) <= alloc | {"limit_error_binding_deg",
+                                                                        "limit_error_free_deg"}
+    # the oracle allocates exactly as the truth: precision = recall = 1 (a pipeline check)
+    o = a[(a["method"] == "oracle") & a["metric"].isin(["precision", "recall", "f1"])]
+    assert len(o) and (o["value"] == 1).all()
     assert (tmp_path / "a" / "fig5_allocation.png").stat().st_size > 0
 
 
@@ -296,12 +302,12 @@ def test_hrc_no_hull_and_cartesian_space_run_only_the_paper_camo(tmp_path):
     args.no_hull, args.priors = True, "strong"
     assert hrc.main(args) == 0
     c = pd.read_csv(tmp_path / "c" / "results.csv")
-    assert set(c["method"]) == {"camo", "naive", "majority", "truth"}
+    assert set(c["method"]) == {"camo-js", "naive", "nominal", "oracle", "majority", "truth"}
     args = _args(tmp_path / "d")
     args.space, args.priors = "cartesian", "strong"
-    assert hrc.camo_methods(args) == ["camo"]
+    assert hrc.run_methods(args) == ["camo-cs", "naive", "nominal", "oracle"]  # naive reads the joints
     args.space = "joint"
-    assert hrc.camo_methods(args) == ["camo", "camo-hull"]
+    assert hrc.run_methods(args) == ["camo-js", "camo-hull", "naive", "nominal", "oracle"]
 
 
 def test_strong_prior_fixes_torso_and_wrist_to_the_truth(sim):

@@ -2,8 +2,6 @@
 
 import os
 import re
-import sys
-import types
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,10 +9,12 @@ import pandas as pd
 import pytest
 import torch
 
+from camo_sbi.budget import BudgetExceededError, CountingSimulator
 from camo_sbi.experiments.store import ResultStore, cell_key
-from camo_sbi.inference import methods
-from camo_sbi.inference.budget import BudgetExceededError, CountingSimulator
-from camo_sbi.inference.methods import (
+from camo_sbi.inference import registry
+from camo_sbi.inference.registry import (
+    Capabilities,
+    Implementation,
     MethodSpec,
     get_method,
     make_config,
@@ -41,7 +41,7 @@ class SpySimulator(ToySimulator):
 
 
 def _thetas(b, seed=0):
-    from camo_sbi.inference.priors import BoxPrior
+    from camo_sbi.priors import BoxPrior
 
     sim = ToySimulator()
     return BoxPrior(sim.bounds, sim.start).sample(b, seed=seed)
@@ -178,14 +178,11 @@ def _fake_run_sequence(task, observations, *, budget, seed, config):
 
 @pytest.fixture
 def fake_method(monkeypatch):
-    mod = types.ModuleType("camo_sbi_test_fake_method")
-    mod.run, mod.Config = _fake_run, FakeConfig
-    seq = types.ModuleType("camo_sbi_test_fake_continual")
-    seq.run, seq.Config, seq.run_sequence = _fake_run, FakeConfig, _fake_run_sequence
-    monkeypatch.setitem(sys.modules, mod.__name__, mod)
-    monkeypatch.setitem(sys.modules, seq.__name__, seq)
-    monkeypatch.setitem(methods.METHODS, "fake", MethodSpec("fake", mod.__name__))
-    monkeypatch.setitem(methods.METHODS, "fake-seq", MethodSpec("fake-seq", seq.__name__))
+    plain = Implementation(_fake_run, FakeConfig)
+    continual = Implementation(_fake_run, FakeConfig, _fake_run_sequence)
+    monkeypatch.setitem(registry._REGISTRY, "fake", MethodSpec("fake", "test", lambda: plain, Capabilities()))
+    monkeypatch.setitem(registry._REGISTRY, "fake-seq", MethodSpec("fake-seq", "test", lambda: continual,
+                                                                   Capabilities(continual=True)))
     FAKE_LOG.clear()
     yield "fake"
     FAKE_LOG.clear()
@@ -274,9 +271,12 @@ def test_run_method_sequence_continual_shares_one_capped_counter(fake_method, to
 
 
 def test_get_method_known_and_unknown():
-    assert get_method("camo").module == "camo_sbi.inference.camo"
+    from camo_sbi.inference import camo
+
+    impl = get_method("camo").load()
+    assert impl.run is camo.run and impl.config is camo.CamoConfig and impl.run_sequence is camo.run_sequence
     assert get_method("naive").name == "naive"
-    with pytest.raises(ValueError, match=r"method: unknown method 'camoo'.*camo, camo-hull, naive"):
+    with pytest.raises(ValueError, match=r"^method: unknown method 'camoo'.*camo, camo-js, camo-cs, camo-hull, naive"):
         get_method("camoo")
     with pytest.raises(ValueError, match="method"):
         get_method(None)
@@ -301,6 +301,41 @@ def test_make_config_defaults_dicts_overrides_and_unknown_fields():
         make_config("camo", object())
     with pytest.raises(ValueError, match="method"):
         make_config("nope")
+
+
+def test_variants_always_apply_their_defaults():
+    """camo-hull given a plain CamoConfig is still camo-hull (it was plain CAMO under that label)."""
+    from camo_sbi.inference.camo import CamoConfig
+
+    for cfg in (None, CamoConfig(), CamoConfig(contain_observed=False, keep_best=9), {"keep_best": 9}):
+        c = make_config("camo-hull", cfg)
+        assert c.contain_observed is True and c.space == "joint"
+    assert make_config("camo-hull", CamoConfig(keep_best=9)).keep_best == 9  # other fields kept
+    assert make_config("camo-cs", CamoConfig(space="joint")).space == "cartesian"
+    # a dict that contradicts the variant is refused, naming the field
+    with pytest.raises(ValueError, match=r"^config: method 'camo-hull' is defined by contain_observed=True"):
+        make_config("camo-hull", {"contain_observed": False})
+    with pytest.raises(ValueError, match=r"^config: method 'camo-cs' is defined by space='cartesian'"):
+        make_config("camo-cs", space="joint")
+
+
+def test_capabilities_drive_the_method_lists():
+    baselines = registry.names(baseline=True)
+    assert baselines == ["naive", "nominal", "oracle"]
+    assert "npe" in registry.names(baseline=False) and "naive" not in registry.names(baseline=False)
+    assert registry.names(space="cartesian", baseline=True) == ["nominal", "oracle"]  # naive needs joints
+    assert "camo-cs" not in registry.names(space="joint")
+    assert set(registry.names(simulates=False)) == set(baselines)
+    assert registry.capabilities("oracle").needs_truth and not registry.capabilities("nominal").needs_truth
+    for name in registry.names():
+        spec = get_method(name)
+        impl = spec.load()  # every loader imports and returns a real implementation
+        assert callable(impl.run) and isinstance(impl.config, type)
+        assert spec.capabilities.continual == (impl.run_sequence is not None), name
+        if spec.base is not None:
+            assert get_method(spec.base).load() == impl, name
+    with pytest.raises(ValueError, match="^spec: a method named 'camo' is already registered"):
+        registry.register(get_method("camo"))
 
 
 # ---------------------------------------------------------------- ResultStore

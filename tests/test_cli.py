@@ -13,13 +13,19 @@ import pytest
 from camo_sbi.experiments.cli import main
 
 REPRO = ["reproduce", "panda", "--runs", "2", "--tasks", "2", "--test-goals", "3", "--samples", "200"]
-REPRO_METRICS = {"cartesian_error", "joint_error", "limit_error", "n_simulations", "wall_time"}
+PREDICTION = {"cartesian_error_mm", "joint_error_deg", "eq2_cartesian", "eq2_joint", "reference_cartesian",
+              "reference_joint"}
+# limit_error_binding_deg / limit_error_free_deg appear when some bound binds / does not
+REPRO_METRICS = PREDICTION | {"limit_error_deg", "n_simulations", "wall_time"}
+LIMIT_GROUPS = {"limit_error_binding_deg", "limit_error_free_deg"}
+BASELINES = ("naive", "nominal", "oracle")
 
 COMPARE = ["compare", "--model", "panda", "--methods", "camo,naive", "--budgets", "100", "--seeds", "2",
            "--tasks", "2", "--test-goals", "3", "--no-report"]
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
-COMPARE_METRICS = ({"cartesian_error", "joint_error", "limit_error", "ppc_dtw", "n_simulations", "wall_time"}
-                   | {f"limit_error_{j}" for j in PANDA_JOINTS})
+COMPARE_METRICS = (PREDICTION | {"limit_error_deg", "n_simulations", "wall_time"}
+                   | {f"limit_error_deg_{j}" for j in PANDA_JOINTS})
+PPC = {"ppc_cartesian_error_mm", "pp_mean_cartesian_error_mm"}  # posterior methods only
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -56,15 +62,23 @@ def repro(tmp_path_factory):
     return out, pd.read_csv(out / "results.csv")
 
 
+def _metric_sets(df, keys):
+    """{key: set of metrics}; the optional limit groups are the same for every method of a key."""
+    return df.groupby(keys).metric.apply(set)
+
+
 def test_reproduce_writes_every_row_once(repro):
     out, df = repro
-    assert list(df.columns) == ["run", "model", "subject", "method", "n_tasks", "metric", "value"]
-    expected = {(r, m, k, x) for r in (0, 1) for m in ("camo-js", "camo-cs", "camo-hull", "naive")
-                for k in (1, 2)
-                for x in REPRO_METRICS}
+    assert list(df.columns) == ["run", "model", "subject", "method", "n_tasks", "metric", "value", "status"]
+    methods = ("camo-js", "camo-cs", "camo-hull", *BASELINES)
     got = list(zip(df.run, df.method, df.n_tasks, df.metric, strict=True))
-    assert len(got) == len(set(got)) == len(expected)
-    assert set(got) == expected
+    assert len(got) == len(set(got))  # no duplicated row
+    sets = _metric_sets(df, ["run", "method", "n_tasks"])
+    assert set(sets.index) == {(r, m, k) for r in (0, 1) for m in methods for k in (1, 2)}
+    for (r, _, _), metrics in sets.items():
+        assert REPRO_METRICS <= metrics <= REPRO_METRICS | LIMIT_GROUPS
+        assert metrics == sets[(r, "oracle", 1)]  # every method scored on the same bounds
+    assert set(df.status) == {"ok"}
     assert set(df.model) == {"panda"}
     # subjects are cycled over the runs: two runs, two different profiles
     assert df.groupby("run").subject.nunique().eq(1).all() and df.subject.nunique() == 2
@@ -76,9 +90,12 @@ def test_reproduce_writes_every_row_once(repro):
             assert v[(r, "camo-js", k, "n_simulations")] == 200 * k
             assert v[(r, "camo-cs", k, "n_simulations")] == 200 * k
             assert v[(r, "camo-hull", k, "n_simulations")] == 200 * k
-            assert v[(r, "naive", k, "n_simulations")] == 0
-    errs = df[df.metric.isin(["cartesian_error", "joint_error", "limit_error"])].value
-    assert (errs >= 0).all() and (errs > 0).any()
+            for b in BASELINES:
+                assert v[(r, b, k, "n_simulations")] == 0
+    errs = df[df.metric.isin(PREDICTION | {"limit_error_deg"})]
+    assert (errs.value >= 0).all() and (errs[errs.method != "oracle"].value > 0).any()
+    # the oracle (the true limits) predicts every held-out reach exactly: a pipeline check
+    assert (errs[errs.method == "oracle"].value == 0).all()
 
 
 def test_reproduce_writes_both_figures_and_config(repro):
@@ -100,8 +117,8 @@ def test_reproduce_other_seed_other_table(repro, tmp_path):
     _, df = repro
     assert _run([*REPRO, "--runs", "1", "--methods", "naive", "--seed", "1"], tmp_path / "c") == 0
     df2 = pd.read_csv(tmp_path / "c" / "results.csv")
-    a = df[(df.run == 0) & (df.method == "naive") & (df.metric == "cartesian_error")].value.to_numpy()
-    b = df2[(df2.metric == "cartesian_error")].value.to_numpy()
+    a = df[(df.run == 0) & (df.method == "naive") & (df.metric == "cartesian_error_mm")].value.to_numpy()
+    b = df2[(df2.metric == "cartesian_error_mm")].value.to_numpy()
     assert a.shape == b.shape == (2,) and not (a == b).all()
 
 
@@ -160,11 +177,17 @@ def test_compare_in_a_fresh_directory(tmp_path):
 
 def test_compare_row_for_every_cell(compare_table):
     out, df = compare_table
-    assert list(df.columns) == ["task", "subject", "method", "budget", "seed", "n_tasks", "metric", "value"]
-    expected = {(m, s, k, x) for m in ("camo", "naive") for s in (0, 1) for k in (1, 2) for x in COMPARE_METRICS}
+    assert list(df.columns) == ["task", "subject", "method", "budget", "seed", "n_tasks", "metric", "value",
+                                "status"]
     got = list(zip(df.method, df.seed, df.n_tasks, df.metric, strict=True))
-    assert len(got) == len(set(got)) == len(expected)
-    assert set(got) == expected
+    assert len(got) == len(set(got))
+    sets = _metric_sets(df, ["method", "seed", "n_tasks"])
+    # the baselines are added to every grid: naive, nominal, oracle
+    assert set(sets.index) == {(m, s, k) for m in ("camo", *BASELINES) for s in (0, 1) for k in (1, 2)}
+    for (m, s, _), metrics in sets.items():
+        extra = PPC if m == "camo" else set()
+        assert COMPARE_METRICS | extra <= metrics <= COMPARE_METRICS | extra | LIMIT_GROUPS
+        assert metrics - extra == sets[("oracle", s, 1)]
     assert set(df.budget) == {100} and set(df.task) == {"panda"} and df.subject.nunique() == 1
     assert df.value.notna().all()
     v = df.set_index(["method", "seed", "n_tasks", "metric"]).value
@@ -172,7 +195,9 @@ def test_compare_row_for_every_cell(compare_table):
         for k in (1, 2):
             assert v[("camo", s, k, "n_simulations")] == 100 * k
             assert v[("naive", s, k, "n_simulations")] == 0
-    assert len(list((out / "cells").glob("*.csv"))) == 4
+    oracle = df[(df.method == "oracle") & df.metric.isin(PREDICTION)]
+    assert len(oracle) and (oracle.value == 0).all()
+    assert len(list((out / "cells").glob("*.csv"))) == 8
     for name in ("error_vs_budget.png", "error_vs_tasks.png", "wall_time.png"):
         _assert_png(out / name)
 
@@ -180,7 +205,7 @@ def test_compare_row_for_every_cell(compare_table):
 def test_compare_methods_see_the_same_task(compare_table):
     """Per seed the observations are shared by all methods; across seeds they differ."""
     _, df = compare_table
-    naive = df[(df.method == "naive") & (df.metric == "cartesian_error")].set_index(["seed", "n_tasks"]).value
+    naive = df[(df.method == "naive") & (df.metric == "cartesian_error_mm")].set_index(["seed", "n_tasks"]).value
     assert naive[(0, 2)] != naive[(1, 2)]
 
 
@@ -223,16 +248,18 @@ def test_compare_interrupted_run_resumes_without_duplicates(compare_table, tmp_p
         proc.stderr.close()
     assert proc.returncode == -signal.SIGKILL
     done = sorted(cells.glob("*.csv"))
-    assert 1 <= len(done) < 4, "the run was not interrupted mid-grid"
-    for p in done:  # every finished cell is complete
+    assert 1 <= len(done) < 8, "the run was not interrupted mid-grid"
+    keys = ["method", "seed", "n_tasks", "metric"]
+    for p in done:  # every finished cell is complete: its rows are exactly the reference cell's
         part = pd.read_csv(p)
-        assert len(part) == 2 * len(COMPARE_METRICS)
+        (method,), (seed,) = set(part.method), set(part.seed)
+        want = ref[(ref.method == method) & (ref.seed == seed)]
+        pd.testing.assert_frame_equal(_sorted(_without_wall_time(part), keys), _sorted(_without_wall_time(want), keys))
     assert not (out / "results.csv").exists()
 
     df = _compare(out)
-    keys = ["method", "seed", "n_tasks", "metric"]
     counts = df.groupby(keys).size()
-    assert (counts == 1).all() and len(counts) == 2 * 2 * 2 * len(COMPARE_METRICS)
+    assert (counts == 1).all() and len(counts) == len(ref)
     # and the resumed table equals an uninterrupted run (wall_time aside)
     pd.testing.assert_frame_equal(_sorted(_without_wall_time(df), keys), _sorted(_without_wall_time(ref), keys))
 

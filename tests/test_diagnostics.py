@@ -18,8 +18,8 @@ import pytest
 from matplotlib.figure import Figure
 
 from camo_sbi.diagnostics import arviz_io, calibration, report
-from camo_sbi.inference.priors import BoxPrior
 from camo_sbi.inference.result import PosteriorResult
+from camo_sbi.priors import BoxPrior
 
 JOINTS = ["shoulder", "elbow", "wrist"]
 

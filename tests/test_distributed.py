@@ -9,9 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from camo_sbi.distributed import charge, dask_client, map_ordered, parse_scheduler
+from camo_sbi.budget import BudgetExceededError, CountingSimulator, charge
+from camo_sbi.distributed import dask_client, map_ordered, parse_scheduler
 from camo_sbi.experiments.cli import main
-from camo_sbi.inference.budget import BudgetExceededError, CountingSimulator
 from tests.toy_sim import ToySimulator
 
 # ------------------------------------------------------------------------------ no Dask needed
@@ -33,7 +33,7 @@ def test_parse_scheduler_errors_name_the_option(spec):
 
 
 def test_bad_scheduler_in_config_and_cli(tmp_path):
-    from camo_sbi.inference.methods import make_config
+    from camo_sbi.inference.registry import make_config
 
     with pytest.raises(ValueError, match="scheduler"):
         make_config("camo", {"scheduler": "local:0"})
@@ -106,20 +106,21 @@ def test_reproduce_panda_on_dask_gives_the_same_table(tmp_path, address):
 def _toy_task():
     import torch
 
-    from camo_sbi.inference.priors import BoxPrior
-    from camo_sbi.scenarios.reaching import ReachingTask, observe
+    from camo_sbi.priors import BoxPrior
+    from camo_sbi.scenarios.reaching import observe
+    from camo_sbi.task import Task
 
     sim = ToySimulator(n=2)
     true = torch.tensor([-0.3, 0.4, -0.5, 0.2], dtype=torch.float64)
     goals = torch.tensor([[0.8, 0.8, 0.0], [-0.9, -0.7, 0.0], [0.6, -0.8, 0.0]], dtype=torch.float64)
     obs = observe(sim, true, goals)
-    return ReachingTask("toy", "toy", sim, BoxPrior(sim.bounds, sim.start), obs,
-                        sim.start.expand(2, -1).clone(), goals[:2].clone(), true.clone())
+    return Task("toy", "toy", sim, BoxPrior(sim.bounds, sim.start), obs,
+                sim.start.expand(2, -1).clone(), goals[:2].clone(), true.clone())
 
 
 @pytest.mark.parametrize("cfg", [{"chunk_size": 128}, {"chunk_size": 100, "epsilon": 1e-6}])
 def test_camo_same_estimate_with_and_without_dask(address, cfg):
-    from camo_sbi.inference.methods import run_method
+    from camo_sbi.inference.registry import run_method
 
     task = _toy_task()
     kw = {"budget": 500, "seed": 4}
@@ -135,7 +136,7 @@ def test_camo_same_estimate_with_and_without_dask(address, cfg):
 
 def test_camo_chunks_do_not_depend_on_workers():
     """In-process, the chunk size fixes the draws: the same seed gives the same kept vectors."""
-    from camo_sbi.inference.methods import run_method
+    from camo_sbi.inference.registry import run_method
 
     task = _toy_task()
     a = run_method("camo", task, budget=300, seed=1, config={"chunk_size": 64})
@@ -147,7 +148,7 @@ def test_camo_chunks_do_not_depend_on_workers():
 
 def test_abc_smc_same_populations_with_and_without_dask(address):
     """Our batched sampler's chunks on workers: same particles, weights, distances, budget use."""
-    from camo_sbi.inference.methods import run_method
+    from camo_sbi.inference.registry import run_method
 
     task = _toy_task()
     cfg = {"population_size": 40, "max_populations": 4, "chunk_size": 16}
@@ -161,7 +162,7 @@ def test_abc_smc_same_populations_with_and_without_dask(address):
 
 
 def test_npe_same_training_data_with_and_without_dask(address):
-    from camo_sbi.inference.methods import run_method
+    from camo_sbi.inference.registry import run_method
 
     task = _toy_task()
     cfg = {"hidden_features": 16, "num_transforms": 2, "max_epochs": 4, "stop_after_epochs": 2,
@@ -177,7 +178,7 @@ def test_npe_same_training_data_with_and_without_dask(address):
 
 def test_abc_smc_does_not_depend_on_the_chunk_size():
     """Accepted particles' distances are exact in any chunking: chunk 7 == one chunk."""
-    from camo_sbi.inference.methods import run_method
+    from camo_sbi.inference.registry import run_method
 
     task = _toy_task()
     cfg = {"population_size": 40, "max_populations": 4}
@@ -226,7 +227,10 @@ def test_a_dying_worker_loses_no_cell(tmp_path, cluster):
     df = store.write_table()
     counts = df.groupby(["method", "seed", "n_tasks", "metric"]).size()
     assert (counts == 1).all()
-    assert len(counts) == 2 * 3 * df.metric.nunique()
+    # every cell holds all its tasks, each with the same metrics
+    per = df.groupby(["method", "seed", "n_tasks"]).metric.apply(frozenset)
+    assert len(per) == len(specs) * df.n_tasks.nunique()
+    assert per.groupby(level=["method", "seed"]).nunique().eq(1).all()
 
 
 def _namespace(**kw):

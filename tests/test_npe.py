@@ -8,9 +8,9 @@ import torch
 from torch import nn
 
 from camo_sbi.inference import npe
-from camo_sbi.inference.methods import make_config, run_method, run_method_sequence
 from camo_sbi.inference.npe import NpeConfig, NpePosterior, load_posterior, summarize
-from camo_sbi.inference.priors import BoxPrior
+from camo_sbi.inference.registry import make_config, run_method, run_method_sequence
+from camo_sbi.priors import BoxPrior
 from tests.test_abc_smc import TRUE, toy_task
 from tests.toy_sim import ToySimulator
 
@@ -242,9 +242,10 @@ def test_recovery_toy_slow(toy, space):
 @pytest.mark.slow
 def test_panda_slow():
     """Panda, 5 reaches, budget 2000 per task, default settings: the estimate predicts
-    held-out reaches better than the prior mean (measured: cumulative joint error 0.55 vs
-    1.46 rad per reach); ESS of the combined posterior > 20 (measured 50-230 of 10000)."""
-    from camo_sbi.scenarios.reaching import cumulative_joint_error, predict
+    held-out reaches better than the prior mean (joint_error_deg); ESS of the combined
+    posterior > 20 (measured 50-230 of 10000)."""
+    from camo_sbi.evaluation.metrics import joint_error_deg
+    from camo_sbi.task import predict
     from tests.test_abc_smc import impaired_panda_task
 
     task = impaired_panda_task()
@@ -254,7 +255,7 @@ def test_panda_slow():
 
     def err(theta):
         pred = predict(sim, torch.as_tensor(theta), task.test_starts, task.test_goals)
-        return float(cumulative_joint_error(truth, pred).mean())
+        return float(joint_error_deg(truth, pred).mean())
 
     prior_mean = (task.prior.low + task.prior.high) / 2
     assert err(res.estimate) < 0.8 * err(prior_mean)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from camo_sbi.inference.priors import BoxPrior
+from camo_sbi.priors import BoxPrior
 
 # a 3-joint box with an asymmetric start (s_i != midpoint) so lo/hi widths differ
 BOUNDS = torch.tensor([[-2.0, 1.0], [-0.5, 3.0], [-1.0, 1.0]], dtype=torch.float64)

@@ -1,21 +1,15 @@
-"""Reaching tasks on the Panda: goals, observations, prediction and the cumulative errors."""
+"""Reaching tasks on the Panda: goals, observations and prediction (metrics: test_metrics.py)."""
 
 import numpy as np
 import pytest
 import torch
 
+from camo_sbi.evaluation.metrics import cartesian_error_mm, joint_error_deg
 from camo_sbi.experiments.subjects import subject_names, subject_theta
-from camo_sbi.inference.priors import BoxPrior
-from camo_sbi.scenarios.reaching import (
-    Observation,
-    ReachingTask,
-    cumulative_cartesian_error,
-    cumulative_joint_error,
-    make_reaching_task,
-    observe,
-    predict,
-)
-from camo_sbi.simulators import Trajectories, sample_goals, theta_to_limits
+from camo_sbi.priors import BoxPrior
+from camo_sbi.scenarios.reaching import make_reaching_task, observe
+from camo_sbi.simulators import sample_goals, theta_to_limits
+from camo_sbi.task import Observation, Task, predict
 
 TOL = 0.01  # the Panda controller's goal tolerance (ControllerConfig.tol)
 
@@ -38,7 +32,7 @@ def task(sim, theta):
 
 
 def test_task_fields(task, sim, theta):
-    assert isinstance(task, ReachingTask)
+    assert isinstance(task, Task)
     assert task.name == "panda" and task.subject == "mixed" and task.n_joints == 7
     assert len(task.observations) == 6 and all(isinstance(o, Observation) for o in task.observations)
     assert task.test_goals.shape == (5, 3) and task.test_starts.shape == (5, 7)
@@ -123,8 +117,8 @@ def test_predict_with_true_theta_reproduces_test_trajectories_exactly(task, sim,
     pred = predict(sim, theta, task.test_starts, task.test_goals)
     for f in ("q", "ee", "length", "reached"):
         assert torch.equal(getattr(pred, f), getattr(true, f)), f
-    assert torch.equal(cumulative_cartesian_error(true, pred), torch.zeros(m, dtype=torch.float64))
-    assert torch.equal(cumulative_joint_error(true, pred), torch.zeros(m, dtype=torch.float64))
+    assert torch.equal(cartesian_error_mm(true, pred), torch.zeros(m, dtype=torch.float64))
+    assert torch.equal(joint_error_deg(true, pred), torch.zeros(m, dtype=torch.float64))
     # ... and the training observations too
     goals = torch.stack([o.goal for o in task.observations])
     starts = torch.stack([o.start for o in task.observations])
@@ -139,7 +133,7 @@ def test_predict_with_wrong_theta_has_positive_error(task, sim, theta):
     full = task.prior.high.clone()
     full[0::2] = task.prior.low[0::2]  # the full range: the restrictions are gone
     pred = predict(sim, full, task.test_starts, task.test_goals)
-    ce, je = cumulative_cartesian_error(true, pred), cumulative_joint_error(true, pred)
+    ce, je = cartesian_error_mm(true, pred), joint_error_deg(true, pred)
     assert ce.shape == (m,) and je.shape == (m,)
     assert bool((ce >= 0).all()) and bool((je >= 0).all())
     assert float(ce.sum()) > 0 and float(je.sum()) > 0
@@ -159,39 +153,6 @@ def test_predict_widens_an_estimate_that_excludes_the_start(task, sim, theta):
     widened[2 * j] = sim.start[j]
     ref = sim.simulate(widened.expand(5, -1), task.test_goals, task.test_starts)
     assert torch.equal(pred.q, ref.q)
-
-
-def _traj(q, ee, length):
-    q = torch.as_tensor(q, dtype=torch.float64)
-    ee = torch.as_tensor(ee, dtype=torch.float64)
-    return Trajectories(q, ee, torch.as_tensor(length), torch.ones(q.shape[0], dtype=torch.bool))
-
-
-def test_cumulative_errors_hand_computed():
-    # two goals, T = 3, n = 2 joints
-    q_true = [[[0, 0], [1, 1], [2, 2]], [[0, 0], [0, 0], [0, 0]]]
-    q_pred = [[[0, 0], [1, 2], [5, 6]], [[0, 0], [3, 4], [3, 4]]]  # sample 1 stopped early: holds (3, 4)
-    ee_true = [[[0, 0, 0], [1, 0, 0], [1, 1, 0]], [[0, 0, 0], [0, 0, 0], [0, 0, 0]]]
-    ee_pred = [[[0, 0, 0], [1, 0, 0], [1, 1, 2]], [[0, 0, 0], [0, 3, 4], [0, 3, 4]]]
-    true = _traj(q_true, ee_true, [3, 3])
-    pred = _traj(q_pred, ee_pred, [3, 2])
-    # joint: sample 0: 0 + |(0,1)| + |(3,4)| = 0 + 1 + 5 = 6;  sample 1: 0 + 5 + 5 = 10
-    torch.testing.assert_close(cumulative_joint_error(true, pred), torch.tensor([6.0, 10.0], dtype=torch.float64))
-    # Cartesian: sample 0: 0 + 0 + 2 = 2;  sample 1: 0 + 5 + 5 = 10
-    torch.testing.assert_close(cumulative_cartesian_error(true, pred), torch.tensor([2.0, 10.0], dtype=torch.float64))
-    # symmetric, zero on identical inputs
-    torch.testing.assert_close(cumulative_joint_error(pred, true), cumulative_joint_error(true, pred))
-    assert torch.equal(cumulative_cartesian_error(true, true), torch.zeros(2, dtype=torch.float64))
-    assert torch.equal(cumulative_joint_error(pred, pred), torch.zeros(2, dtype=torch.float64))
-
-
-def test_cumulative_errors_reject_mismatched_batches(task, sim, theta):
-    a = sim.simulate(theta.expand(3, -1), task.test_goals[:3], task.test_starts[:3])
-    b = sim.simulate(theta.expand(2, -1), task.test_goals[:2], task.test_starts[:2])
-    with pytest.raises(ValueError, match="pred|true"):
-        cumulative_cartesian_error(a, b)
-    with pytest.raises(ValueError, match="pred|true"):
-        cumulative_joint_error(a, b)
 
 
 def test_observe_shapes_and_bad_goals(sim, theta):

@@ -17,8 +17,8 @@ import pandas as pd
 import pytest
 
 from camo_sbi.diagnostics import arviz_io, calibration, report
-from camo_sbi.inference.priors import BoxPrior
 from camo_sbi.inference.result import PosteriorResult
+from camo_sbi.priors import BoxPrior
 
 CHROMIUM_CANDIDATES = ("/usr/bin/chromium", "chromium", "chromium-browser", "google-chrome")
 

@@ -61,6 +61,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
+from camo_sbi._validation import derive_seed
 from camo_sbi.diagnostics.calibration import (
     DEFAULT_ALPHAS,
     central_interval_coverage,
@@ -69,7 +70,6 @@ from camo_sbi.diagnostics.calibration import (
     sbc_uniformity,
 )
 from camo_sbi.experiments.compare import run_in_processes
-from camo_sbi.experiments.manipulator import derive_seed
 from camo_sbi.experiments.plots import save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
 from camo_sbi.experiments.subjects import build_model
@@ -109,14 +109,15 @@ def coordinate_names(sim) -> list[str]:
 
 
 def _parse_methods(text: str) -> list[str]:
-    from camo_sbi.inference.methods import METHODS
+    from camo_sbi.inference.registry import names
 
+    known = names()
     items = [t.strip() for t in str(text).split(",") if t.strip()]
     if not items:
         raise ValueError("--methods: give at least one method")
-    unknown = [m for m in items if m not in METHODS]
+    unknown = [m for m in items if m not in known]
     if unknown:
-        raise ValueError(f"--methods: unknown method(s) {unknown}; known: {', '.join(METHODS)}")
+        raise ValueError(f"--methods: unknown method(s) {unknown}; known: {', '.join(known)}")
     if len(set(items)) != len(items):
         raise ValueError(f"--methods: duplicate method in {items}")
     return items
@@ -124,7 +125,7 @@ def _parse_methods(text: str) -> list[str]:
 
 def _parse_configs(entries, methods: list[str]) -> dict[str, dict]:
     """``--config METHOD=JSON`` (repeatable) -> {method: overrides}, validated against the config class."""
-    from camo_sbi.inference.methods import make_config
+    from camo_sbi.inference.registry import make_config
 
     out: dict[str, dict] = {}
     for entry in entries or []:
@@ -203,7 +204,7 @@ def draw_subject(sim, model: str, subject: int, *, n_tasks: int, seed: int):
         (task, attempt): the `ReachingTask` (true_theta set, prior = the model's box prior)
         and the attempt index used.
     """
-    from camo_sbi.inference.priors import BoxPrior
+    from camo_sbi.priors import BoxPrior
     from camo_sbi.scenarios.reaching import make_reaching_task
 
     prior = BoxPrior(sim.bounds, sim.start)
@@ -263,7 +264,7 @@ def subject_rows(samples, weights, truth, names, *, sbc_draws: int, seed, alphas
 
 def run_cell(spec: dict, out: str) -> str:
     """Run one method on one subject and store its rows atomically; returns the cell key."""
-    from camo_sbi.inference.methods import run_method
+    from camo_sbi.inference.registry import run_method
 
     store = ResultStore(out)
     sim = _model(spec["model"])

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import DEFAULT_RETRIES, dask_client, map_unordered, parse_scheduler
-from camo_sbi.experiments.manipulator import derive_seed, evaluate_estimate
 from camo_sbi.experiments.plots import plot_lines, save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
 from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
@@ -48,13 +48,24 @@ def _parse_list(text: str, name: str, cast=str) -> list:
         raise ValueError(f"--{name}: {exc}") from exc
 
 
+def grid_methods(text: str) -> list[str]:
+    """``--methods`` plus every registered baseline not already in it (every table shows them)."""
+    from camo_sbi.inference.registry import get_method, names
+
+    methods = _parse_list(text, "methods")
+    for m in methods:
+        try:
+            get_method(m)
+        except ValueError as exc:
+            raise ValueError(f"--methods: {exc}") from exc
+    if len(set(methods)) != len(methods):
+        raise ValueError(f"--methods: duplicate method in {methods}")
+    return methods + [b for b in names(baseline=True) if b not in methods]
+
+
 def cell_specs(args) -> list[dict]:
     """Every grid cell as a plain dict (picklable; the cell's identity is its key)."""
-    from camo_sbi.inference.methods import get_method
-
-    methods = _parse_list(args.methods, "methods")
-    for m in methods:
-        get_method(m)
+    methods = grid_methods(args.methods)
     budgets = _parse_list(args.budgets, "budgets", int)
     if any(b < 1 for b in budgets):
         raise ValueError("--budgets: every budget must be >= 1")
@@ -77,18 +88,26 @@ def cell_specs(args) -> list[dict]:
     return specs
 
 
-def _config_for(method: str, space: str, workdir: Path) -> dict:
-    if method == "naive":
-        return {}
-    cfg = {"space": space}
-    if method in ("abc-smc", "npe"):
+def method_config(method: str, space: str, workdir: Path) -> dict:
+    """The config a cell gives ``method``, from its capabilities: ``space`` for methods that
+    choose their observation space (a variant that fixes it keeps its own), ``workdir`` for
+    methods that write artefacts."""
+    from camo_sbi.inference.registry import get_method
+
+    spec = get_method(method)
+    cfg: dict = {}
+    if len(spec.capabilities.spaces) > 1 and "space" not in spec.defaults:
+        cfg["space"] = space
+    if spec.capabilities.workdir:
         cfg["workdir"] = str(workdir)
     return cfg
 
 
 def run_cell(spec: dict, out: str) -> str:
     """Run one cell and write its rows (and final posterior) atomically; returns its key."""
-    from camo_sbi.inference.methods import run_method_sequence
+    from camo_sbi.evaluation.evaluate import PPC_DRAWS, evaluate_result, true_test_trajectories
+    from camo_sbi.evaluation.metrics import binding_bounds
+    from camo_sbi.inference.registry import run_method_sequence
     from camo_sbi.scenarios.reaching import make_reaching_task
 
     out = Path(out)
@@ -99,49 +118,31 @@ def run_cell(spec: dict, out: str) -> str:
     task = make_reaching_task(sim, true_theta, n_train=spec["tasks"], n_test=spec["test_goals"],
                               seed=derive_seed(spec["base_seed"], spec["seed"]), name=spec["task"],
                               subject=spec["subject"])
-    m = task.test_goals.shape[0]
-    true_test = sim.simulate(true_theta.expand(m, -1), task.test_goals, task.test_starts)
+    true_test = true_test_trajectories(task)
+    binding = binding_bounds(sim, true_theta, task.test_starts, task.test_goals, task.prior)
     workdir = out / "work" / spec["key"]
     results = run_method_sequence(spec["method"], task, budget=spec["budget"],
                                   seed=derive_seed(spec["base_seed"], spec["seed"], 7),
-                                  config=_config_for(spec["method"], spec["space"], workdir))
+                                  config=method_config(spec["method"], spec["space"], workdir))
     rows = []
     base = {k: spec[k] for k in ("task", "subject", "method", "budget", "seed")}
-    rng = np.random.default_rng(derive_seed(spec["base_seed"], spec["seed"], 11))
     for res in results:
-        metrics = evaluate_estimate(task, res.estimate, true_test)
-        err = np.abs(res.estimate - task.true_theta.numpy())
+        metrics = evaluate_result(task, res, true_test, binding, posterior_predictive_draws=PPC_DRAWS)
+        err = np.degrees(np.abs(res.estimate - task.true_theta.numpy()))
         for j, name in enumerate(sim.joint_names):
-            metrics[f"limit_error_{name}"] = float(err[2 * j : 2 * j + 2].mean())
-        metrics["ppc_dtw"] = _posterior_predictive_dtw(task, res, true_test, rng)
+            metrics[f"limit_error_deg_{name}"] = float(err[2 * j : 2 * j + 2].mean())
         metrics["n_simulations"] = res.n_simulations
         metrics["wall_time"] = res.wall_time
-        rows += [{**base, "n_tasks": res.n_tasks, "metric": k, "value": v} for k, v in metrics.items()]
+        rows += [{**base, "n_tasks": res.n_tasks, "metric": k, "value": v, "status": res.status}
+                 for k, v in metrics.items()]
     _save_posterior(out, spec, sim, task, results[-1])
     store.put(spec["key"], rows)
     return spec["key"]
 
 
-def _posterior_predictive_dtw(task, res, true_test, rng, n_draws: int = 8) -> float:
-    """Mean DTW (Cartesian) between true held-out trajectories and ones predicted by posterior draws."""
-    from camo_sbi.inference.distances import dtw_distances
-    from camo_sbi.scenarios.reaching import predict
-
-    draws = res.resample(n_draws, rng)
-    total = []
-    for d in draws:
-        pred = predict(task.simulator, torch.as_tensor(d), task.test_starts, task.test_goals)
-        for i in range(true_test.batch_size):
-            L = int(true_test.length[i])
-            total.append(float(dtw_distances(true_test.ee[i, :L], pred.ee[i : i + 1], pred.length[i : i + 1])[0]))
-    return float(np.mean(total))
-
-
 def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
-    try:
-        from camo_sbi.diagnostics.arviz_io import save_netcdf, to_inference_data
-    except ImportError:  # diagnostics not installed
-        return
+    from camo_sbi.diagnostics.arviz_io import save_netcdf, to_inference_data
+
     idata = to_inference_data(res, sim.joint_names, prior=task.prior, true_theta=task.true_theta,
                               seed=derive_seed(spec["base_seed"], spec["seed"], 13))
     idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"]})
@@ -156,18 +157,18 @@ def make_figures(df, out: Path) -> list[Path]:
     paths = []
     last = df[df.n_tasks == df.n_tasks.max()]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    plot_lines(last[last.metric == "cartesian_error"], x="budget", ax=axes[0], logx=True,
-               ylabel="cumulative Cartesian error [m]", title="Test error vs budget")
-    plot_lines(last[last.metric == "limit_error"], x="budget", ax=axes[1], logx=True,
-               ylabel="mean |limit error| [rad]", title="Joint-limit error vs budget")
+    plot_lines(last[last.metric == "cartesian_error_mm"], x="budget", ax=axes[0], logx=True,
+               ylabel="Cartesian error per point [mm]", title="Test error vs budget")
+    plot_lines(last[last.metric == "limit_error_deg"], x="budget", ax=axes[1], logx=True,
+               ylabel="mean |limit error| [deg]", title="Joint-limit error vs budget")
     paths.append(out / "error_vs_budget.png")
     save_figure(fig, paths[-1])
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     bmax = df.budget.max()
     sel = df[df.budget == bmax]
-    plot_lines(sel[sel.metric == "cartesian_error"], ax=axes[0], ylabel="cumulative Cartesian error [m]",
+    plot_lines(sel[sel.metric == "cartesian_error_mm"], ax=axes[0], ylabel="Cartesian error per point [mm]",
                title=f"Test error vs tasks (budget {bmax})")
-    plot_lines(sel[sel.metric == "limit_error"], ax=axes[1], ylabel="mean |limit error| [rad]",
+    plot_lines(sel[sel.metric == "limit_error_deg"], ax=axes[1], ylabel="mean |limit error| [deg]",
                title=f"Joint-limit error vs tasks (budget {bmax})")
     paths.append(out / "error_vs_tasks.png")
     save_figure(fig, paths[-1])
@@ -264,16 +265,14 @@ def main(args) -> int:
     if missing:
         raise RuntimeError(f"{len(missing)} cells did not finish")
     figs = make_figures(df, out)
-    last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(["cartesian_error", "limit_error", "wall_time", "n_simulations"])]
+    last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(["cartesian_error_mm", "limit_error_deg",
+                                                                              "wall_time", "n_simulations"])]
     summary = last.groupby(["method", "budget", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
     print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
     print(f"table: {out / 'results.csv'} ({len(df)} rows)  figures: {', '.join(str(f.name) for f in figs)}")
     if not args.no_report:
-        try:
-            from camo_sbi.diagnostics.report import write_report
-        except ImportError:
-            pass
-        else:
-            print(f"report: {write_report(out, out / 'report.html')}")
+        from camo_sbi.diagnostics.report import write_report
+
+        print(f"report: {write_report(out, out / 'report.html')}")
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
     return 0

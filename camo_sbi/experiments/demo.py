@@ -10,7 +10,7 @@ import torch
 
 from camo_sbi.experiments.plots import save_figure
 from camo_sbi.experiments.subjects import build_model
-from camo_sbi.inference.priors import BoxPrior
+from camo_sbi.priors import BoxPrior
 
 __all__ = ["main"]
 

@@ -66,15 +66,12 @@ __all__ = [
     "main",
     "make_figure",
     "make_prior",
-    "naive_estimate",
+    "run_methods",
     "render_main",
     "run_one",
 ]
 
 PRIORS = ("strong", "weak")
-CAMO_METHODS = ("camo", "camo-hull")
-"""Registry names of the CAMO variants this experiment runs (`camo_sbi.inference.methods`)."""
-METHODS = (*CAMO_METHODS, "naive")
 METRICS = ("precision", "recall", "f1", "accuracy")
 STRONG_PRIOR_FIXED = ("torso_flexion", "torso_rotation", "forearm_pronation", "wrist_flexion",
                       "wrist_deviation")
@@ -97,7 +94,7 @@ def subject_names() -> list[str]:
 
 def make_prior(sim, true_theta, kind: str):
     """The strong or weak `BoxPrior` (Latin hypercube) for a subject with ``true_theta``."""
-    from camo_sbi.inference.priors import BoxPrior
+    from camo_sbi.priors import BoxPrior
 
     if kind == "weak":
         return BoxPrior(sim.bounds, sim.start, sampling="lhs")
@@ -110,25 +107,19 @@ def make_prior(sim, true_theta, kind: str):
     return BoxPrior(sim.bounds, sim.start, fixed=fixed, sampling="lhs")
 
 
-def naive_estimate(observations, prior) -> np.ndarray:
-    """(2n,) observed min/max per joint; the prior's fixed joints take their known limits."""
-    from camo_sbi.inference.naive import naive_limits
-
-    est = naive_limits([o.q for o in observations])
-    fixed = ~prior.free_mask.numpy()
-    est[fixed] = prior.low.numpy()[fixed]
-    return est
-
-
 # --------------------------------------------------------------------------------------
 # One run
 # --------------------------------------------------------------------------------------
 
 
-def camo_methods(args) -> list[str]:
-    """The CAMO variants this run computes (camo-hull needs joint-space observations)."""
-    hull = args.space == "joint" and not args.no_hull
-    return [m for m in CAMO_METHODS if m == "camo" or hull]
+def run_methods(args) -> list[str]:
+    """The methods this run computes: the paper's CAMO in ``--space``, camo-hull (joint space,
+    unless ``--no-hull``) and every registered baseline that can run on these observations."""
+    from camo_sbi.inference.registry import names
+
+    camo = "camo-js" if args.space == "joint" else "camo-cs"
+    hull = ["camo-hull"] if args.space == "joint" and not args.no_hull else []
+    return [camo, *hull, *names(baseline=True, space="joint")]
 
 
 def collect_run(scene, true_theta, *, n_tasks: int, n_test: int, seed: int, task_unit: str = "pick",
@@ -189,10 +180,11 @@ class _Predictor:
 
 def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]:
     """Both priors x (CAMO, naive, majority) on one run; returns tidy rows and extras."""
-    from camo_sbi.inference.methods import run_method_sequence
+    from camo_sbi.evaluation.metrics import binding_bounds, limit_errors
+    from camo_sbi.inference.registry import capabilities, run_method_sequence
     from camo_sbi.scenarios.block_stacking import allocation_metrics
-    from camo_sbi.scenarios.reaching import ReachingTask
     from camo_sbi.simulators import impaired_limits
+    from camo_sbi.task import Task
 
     true_theta = torch.as_tensor(impaired_limits(sim, subject), dtype=torch.float64)
     observations, task_of, test_trials, y_true = collect_run(
@@ -204,18 +196,21 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
                 "sampling": "lhs", "space": args.space}
     estimates: dict[tuple[str, str], list] = {}
     priors = {kind: make_prior(sim, true_theta, kind) for kind in args.priors}
+    test_starts = sim.start.to(torch.float64).expand(grasp.shape[0], -1).clone()
+    binding = {}
     for kind, prior in priors.items():
-        task = ReachingTask(
-            name="hrc", subject=subject, simulator=sim, prior=prior, observations=tuple(observations),
-            test_starts=sim.start.to(torch.float64).expand(grasp.shape[0], -1).clone(),
-            test_goals=grasp.clone(), true_theta=true_theta)
+        task = Task(name="hrc", subject=subject, simulator=sim, prior=prior, observations=tuple(observations),
+                    test_starts=test_starts, test_goals=grasp.clone(), true_theta=true_theta)
+        binding[kind] = binding_bounds(sim, true_theta, test_starts, grasp, prior)
         sequences = {}
-        for method in camo_methods(args):
+        for method in run_methods(args):
+            cfg = camo_cfg if capabilities(method).simulates else None
+            if method == "camo-hull":
+                cfg = {k: v for k, v in camo_cfg.items() if k != "space"}
             results = run_method_sequence(
                 method, task, budget=args.samples, seed=derive_seed(args.seed, run, PRIORS.index(kind)),
-                config=camo_cfg) if observations else []
+                config=cfg) if observations else []
             sequences[method] = [r.estimate for r in results]
-        sequences["naive"] = [naive_estimate(observations[: i + 1], prior) for i in range(len(observations))]
         for method, ests in sequences.items():
             # the estimate after task k: the one after that task's last observation
             per_task = []
@@ -233,15 +228,14 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
                      "n_tasks": k, "metric": metric, "value": float(value)})
 
     base = allocation_metrics(y_true, y_true)  # only its majority-baseline fields are used
-    free = {kind: prior.free_mask.numpy() for kind, prior in priors.items()}
-    truth = true_theta.numpy()
     for kind, method in keys:
         for k, (est, pred) in enumerate(zip(estimates[(kind, method)], predictions[(kind, method)], strict=True)):
             m = allocation_metrics(y_true, pred)
             for metric in METRICS:
                 add(kind, method, k + 1, metric, getattr(m, metric))
-            if est is not None:  # mean absolute error of the estimated (free) limits, radians
-                add(kind, method, k + 1, "limit_error", np.abs(est - truth)[free[kind]].mean())
+            if est is not None:  # limit errors (degrees) over the free limits; binding on the test grasps
+                for metric, value in limit_errors(est, true_theta, priors[kind], binding[kind]).items():
+                    add(kind, method, k + 1, metric, value)
     for kind in args.priors:
         for k in range(args.tasks):
             for metric in METRICS:
@@ -335,7 +329,7 @@ def _render_run(scene, extras, path: Path) -> None:
 
     trial = extras["test_trials"][0]
     preds = extras["predictions"]
-    key = next((k for k in (("strong", "camo-hull"), ("strong", "camo"), ("weak", "camo-hull"), ("weak", "camo"))
+    key = next((k for k in (("strong", "camo-hull"), ("strong", "camo-js"), ("weak", "camo-hull"), ("weak", "camo-js"))
                 if k in preds), next(iter(preds)))
     pred = preds[key][-1][0]
     truth = extras["y_true"][0]
@@ -378,11 +372,11 @@ def main(args) -> int:
     fig = make_figure(df, out)
     wall = time.perf_counter() - t0
     last = df[(df["n_tasks"] == df["n_tasks"].max())
-              & df["metric"].isin(["precision", "recall", "f1", "limit_error"])]
+              & df["metric"].isin(["precision", "recall", "f1", "limit_error_deg"])]
     summary = last.groupby(["prior", "method", "metric"])["value"].mean().unstack("metric")
     person = df.loc[df["metric"] == "person_fraction", "value"].mean()
     print(f"after {int(df['n_tasks'].max())} tasks (mean over {df['run'].nunique()} runs; "
-          f"person's share of test blocks {person:.2f}; limit_error in rad over the free limits):")
+          f"person's share of test blocks {person:.2f}; limit_error_deg over the free limits):")
     print(summary.to_string(float_format=lambda v: f"{v:.3f}", na_rep="-"))
     print(f"table: {out / 'results.csv'}  figure: {fig}")
     print(f"wall time: {wall:.1f} s")

@@ -15,85 +15,60 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
 from tqdm import tqdm
 
+from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import dask_client, parse_scheduler
 from camo_sbi.experiments.plots import plot_bars, plot_lines, save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
 from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
 
-__all__ = ["add_arguments", "main", "run_one", "evaluate_estimate"]
+__all__ = ["DEFAULT_METHODS", "add_arguments", "main", "method_config", "run_one"]
 
-METHOD_LABELS = ("camo-js", "camo-cs", "camo-hull", "naive")
-"""The paper's three curves and camo-hull: CAMO-JS with the prior conditioned on the observed
-postures (CamoConfig.contain_observed; not in the paper)."""
+DEFAULT_METHODS = ("camo-js", "camo-cs", "camo-hull", "naive", "nominal", "oracle")
+"""The paper's CAMO-JS, CAMO-CS and naive; camo-hull (CAMO-JS with the prior conditioned on the
+observed postures; not in the paper); the nominal and oracle baselines."""
 # settings that change a run's rows: part of each cell's key, so a re-run with other
 # settings into the same directory computes new cells instead of reusing old ones
 _CELL_SETTINGS = ("model", "tasks", "test_goals", "samples", "epsilon", "keep_best", "bandwidth",
                   "bandwidth_mode", "sampling", "methods", "seed")
 
 
-def derive_seed(*parts: int) -> int:
-    """A 63-bit integer seed derived from ``parts`` (numpy SeedSequence)."""
-    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(2, np.uint64)[0] >> 1)
+def method_config(name: str, args) -> dict | None:
+    """The config a run gives method ``name``: CAMO's options for the CAMO family, else defaults."""
+    from camo_sbi.inference.registry import get_method
 
-
-def evaluate_estimate(task, estimate, true_test) -> dict[str, float]:
-    """Metrics of one estimate: test-trajectory errors and limit error against the truth."""
-    from camo_sbi.scenarios.reaching import (
-        cumulative_cartesian_error,
-        cumulative_joint_error,
-        predict,
-    )
-
-    pred = predict(task.simulator, torch.as_tensor(estimate), task.test_starts, task.test_goals)
-    out = {
-        "cartesian_error": float(cumulative_cartesian_error(true_test, pred).mean()),
-        "joint_error": float(cumulative_joint_error(true_test, pred).mean()),
-    }
-    if task.true_theta is not None:
-        free = task.prior.free_mask
-        diff = (torch.as_tensor(estimate, dtype=torch.float64) - task.true_theta).abs()[free]
-        out["limit_error"] = float(diff.mean())
-    return out
-
-
-def _method_configs(args) -> dict[str, tuple[str, dict]]:
-    camo = {"epsilon": args.epsilon, "keep_best": args.keep_best, "bandwidth": args.bandwidth,
+    spec = get_method(name)
+    if "camo" not in (name, spec.base):
+        return None
+    return {"epsilon": args.epsilon, "keep_best": args.keep_best, "bandwidth": args.bandwidth,
             "bandwidth_mode": args.bandwidth_mode, "sampling": args.sampling,
             "scheduler": getattr(args, "scheduler", None)}
-    table = {
-        "camo-js": ("camo", {**camo, "space": "joint"}),
-        "camo-cs": ("camo", {**camo, "space": "cartesian"}),
-        "camo-hull": ("camo-hull", {**camo, "space": "joint"}),
-        "naive": ("naive", {}),
-    }
-    return {m: table[m] for m in args.methods}
 
 
 def run_one(sim, model: str, subject: str, run: int, args) -> list[dict]:
     """All methods on one run's subject; returns tidy rows."""
-    from camo_sbi.inference.methods import run_method_sequence
+    from camo_sbi.evaluation.evaluate import evaluate_result, true_test_trajectories
+    from camo_sbi.evaluation.metrics import binding_bounds
+    from camo_sbi.inference.registry import run_method_sequence
     from camo_sbi.scenarios.reaching import make_reaching_task
 
     true_theta = subject_theta(sim, model, subject)
     task = make_reaching_task(sim, true_theta, n_train=args.tasks, n_test=args.test_goals,
                               seed=derive_seed(args.seed, run), name=model, subject=subject)
-    m = task.test_goals.shape[0]
-    true_test = sim.simulate(true_theta.expand(m, -1), task.test_goals, task.test_starts)
+    true_test = true_test_trajectories(task)
+    binding = binding_bounds(sim, true_theta, task.test_starts, task.test_goals, task.prior)
     rows = []
-    for label, (name, cfg) in _method_configs(args).items():
+    for name in args.methods:
         results = run_method_sequence(name, task, budget=args.samples, seed=derive_seed(args.seed, run, 1),
-                                      config=cfg)
+                                      config=method_config(name, args))
         for res in results:
-            metrics = evaluate_estimate(task, res.estimate, true_test)
+            metrics = evaluate_result(task, res, true_test, binding)
             metrics["n_simulations"] = res.n_simulations
             metrics["wall_time"] = res.wall_time
             for metric, value in metrics.items():
-                rows.append({"run": run, "model": model, "subject": subject, "method": label,
-                             "n_tasks": res.n_tasks, "metric": metric, "value": value})
+                rows.append({"run": run, "model": model, "subject": subject, "method": name,
+                             "n_tasks": res.n_tasks, "metric": metric, "value": value, "status": res.status})
     return rows
 
 
@@ -103,15 +78,15 @@ def make_figures(df, out: Path) -> list[Path]:
 
     paths = []
     fig, ax = plt.subplots(figsize=(6, 4))
-    plot_lines(df[df.metric == "cartesian_error"], ax=ax, ylabel="cumulative Cartesian error [m]",
+    plot_lines(df[df.metric == "cartesian_error_mm"], ax=ax, ylabel="Cartesian error per point [mm]",
                title="Error on unseen goals vs observed tasks (mean, 95% CI)")
     paths.append(out / "fig2_cartesian_error_vs_tasks.png")
     save_figure(fig, paths[-1])
     last = df[df.n_tasks == df.n_tasks.max()]
     fig, axes = plt.subplots(1, 2, figsize=(9, 4))
-    plot_bars(last[last.metric == "joint_error"], ax=axes[0], ylabel="cumulative joint loss [rad]",
+    plot_bars(last[last.metric == "joint_error_deg"], ax=axes[0], ylabel="joint error per joint and point [deg]",
               title=f"Joint space, after {int(df.n_tasks.max())} tasks")
-    plot_bars(last[last.metric == "cartesian_error"], ax=axes[1], ylabel="cumulative Cartesian error [m]",
+    plot_bars(last[last.metric == "cartesian_error_mm"], ax=axes[1], ylabel="Cartesian error per point [mm]",
               title=f"Cartesian, after {int(df.n_tasks.max())} tasks")
     paths.append(out / "fig3_final_error.png")
     save_figure(fig, paths[-1])
@@ -129,8 +104,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bandwidth", type=float, default=0.2, help="CAMO kernel variance h [rad^2]")
     p.add_argument("--bandwidth-mode", choices=("fixed", "scott"), default="fixed")
     p.add_argument("--sampling", choices=("uniform", "lhs"), default="uniform")
-    p.add_argument("--methods", default=",".join(METHOD_LABELS),
-                   help=f"comma-separated subset of {','.join(METHOD_LABELS)}")
+    p.add_argument("--methods", default=",".join(DEFAULT_METHODS),
+                   help="comma-separated registered methods (default: %(default)s)")
     p.add_argument("--subjects", default=None, help="comma-separated ground-truth profiles (default: all, cycled)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scheduler", default=None,
@@ -140,10 +115,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
+    from camo_sbi.inference.registry import get_method
+
     args.methods = [m.strip() for m in str(args.methods).split(",") if m.strip()] if isinstance(args.methods, str) else args.methods
-    bad = [m for m in args.methods if m not in METHOD_LABELS]
-    if bad:
-        raise ValueError(f"--methods: unknown {bad}; known: {', '.join(METHOD_LABELS)}")
+    for m in args.methods:
+        try:
+            get_method(m)
+        except ValueError as exc:
+            raise ValueError(f"--methods: {exc}") from exc
     for name in ("runs", "tasks", "test_goals", "samples"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
@@ -170,7 +149,8 @@ def main(args) -> int:
     df = store.write_table()
     figs = make_figures(df, out)
     wall = time.perf_counter() - t0
-    last = df[(df.n_tasks == df.n_tasks.max()) & (df.metric.isin(["cartesian_error", "joint_error", "limit_error"]))]
+    last = df[(df.n_tasks == df.n_tasks.max()) & (df.metric.isin(["cartesian_error_mm", "joint_error_deg", "limit_error_deg",
+                                                                    "limit_error_binding_deg"]))]
     summary = last.groupby(["method", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
     print(summary.to_string(float_format=lambda v: f"{v:.4f}"))
     print(f"table: {out / 'results.csv'}  figures: {', '.join(str(f) for f in figs)}")

@@ -66,11 +66,12 @@ import pandas as pd
 import torch
 
 from camo_sbi._validation import check_bool, check_choice, check_positive_float, check_positive_int
-from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
+from camo_sbi.distributed import parse_scheduler, run_chunks
+from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.distances import dtw_distances
-from camo_sbi.inference.methods import check_run_args
-from camo_sbi.inference.priors import BoxPrior
 from camo_sbi.inference.result import PosteriorResult, weighted_median
+from camo_sbi.priors import BoxPrior
+from camo_sbi.task import contain
 
 
 def _import_pyabc():
@@ -328,21 +329,24 @@ class JointDistance:
         """
         theta = self.prior.expand(torch.as_tensor(free_theta, dtype=torch.float64))
         B = theta.shape[0]
-        chunks = [theta[s : s + self.chunk_size] for s in range(0, B, self.chunk_size)]
-        client = get_client(self.scheduler)
-        # in-process every chunk goes through the (counting) simulator; on workers the
-        # unwrapped simulator runs and the driver's counter is charged with what they ran
-        target = self.simulator if client is None else unwrap_simulator(self.simulator)
-        parts = map_ordered(_distance_chunk, chunks, client, simulator=target, tasks=self._tasks,
-                            space=self.space, dtype=self.dtype, eps=eps)
-        n_sims = sum(p[2] for p in parts)
-        if client is not None:
-            charge(self.simulator, n_sims)
-        self.n_simulations += n_sims
-        self.time_simulate += sum(p[3] for p in parts)
-        self.time_distance += sum(p[4] for p in parts)
-        total = np.concatenate([p[0] for p in parts])
-        alive = np.concatenate([p[1] for p in parts])
+        total = np.zeros(B)
+        alive = np.ones(B, dtype=bool)
+        for start, goal, traj in self._tasks:
+            idx = np.flatnonzero(alive)
+            if idx.size == 0:
+                break
+            # every alive particle is simulated to this task: charged before anything runs
+            jobs = [(theta[torch.from_numpy(c)], float(total[c].min()))
+                    for c in np.array_split(idx, max(1, math.ceil(idx.size / self.chunk_size)))]
+            parts = run_chunks(_task_chunk, jobs, simulator=self.simulator, n_simulations=int(idx.size),
+                               scheduler=self.scheduler, start=start, goal=goal, trajectory=traj,
+                               space=self.space, dtype=self.dtype, eps=eps)
+            total[idx] += np.concatenate([p[0] for p in parts])
+            self.n_simulations += int(idx.size)
+            self.time_simulate += sum(p[1] for p in parts)
+            self.time_distance += sum(p[2] for p in parts)
+            if math.isfinite(eps):
+                alive &= total <= eps
         self.n_particles += B
         complete = alive | ~math.isfinite(eps)
         return total, complete
@@ -356,44 +360,27 @@ class JointDistance:
         return {_DISTANCE_KEY: float(d[0])}
 
 
-def _distance_chunk(theta: torch.Tensor, *, simulator, tasks, space: str, dtype, eps: float):
-    """Summed DTW of one chunk of full theta vectors over ``tasks`` (in-process or on a worker).
+def _task_chunk(job, *, simulator, start, goal, trajectory, space: str, dtype, eps: float):
+    """DTW of one chunk of particles to one task (in-process or on a Dask worker).
 
-    Returns (total (b,), alive (b,) bool, simulations run, simulate time, distance time). With
-    a finite ``eps`` a particle's remaining tasks are skipped once its partial sum exceeds eps;
-    an accepted particle's distance is exact whatever the chunk (its every term is below the
-    chunk's allowance), so only rejected particles' lower bounds depend on the chunking.
+    ``job`` = (theta (b, 2n) full vectors, the smallest partial distance among them). With a
+    finite ``eps`` the DTW is pruned at the chunk's remaining allowance ``eps - that
+    minimum``: a distance beyond it comes back as inf (> eps, rejected). An accepted
+    particle's every term is below its allowance, so its distance is exact whatever the
+    chunking; only rejected particles' lower bounds depend on it.
+    Returns (distances (b,), simulate time, distance time).
     """
-    from camo_sbi.inference.budget import CountingSimulator
-
-    counter = CountingSimulator(simulator, None)
-    B = theta.shape[0]
-    total = np.zeros(B)
-    alive = np.ones(B, dtype=bool)
-    t_sim = t_dist = 0.0
-    for start, goal, traj in tasks:
-        idx = np.flatnonzero(alive)
-        if idx.size == 0:
-            break
-        th = theta[torch.from_numpy(idx)]
-        # the observed start bounds the limits (as CAMO and `predict` do)
-        th[:, 0::2] = torch.minimum(th[:, 0::2], start)
-        th[:, 1::2] = torch.maximum(th[:, 1::2], start)
-        t0 = time.perf_counter()
-        sims = counter.simulate(th.to(dtype), goal=goal.to(dtype), start=start.to(dtype))
-        t1 = time.perf_counter()
-        x = sims.q if space == "joint" else sims.ee
-        allowance = None
-        if math.isfinite(eps):
-            # DTW >= epsilon comes back as inf: nextafter makes that "> allowance"
-            allowance = float(np.nextafter(max(eps - float(total[idx].min()), 0.0), np.inf))
-        d = dtw_distances(traj, x, sims.length, epsilon=allowance).numpy()
-        t_sim += t1 - t0
-        t_dist += time.perf_counter() - t1
-        total[idx] += d
-        if math.isfinite(eps):
-            alive &= total <= eps
-    return total, alive, counter.n_simulations, t_sim, t_dist
+    theta, partial_min = job
+    t0 = time.perf_counter()
+    sims = simulator.simulate(contain(theta, start).to(dtype), goal=goal.to(dtype), start=start.to(dtype))
+    t1 = time.perf_counter()
+    x = sims.q if space == "joint" else sims.ee
+    allowance = None
+    if math.isfinite(eps):
+        # DTW >= epsilon comes back as inf: nextafter makes that "> allowance"
+        allowance = float(np.nextafter(max(eps - partial_min, 0.0), np.inf))
+    d = dtw_distances(trajectory, x, sims.length, epsilon=allowance).numpy()
+    return d, t1 - t0, time.perf_counter() - t1
 
 
 class _OutOfBudget(Exception):
@@ -661,8 +648,7 @@ def run(task, observations, *, budget: int, seed: int, config: AbcSmcConfig | No
         estimate = weighted_median(samples, w)
     else:
         estimate = samples[int(np.argmin(dist))]
-    fixed = ~prior.free_mask.numpy()
-    estimate[fixed] = prior.low.numpy()[fixed]  # exact, not a weighted mean of constants
+    estimate = prior.with_known(torch.from_numpy(estimate)).numpy()  # exact, not a mean of constants
     pops = pops[pops.t >= 0].sort_values("t")
     log = sampler.log
     gens = [g for g in log if not g.get("calibration", False)]

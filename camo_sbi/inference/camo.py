@@ -41,11 +41,13 @@ from camo_sbi._validation import (
     check_positive_float,
     check_positive_int,
 )
-from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
+from camo_sbi.distributed import parse_scheduler, run_chunks
+from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.distances import dtw_distances
 from camo_sbi.inference.kde import GaussianKDE, scott_bandwidth
-from camo_sbi.inference.priors import BoxPrior
-from camo_sbi.inference.result import PosteriorResult
+from camo_sbi.inference.result import STATUS_OK, PosteriorResult
+from camo_sbi.priors import BoxPrior
+from camo_sbi.task import contain
 
 __all__ = ["Camo", "CamoConfig", "TaskRecord", "run", "run_sequence"]
 
@@ -58,9 +60,10 @@ _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 class CamoConfig:
     """Every CAMO hyperparameter.
 
+    The number of prior draws per task (the paper's b: 2000; 5000 in the HRC scenario) is
+    the run's ``budget`` (`Camo` takes it as ``n_samples``), not a config field.
+
     Attributes:
-        n_samples: b, prior draws per task (the paper: 2000; 5000 in the HRC scenario).
-            `run` uses its ``budget`` argument instead.
         epsilon: keep vectors with DTW distance < epsilon (None: no threshold).
         keep_best: keep at most the k best vectors (None: no cap). The paper keeps at most
             500 of 5000. At least one of epsilon / keep_best must be set.
@@ -85,7 +88,6 @@ class CamoConfig:
             posture observed later get zero joint density. False: the paper's algorithm.
     """
 
-    n_samples: int = 2000
     epsilon: float | None = None
     keep_best: int | None = 100
     fallback_keep: int = 20
@@ -99,7 +101,6 @@ class CamoConfig:
     contain_observed: bool = False
 
     def __post_init__(self):
-        check_positive_int(self.n_samples, "n_samples")
         if self.epsilon is None and self.keep_best is None:
             raise ValueError("epsilon: at least one of epsilon and keep_best must be set")
         if self.epsilon is not None:
@@ -143,12 +144,14 @@ class Camo:
         simulator: a `Simulator` (possibly a budget-counting wrapper).
         prior: `BoxPrior`; fixed (known) coordinates are excluded from the KDE.
         config: `CamoConfig`.
+        n_samples: b, the prior draws simulated per task.
         seed: int; chunk c of task n draws from ``numpy.random.default_rng([seed, n, c])``
             so each task's stream is independent of how many tasks came before it and of
             where (which worker) its chunks run.
     """
 
-    def __init__(self, simulator, prior: BoxPrior, config: CamoConfig = CamoConfig(), *, seed: int):
+    def __init__(self, simulator, prior: BoxPrior, config: CamoConfig = CamoConfig(), *, n_samples: int = 2000,
+                 seed: int):
         if not isinstance(prior, BoxPrior):
             raise TypeError(f"prior: expected a BoxPrior, got {type(prior).__name__}")
         if prior.n_joints != simulator.n_joints:
@@ -156,6 +159,7 @@ class Camo:
         if not isinstance(config, CamoConfig):
             raise TypeError(f"config: expected CamoConfig, got {type(config).__name__}")
         self.simulator, self.config, self.seed = simulator, config, check_positive_int(seed, "seed", minimum=0)
+        self.n_samples = check_positive_int(n_samples, "n_samples")
         self.prior = prior if prior.sampling == config.sampling else prior.with_sampling(config.sampling)
         self._free = self.prior.free_mask
         self._draw_prior = self.prior  # conditioned on the observed postures (contain_observed)
@@ -202,16 +206,11 @@ class Camo:
             self._draw_prior = self._draw_prior.containing(torch.cat([start.unsqueeze(0), traj]))
 
         t0 = time.perf_counter()
-        sizes = [min(cfg.chunk_size, cfg.n_samples - c) for c in range(0, cfg.n_samples, cfg.chunk_size)]
+        b_total = self.n_samples
+        sizes = [min(cfg.chunk_size, b_total - c) for c in range(0, b_total, cfg.chunk_size)]
         jobs = [(self.seed, idx, c, b) for c, b in enumerate(sizes)]
-        client = get_client(cfg.scheduler)
-        if client is None:
-            target = sim  # in-process: every chunk goes through the (counting) simulator
-        else:
-            charge(sim, cfg.n_samples)  # counted here, before anything runs on a worker
-            target = unwrap_simulator(sim)
-        parts = map_ordered(_candidate_chunk, jobs, client, simulator=target, prior=self._draw_prior,
-                            start=start, goal=goal, trajectory=traj, config=cfg)
+        parts = run_chunks(_candidate_chunk, jobs, simulator=sim, n_simulations=b_total, scheduler=cfg.scheduler,
+                           prior=self._draw_prior, start=start, goal=goal, trajectory=traj, config=cfg)
         theta = torch.cat([p["theta"] for p in parts])
         dist = torch.cat([p["dist"] for p in parts])
         t_sim = sum(p["time_simulate"] for p in parts)
@@ -290,9 +289,14 @@ class Camo:
     def result(self, method: str = "camo", *, n_simulations: int = 0, wall_time: float = 0.0) -> PosteriorResult:
         """The posterior so far: kept vectors weighted by their joint density, and the argmax."""
         w = self.posterior_weights()
+        fallback = [r.index for r in self.records if r.fallback]
+        status = STATUS_OK
+        if fallback:
+            status = (f"fallback: task(s) {fallback} accepted nothing within epsilon={self.config.epsilon:.4g}; "
+                      f"kept their best {self.config.fallback_keep}")
         return PosteriorResult(
             method=method, samples=self._kept.numpy().copy(), weights=w, estimate=self.estimate(),
-            n_simulations=n_simulations, wall_time=wall_time, n_tasks=self.n_tasks,
+            n_simulations=n_simulations, wall_time=wall_time, n_tasks=self.n_tasks, status=status,
             extras={
                 "kept_per_task": [int(r.kept.shape[0]) for r in self.records],
                 "fallback_tasks": [r.index for r in self.records if r.fallback],
@@ -318,11 +322,8 @@ def _candidate_chunk(job, *, simulator, prior: BoxPrior, start, goal, trajectory
     cfg = config
     rng = np.random.default_rng([seed, task_index, chunk_index])
     t0 = time.perf_counter()
-    theta = prior.sample(b, rng)
+    theta = contain(prior.sample(b, rng), start)  # this task's start is observed
     dtype = _DTYPES[cfg.sim_dtype]
-    # limits must contain this task's start posture (it is observed)
-    theta[:, 0::2] = torch.minimum(theta[:, 0::2], start)
-    theta[:, 1::2] = torch.maximum(theta[:, 1::2], start)
     sims = simulator.simulate(theta.to(dtype), goal.to(dtype), start.to(dtype))
     t1 = time.perf_counter()
     sim_traj = sims.q if cfg.space == "joint" else sims.ee
@@ -334,24 +335,25 @@ def _candidate_chunk(job, *, simulator, prior: BoxPrior, start, goal, trajectory
             "time_simulate": t1 - t0, "time_distance": time.perf_counter() - t1}
 
 
-def _camo_for(task, config: CamoConfig, budget: int, seed: int) -> Camo:
-    from dataclasses import replace
+def _camo_for(task, observations, budget, seed, config) -> tuple[Camo, tuple]:
+    config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
+                                                               CamoConfig)
+    return Camo(task.simulator, prior, config, n_samples=budget, seed=seed), observations
 
-    return Camo(task.simulator, task.prior, replace(config, n_samples=budget), seed=seed)
 
-
-def run_sequence(task, observations, *, budget: int, seed: int, config: CamoConfig):
+def run_sequence(task, observations, *, budget: int, seed: int, config: CamoConfig | None = None):
     """Yield the result after each observed task (continual: nothing is re-simulated).
 
     The ``n_simulations`` / ``wall_time`` fields are placeholders: `run_method_sequence`
     fills them from the budget counter and its own clock.
     """
-    camo = _camo_for(task, config, budget, seed)
+    camo, observations = _camo_for(task, observations, budget, seed, config)
     for obs in observations:
         camo.observe_all([obs])
         yield camo.result()
 
 
-def run(task, observations, *, budget: int, seed: int, config: CamoConfig) -> PosteriorResult:
+def run(task, observations, *, budget: int, seed: int, config: CamoConfig | None = None) -> PosteriorResult:
     """The run contract: CAMO on ``observations`` with ``budget`` prior draws per task."""
-    return _camo_for(task, config, budget, seed).observe_all(observations).result()
+    camo, observations = _camo_for(task, observations, budget, seed, config)
+    return camo.observe_all(observations).result()

@@ -1,4 +1,8 @@
-"""The paper's naive baseline: per joint, the minimum and maximum observed joint value."""
+"""The paper's naive baseline: per joint, the minimum and maximum observed joint value.
+
+Known (fixed) joints of a strong prior take their known limits, as every method does.
+The start posture is part of each reach (its first row), so the estimate contains it.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from camo_sbi.inference.result import PosteriorResult
+from camo_sbi.inference.baselines import point_result
+from camo_sbi.inference.contract import check_run_args
 
 __all__ = ["NaiveConfig", "naive_limits", "run", "run_sequence"]
 
@@ -24,24 +29,30 @@ def naive_limits(joint_trajectories) -> np.ndarray:
     if not qs:
         raise ValueError("joint_trajectories: at least one trajectory is required")
     n = qs[0].shape[-1]
-    if any(q.dim() != 2 or q.shape[1] != n for q in qs):
-        raise ValueError(f"joint_trajectories: every trajectory must have shape (L, {n})")
+    if any(q.dim() != 2 or q.shape[1] != n or q.shape[0] < 1 for q in qs):
+        raise ValueError(f"joint_trajectories: every trajectory must have shape (L >= 1, {n})")
     allq = torch.cat(qs)
+    if not bool(torch.isfinite(allq).all()):
+        raise ValueError("joint_trajectories: contains NaN or inf values")
     return torch.stack([allq.min(dim=0).values, allq.max(dim=0).values], dim=1).reshape(-1).numpy()
 
 
-def _result(observations, t0: float) -> PosteriorResult:
-    est = naive_limits([o.q for o in observations])
-    return PosteriorResult("naive", est[None, :], None, est, 0, time.perf_counter() - t0, len(observations))
+def _estimate(prior, observations) -> np.ndarray:
+    return prior.with_known(torch.from_numpy(naive_limits([o.q for o in observations]))).numpy()
 
 
-def run_sequence(task, observations, *, budget: int, seed: int, config: NaiveConfig):
+def run_sequence(task, observations, *, budget: int, seed: int, config: NaiveConfig | None = None):
     """Yield the result after each observed task (no simulation)."""
     t0 = time.perf_counter()
+    _, _, _, observations, prior = check_run_args(task, observations, budget, seed, config, NaiveConfig,
+                                                  space="joint")
     for k in range(len(observations)):
-        yield _result(observations[: k + 1], t0)
+        yield point_result("naive", _estimate(prior, observations[: k + 1]), k + 1, t0)
 
 
-def run(task, observations, *, budget: int, seed: int, config: NaiveConfig) -> PosteriorResult:
+def run(task, observations, *, budget: int, seed: int, config: NaiveConfig | None = None):
     """The run contract: min/max of the observed joint values (``budget`` and ``seed`` unused)."""
-    return _result(observations, time.perf_counter())
+    t0 = time.perf_counter()
+    _, _, _, observations, prior = check_run_args(task, observations, budget, seed, config, NaiveConfig,
+                                                  space="joint")
+    return point_result("naive", _estimate(prior, observations), len(observations), t0)

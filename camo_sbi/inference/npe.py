@@ -64,10 +64,11 @@ from camo_sbi._validation import (
     check_positive_float,
     check_positive_int,
 )
-from camo_sbi.distributed import charge, get_client, map_ordered, parse_scheduler, unwrap_simulator
-from camo_sbi.inference.methods import check_run_args
-from camo_sbi.inference.priors import BoxPrior
+from camo_sbi.distributed import parse_scheduler, run_chunks
+from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.result import PosteriorResult, weighted_median
+from camo_sbi.priors import BoxPrior
+from camo_sbi.task import contain
 
 __all__ = [
     "ImportanceSample",
@@ -610,10 +611,7 @@ def _check_run_args(task, observations, budget, seed, config):
 
 def _simulate_summaries(theta, *, simulator, start, goal, dtype, config: NpeConfig) -> torch.Tensor:
     """Summaries of one chunk of draws simulated to one task (in-process or on a Dask worker)."""
-    th = theta.clone()
-    th[:, 0::2] = torch.minimum(th[:, 0::2], start)
-    th[:, 1::2] = torch.maximum(th[:, 1::2], start)
-    out = simulator.simulate(th.to(dtype), goal=goal.to(dtype), start=start.to(dtype))
+    out = simulator.simulate(contain(theta, start).to(dtype), goal=goal.to(dtype), start=start.to(dtype))
     x = out.q if config.space == "joint" else out.ee
     return summarize(x, out.length, n_points=config.n_points, include_length=config.include_length)
 
@@ -636,14 +634,8 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
         t0 = time.perf_counter()
         chunks = [theta[s : s + config.simulation_batch_size]
                   for s in range(0, budget, config.simulation_batch_size)]
-        client = get_client(config.scheduler)
-        if client is None:
-            target = sim  # in-process: every chunk goes through the (counting) simulator
-        else:
-            charge(sim, budget)  # counted here, before anything runs on a worker
-            target = unwrap_simulator(sim)
-        feats = map_ordered(_simulate_summaries, chunks, client, simulator=target, start=start,
-                            goal=goal, dtype=dtype, config=config)
+        feats = run_chunks(_simulate_summaries, chunks, simulator=sim, n_simulations=budget,
+                           scheduler=config.scheduler, start=start, goal=goal, dtype=dtype, config=config)
         t_sim = time.perf_counter() - t0
         x = torch.cat(feats)
         xo = summarize(traj_obs, torch.tensor([traj_obs.shape[0]]), n_points=config.n_points,
@@ -697,8 +689,7 @@ def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed:
         estimate = weighted_median(draws.theta, w)
     else:
         estimate = draws.theta[int(np.argmax(draws.log_prob))]
-    fixed = ~posterior.free_mask.numpy()
-    estimate[fixed] = posterior.low.numpy()[fixed]  # exact, not a weighted mean of constants
+    estimate = task.prior.with_known(torch.from_numpy(estimate)).numpy()  # exact, not a mean of constants
     path = None
     if config.workdir is not None:
         path = posterior.save(Path(config.workdir) / f"npe_posterior_k{posterior.n_tasks}_seed{seed}.pt")

@@ -7,7 +7,19 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["PosteriorResult", "weighted_median"]
+__all__ = ["STATUS_OK", "PosteriorResult", "check_status", "weighted_median"]
+
+STATUS_OK = "ok"
+_STATUS_PREFIXES = ("fallback: ", "failed: ")
+
+
+def check_status(status) -> str:
+    """Validate a result status: ``"ok"``, ``"fallback: <reason>"`` or ``"failed: <reason>"``."""
+    if not isinstance(status, str):
+        raise TypeError(f"status: expected a str, got {type(status).__name__}")
+    if status != STATUS_OK and not (status.startswith(_STATUS_PREFIXES) and status.split(": ", 1)[1].strip()):
+        raise ValueError(f"status: expected 'ok', 'fallback: <reason>' or 'failed: <reason>', got {status!r}")
+    return status
 
 
 @dataclass(frozen=True)
@@ -23,6 +35,11 @@ class PosteriorResult:
         wall_time: seconds spent in ``run``.
         n_tasks: number of observed tasks the posterior conditions on.
         extras: method-specific data (e.g. per-task acceptance counts, epsilons).
+        status: ``"ok"``; ``"fallback: <reason>"`` when the method could not do what it
+            names and did something weaker instead (CAMO keeping its best k when nothing
+            met epsilon, ABC-SMC stopping at its prior population, NPE with a degenerate
+            importance sample); ``"failed: <reason>"`` when it produced no usable answer.
+            Tables carry it in a ``status`` column; a non-ok status is also warned about.
     """
 
     method: str
@@ -33,8 +50,10 @@ class PosteriorResult:
     wall_time: float
     n_tasks: int
     extras: dict[str, Any] = field(default_factory=dict)
+    status: str = STATUS_OK
 
     def __post_init__(self):
+        check_status(self.status)
         s = np.asarray(self.samples, dtype=np.float64)
         if s.ndim != 2 or s.shape[1] % 2:
             raise ValueError(f"samples: expected shape (N, 2n), got {s.shape}")
@@ -64,6 +83,22 @@ class PosteriorResult:
     def mean(self) -> np.ndarray:
         """(2n,) weighted posterior mean."""
         return self.normalized_weights() @ self.samples
+
+    @property
+    def ess(self) -> float:
+        """Effective sample size implied by the weights, (sum w)^2 / sum w^2 (N when unweighted)."""
+        w = self.normalized_weights()
+        return float(1.0 / np.sum(w**2))
+
+    def systematic(self, n: int) -> np.ndarray:
+        """(n, 2n) deterministic equally weighted draws: systematic resampling at offsets (i + 0.5) / n.
+
+        No random numbers, so a posterior-predictive metric computed from these draws does
+        not change from one evaluation to the next.
+        """
+        cw = np.cumsum(self.normalized_weights())
+        idx = np.searchsorted(cw, (np.arange(n) + 0.5) / n * cw[-1], side="right")
+        return self.samples[np.minimum(idx, self.samples.shape[0] - 1)]
 
     def resample(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """(n, 2n) equally weighted draws (multinomial resampling by ``weights``)."""

@@ -52,8 +52,8 @@ from camo_sbi._validation import (
     check_theta,
     numpy_generator,
 )
-from camo_sbi.scenarios.reaching import Observation
 from camo_sbi.simulators.base import Trajectories
+from camo_sbi.task import Observation, contain
 
 __all__ = [
     "ARM_LINKS",
@@ -598,14 +598,6 @@ class BlockStackingScene:
             raise ValueError(f"theta: expected 1 or {m} limit vectors, got {theta.shape[0]}")
         return theta
 
-    @staticmethod
-    def _widen(theta: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
-        """Limits that contain the (observed) start postures, as `reaching.predict` does."""
-        out = theta.clone()
-        out[:, 0::2] = torch.minimum(theta[:, 0::2], starts)
-        out[:, 1::2] = torch.maximum(theta[:, 1::2], starts)
-        return out
-
     def reachability(self, theta, grasp_goals, tower_goals, *, check_collisions: bool = True) -> Reachability:
         """The reachability test (module docstring) for M blocks at once.
 
@@ -625,10 +617,10 @@ class BlockStackingScene:
         m = grasp.shape[0]
         theta = self._limits_for(theta, m)
         start = as_tensor(sim.start, "simulator.start", dtype=torch.float64).expand(m, -1)
-        first = sim.simulate(self._widen(theta, start), grasp, start).to(dtype=torch.float64)
+        first = sim.simulate(contain(theta, start), grasp, start).to(dtype=torch.float64)
         last = first.length.long() - 1
         grasp_q = first.q[torch.arange(m), last]
-        second = sim.simulate(self._widen(theta, grasp_q), tower, grasp_q).to(dtype=torch.float64)
+        second = sim.simulate(contain(theta, grasp_q), tower, grasp_q).to(dtype=torch.float64)
         r1 = first.reached.cpu().numpy().astype(bool)
         r2 = r1 & second.reached.cpu().numpy().astype(bool)
         coll = np.zeros(m, dtype=bool)
@@ -685,7 +677,7 @@ class BlockStackingScene:
         theta_t = self._limits_for(theta, len(xy))
         sim = self.simulator
         start = as_tensor(sim.start, "simulator.start", dtype=torch.float64).expand(len(xy), -1)
-        traj = sim.simulate(self._widen(theta_t, start), torch.from_numpy(goals), start).to(dtype=torch.float64)
+        traj = sim.simulate(contain(theta_t, start), torch.from_numpy(goals), start).to(dtype=torch.float64)
         ok = traj.reached.cpu().numpy().astype(bool)
         for b in np.flatnonzero(ok):
             ok[b] = not self.collides(traj.trimmed(int(b)).cpu().numpy())

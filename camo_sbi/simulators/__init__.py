@@ -1,14 +1,10 @@
 """Batched kinematic simulators behind one signature (see `base.Simulator`)."""
 
 from camo_sbi.simulators.base import Simulator, Trajectories, limits_to_theta, theta_to_limits
+from camo_sbi.simulators.controller import ControllerConfig
 from camo_sbi.simulators.human import IMPAIRED_PROFILES, human, impaired_limits
 from camo_sbi.simulators.panda import panda
-from camo_sbi.simulators.simulator import (
-    ControllerConfig,
-    KinematicSimulator,
-    from_urdf,
-    sample_goals,
-)
+from camo_sbi.simulators.simulator import KinematicSimulator, from_urdf, sample_goals
 
 __all__ = [
     "ControllerConfig",

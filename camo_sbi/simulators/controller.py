@@ -18,17 +18,56 @@ posture and position are repeated.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import dataclasses
+from dataclasses import dataclass
 
 import torch
 
+from camo_sbi._validation import check_positive_float, check_positive_int
 from camo_sbi.simulators.base import Trajectories
 from camo_sbi.simulators.chain import KinematicChain
 
-if TYPE_CHECKING:  # pragma: no cover
-    from camo_sbi.simulators.simulator import ControllerConfig
+__all__ = ["ControllerConfig", "controller_step", "reference_simulate"]
 
-__all__ = ["controller_step", "reference_simulate"]
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Damped-least-squares reaching controller with null-space limit avoidance.
+
+    Attributes:
+        max_steps: trajectory points T, the start included.
+        tol: goal tolerance (m): a reach ends once ||goal - ee|| < tol.
+        gain: proportional gain on the Cartesian error (per step).
+        damping: DLS damping lambda (m); A = J J^T + lambda^2 I.
+        max_cartesian_step: cap on the commanded end-effector displacement per step (m).
+        max_joint_step: cap on max_i |dq_i| per step (rad or m).
+        null_gain: gain of the null-space motion towards the middle of the limits (0: off).
+
+    The defaults were tuned on goals sampled uniformly inside the limits (1000 goals,
+    from the start posture): the Panda reaches 99.9 % of them with its full URDF
+    limits (mean 21 points) and ~92 % with random limits bracketing the start (the
+    rest stall against a clamped joint); the 9-DOF human model ~93 % / ~95 %. A larger
+    ``null_gain`` lowers these rates (the null-space term then dominates the joint-step
+    cap); 0.01 keeps every trajectory a continuous function of all limits.
+    """
+
+    max_steps: int = 100
+    tol: float = 0.01
+    gain: float = 0.8
+    damping: float = 0.05
+    max_cartesian_step: float = 0.04
+    max_joint_step: float = 0.1
+    null_gain: float = 0.01
+
+    def __post_init__(self):
+        check_positive_int(self.max_steps, "max_steps")
+        for name in ("tol", "gain", "damping", "max_cartesian_step", "max_joint_step"):
+            check_positive_float(getattr(self, name), name)
+        check_positive_float(self.null_gain, "null_gain", allow_zero=True)
+
+    def replace(self, **changes) -> ControllerConfig:
+        """A copy with ``changes`` applied (unknown names raise TypeError)."""
+        return dataclasses.replace(self, **changes)
 
 
 def controller_step(J: torch.Tensor, e: torch.Tensor, q: torch.Tensor, lo: torch.Tensor,

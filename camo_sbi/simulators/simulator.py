@@ -9,68 +9,24 @@ broadcasts its inputs, then runs either the generated numba kernel (CPU tensors,
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
 from camo_sbi._validation import (
     as_tensor,
     check_finite,
-    check_positive_float,
     check_positive_int,
     check_theta,
     torch_generator,
 )
 from camo_sbi.simulators.base import Trajectories
 from camo_sbi.simulators.chain import KinematicChain, load_chain
-from camo_sbi.simulators.controller import reference_simulate
+from camo_sbi.simulators.controller import ControllerConfig, reference_simulate
 
-__all__ = ["ControllerConfig", "KinematicSimulator", "from_urdf", "sample_goals", "BACKENDS"]
+__all__ = ["KinematicSimulator", "from_urdf", "sample_goals", "BACKENDS"]
 
 BACKENDS = ("auto", "torch", "numba")
 START_SLACK = 1e-6  # radians / metres a start posture may lie outside its limits
-
-
-@dataclass(frozen=True)
-class ControllerConfig:
-    """Damped-least-squares reaching controller with null-space limit avoidance.
-
-    Attributes:
-        max_steps: trajectory points T, the start included.
-        tol: goal tolerance (m): a reach ends once ||goal - ee|| < tol.
-        gain: proportional gain on the Cartesian error (per step).
-        damping: DLS damping lambda (m); A = J J^T + lambda^2 I.
-        max_cartesian_step: cap on the commanded end-effector displacement per step (m).
-        max_joint_step: cap on max_i |dq_i| per step (rad or m).
-        null_gain: gain of the null-space motion towards the middle of the limits (0: off).
-
-    The defaults were tuned on goals sampled uniformly inside the limits (1000 goals,
-    from the start posture): the Panda reaches 99.9 % of them with its full URDF
-    limits (mean 21 points) and ~92 % with random limits bracketing the start (the
-    rest stall against a clamped joint); the 9-DOF human model ~93 % / ~95 %. A larger
-    ``null_gain`` lowers these rates (the null-space term then dominates the joint-step
-    cap); 0.01 keeps every trajectory a continuous function of all limits.
-    """
-
-    max_steps: int = 100
-    tol: float = 0.01
-    gain: float = 0.8
-    damping: float = 0.05
-    max_cartesian_step: float = 0.04
-    max_joint_step: float = 0.1
-    null_gain: float = 0.01
-
-    def __post_init__(self):
-        check_positive_int(self.max_steps, "max_steps")
-        for name in ("tol", "gain", "damping", "max_cartesian_step", "max_joint_step"):
-            check_positive_float(getattr(self, name), name)
-        check_positive_float(self.null_gain, "null_gain", allow_zero=True)
-
-    def replace(self, **changes) -> ControllerConfig:
-        """A copy with ``changes`` applied (unknown names raise TypeError)."""
-        return dataclasses.replace(self, **changes)
 
 
 class KinematicSimulator:
@@ -220,7 +176,7 @@ class KinematicSimulator:
 
 
 def from_urdf(urdf, end_effector: str, start=None, joints=None, *,
-              controller: ControllerConfig = ControllerConfig(), backend: str = "auto",
+              controller: ControllerConfig | None = None, backend: str = "auto",
               base_link: str | None = None) -> KinematicSimulator:
     """A `KinematicSimulator` for the serial chain ``base_link`` -> ``end_effector`` of ``urdf``.
 

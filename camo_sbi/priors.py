@@ -148,6 +148,21 @@ class BoxPrior:
         return BoxPrior(self.bounds, self.start, fixed=self.fixed, sampling=self.sampling,
                         inner=torch.stack([a, b], dim=1))
 
+    def outer_theta(self) -> torch.Tensor:
+        """(2n,) the widest limits the prior allows: the full range of motion, known joints fixed."""
+        theta = torch.empty(self.dim, dtype=torch.float64)
+        theta[0::2], theta[1::2] = self.low[0::2], self.high[1::2]
+        return theta
+
+    def with_known(self, theta) -> torch.Tensor:
+        """``theta`` (2n,) or (B, 2n) with the fixed (known) coordinates set to their known values."""
+        t = as_tensor(theta, "theta", dtype=torch.float64).clone()
+        if t.shape[-1] != self.dim:
+            raise ValueError(f"theta: expected last dimension {self.dim}, got {t.shape[-1]}")
+        fixed = ~self.free_mask
+        t[..., fixed] = self.low[fixed]
+        return t
+
     def sample(self, n: int, seed) -> torch.Tensor:
         """(n, 2n) float64 draws; ``seed``: int or numpy Generator. Fixed coordinates are constant."""
         n = check_positive_int(n, "n")

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from camo_sbi._validation import check_positive_int
 from camo_sbi.simulators.base import Trajectories
 
-__all__ = ["BudgetExceededError", "CountingSimulator"]
+__all__ = ["BudgetExceededError", "CountingSimulator", "charge", "unwrap_simulator"]
 
 
 class BudgetExceededError(RuntimeError):
@@ -48,12 +50,46 @@ class CountingSimulator:
         return getattr(self._sim, name)
 
 
+def _rows(x) -> int:
+    """Batch rows of one `simulate` argument: 1 for a single vector, else the leading size.
+
+    Works for every array type `simulate` accepts (torch tensors, numpy arrays, nested
+    lists/tuples): a 2-D argument is a batch of ``shape[0]`` rows.
+    """
+    shape = getattr(x, "shape", None)
+    if shape is None:
+        shape = np.shape(x)
+    return int(shape[0]) if len(shape) == 2 else 1
 
 
 def _batch_size(theta, goal, start) -> int:
     """Number of trajectories a call produces: the broadcast batch of theta, goal and start."""
-    sizes = [int(x.shape[0]) for x in (theta, goal, start)
-             if x is not None and hasattr(x, "dim") and x.dim() == 2]
-    if not sizes:
-        return 1
-    return max(sizes)
+    return max(_rows(x) for x in (theta, goal, start) if x is not None)
+
+
+def unwrap_simulator(simulator):
+    """The simulator under any budget-counting wrappers (what is shipped to workers)."""
+    while hasattr(simulator, "wrapped") and hasattr(simulator, "n_simulations"):
+        simulator = simulator.wrapped
+    return simulator
+
+
+def charge(simulator, n: int) -> None:
+    """Count ``n`` simulations run elsewhere against a counting wrapper's budget, beforehand.
+
+    Mirrors `CountingSimulator.simulate`: raises `BudgetExceededError` if the budget would
+    be exceeded, before anything is simulated. A plain simulator is not counted.
+    """
+    n = int(n)
+    wrappers = []
+    while hasattr(simulator, "wrapped") and hasattr(simulator, "n_simulations"):
+        wrappers.append(simulator)
+        simulator = simulator.wrapped
+    for w in wrappers:
+        budget = getattr(w, "budget", None)
+        if budget is not None and w.n_simulations + n > budget:
+            raise BudgetExceededError(
+                f"budget: {w.n_simulations} simulations used, {n} more requested, budget is {budget}"
+            )
+    for w in wrappers:  # only after every wrapper accepted the request
+        w.n_simulations += n

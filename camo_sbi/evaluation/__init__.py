@@ -1,0 +1,1 @@
+"""Evaluation: padding-free prediction metrics, limit errors, paired tests and claims tables."""

@@ -1,0 +1,320 @@
+"""The method registry: every method's run, config class, capabilities and variants, in one place.
+
+    run_method(name, task, observations=None, *, budget, seed, config=None) -> PosteriorResult
+
+Each entry (`MethodSpec`) names its implementation through a loader function that imports
+the method's module on first use (sbi, pyabc and numba modules take seconds to import),
+its `Capabilities` (which observation spaces it can use, whether it is continual,
+simulates, returns a posterior, needs a work directory or the true limits, is a baseline)
+and, for a variant, the base method and the config values the variant stands for.
+
+Experiments never hard-code method names: they read capabilities (`capabilities`,
+`names`). Variants always apply their defaults: `make_config("camo-hull", CamoConfig())`
+is a camo-hull config (contain_observed=True), and a dict that sets a variant's field to
+another value is refused, so a result can never carry a label it was not computed under.
+The simulation budget is counted by a `CountingSimulator` here, never self-reported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, NamedTuple
+
+from camo_sbi._validation import check_positive_int
+from camo_sbi.inference.result import STATUS_OK, PosteriorResult
+from camo_sbi.task import Task, check_observations
+
+__all__ = [
+    "Capabilities",
+    "Implementation",
+    "MethodSpec",
+    "capabilities",
+    "get_method",
+    "make_config",
+    "names",
+    "register",
+    "run_method",
+    "run_method_sequence",
+    "space_of",
+]
+
+
+class Implementation(NamedTuple):
+    """What a method's module provides: the run contract, its config class and, for a
+    continual method, ``run_sequence`` (a generator yielding the result after each task)."""
+
+    run: Callable[..., PosteriorResult]
+    config: type
+    run_sequence: Callable | None = None
+
+
+@dataclass(frozen=True)
+class Capabilities:
+    """What a method can do, read by every experiment instead of its name.
+
+    Attributes:
+        spaces: observation spaces the method can use; () for methods that use none
+            (nominal, oracle). A method whose config has a ``space`` field reads that one.
+        continual: observes tasks once and yields a result after each (``run_sequence``).
+        simulates: consumes the simulation budget.
+        posterior: returns a distribution (weighted samples), not only a point.
+        workdir: its config has a ``workdir`` for artefacts (pyabc databases, flows).
+        needs_truth: needs the true limits (synthetic studies only: the oracle).
+        amortized: trained once per body model, no simulation per person.
+        baseline: a trivial answer every table shows next to the methods.
+    """
+
+    spaces: tuple[str, ...] = ("joint", "cartesian")
+    continual: bool = False
+    simulates: bool = True
+    posterior: bool = True
+    workdir: bool = False
+    needs_truth: bool = False
+    amortized: bool = False
+    baseline: bool = False
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """A registered method (or a variant of one).
+
+    Attributes:
+        name: registry name.  description: one line for tables and ``--help``.
+        loader: zero-argument function importing the module, returning its `Implementation`.
+        capabilities: `Capabilities`.
+        base: for a variant, the name of the method it specialises (shares its loader).
+        defaults: for a variant, the config values it stands for (always applied).
+        paper: True for what the paper itself runs (its CAMO-JS / CAMO-CS and naive).
+    """
+
+    name: str
+    description: str
+    loader: Callable[[], Implementation]
+    capabilities: Capabilities
+    base: str | None = None
+    defaults: Mapping[str, Any] = field(default_factory=dict)
+    paper: bool = False
+
+    def load(self) -> Implementation:
+        impl = self.loader()
+        if not isinstance(impl, Implementation):
+            raise TypeError(f"method {self.name!r}: its loader returned {type(impl).__name__}, "
+                            f"not an Implementation")
+        return impl
+
+
+_REGISTRY: dict[str, MethodSpec] = {}
+
+
+def register(spec: MethodSpec) -> MethodSpec:
+    """Add ``spec`` to the registry (ValueError if the name is taken or the variant's base unknown)."""
+    if not isinstance(spec, MethodSpec):
+        raise TypeError(f"spec: expected a MethodSpec, got {type(spec).__name__}")
+    if spec.name in _REGISTRY:
+        raise ValueError(f"spec: a method named {spec.name!r} is already registered")
+    if spec.base is not None and spec.base not in _REGISTRY:
+        raise ValueError(f"spec: variant {spec.name!r} of unknown method {spec.base!r}")
+    _REGISTRY[spec.name] = spec
+    return spec
+
+
+def get_method(name: str) -> MethodSpec:
+    """The registered method called ``name`` (ValueError listing the known names)."""
+    if not isinstance(name, str) or name not in _REGISTRY:
+        raise ValueError(f"method: unknown method {name!r}; known: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name]
+
+
+def names(*, baseline: bool | None = None, **required: Any) -> list[str]:
+    """Registered names, in registration order, filtered by capabilities.
+
+    ``baseline=True/False`` keeps only baselines / only methods; other keywords require a
+    capability value (``names(simulates=True)``, ``names(space="cartesian")`` keeps methods
+    that can use Cartesian observations or need none).
+    """
+    space = required.pop("space", None)
+    out = []
+    for name, spec in _REGISTRY.items():
+        cap = spec.capabilities
+        if baseline is not None and cap.baseline != baseline:
+            continue
+        if space is not None and cap.spaces and space not in cap.spaces:
+            continue
+        if any(getattr(cap, k) != v for k, v in required.items()):
+            continue
+        out.append(name)
+    return out
+
+
+def capabilities(name: str) -> Capabilities:
+    return get_method(name).capabilities
+
+
+def make_config(name: str, config=None, **overrides):
+    """The method's frozen config, from defaults, an existing config, or a dict, plus overrides.
+
+    A variant's ``defaults`` are always applied: over a config object (whatever it holds
+    in those fields) and under a dict, which may not set a variant field to another value
+    (ValueError naming the field). Unknown fields raise ValueError naming them.
+    """
+    spec = get_method(name)
+    config_cls = spec.load().config
+    if isinstance(config, Mapping):
+        overrides = {**config, **overrides}
+        config = None
+    if config is not None and not isinstance(config, config_cls):
+        raise TypeError(f"config: expected {config_cls.__name__} for method {name!r}, got {type(config).__name__}")
+    known = {f.name for f in dataclasses.fields(config_cls)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise ValueError(f"config: unknown field(s) {unknown} for method {name!r}; known: {sorted(known)}")
+    conflict = {k: v for k, v in overrides.items() if k in spec.defaults and v != spec.defaults[k]}
+    if conflict:
+        k = next(iter(conflict))
+        raise ValueError(f"config: method {name!r} is defined by {k}={spec.defaults[k]!r}; got {k}="
+                         f"{conflict[k]!r} (use {spec.base or 'another method'!r} instead)")
+    if config is None:
+        return config_cls(**{**spec.defaults, **overrides})
+    changes = {**spec.defaults, **overrides}
+    return replace(config, **changes) if changes else config
+
+
+def space_of(name: str, config) -> str | None:
+    """The observation space ``name`` reads under ``config`` (None for methods that read none)."""
+    spaces = capabilities(name).spaces
+    if not spaces:
+        return None
+    return getattr(config, "space", spaces[0])
+
+
+def _prepare(name, task, observations, budget, seed, config):
+    if not isinstance(task, Task):
+        raise TypeError(f"task: expected a camo_sbi.task.Task, got {type(task).__name__}")
+    spec = get_method(name)
+    impl = spec.load()
+    cfg = make_config(name, config)
+    observations = check_observations(task, observations, space_of(name, cfg))
+    budget = check_positive_int(budget, "budget")
+    seed = check_positive_int(seed, "seed", minimum=0)
+    if spec.capabilities.needs_truth:
+        task.require_truth(f"method {name!r}")
+    return spec, impl, cfg, observations, budget, seed
+
+
+def _warn_status(name: str, result: PosteriorResult) -> None:
+    if result.status != STATUS_OK:
+        warnings.warn(f"method {name!r} after {result.n_tasks} task(s): {result.status}", RuntimeWarning,
+                      stacklevel=3)
+
+
+def run_method(name: str, task: Task, observations: Sequence | None = None, *, budget: int, seed: int,
+               config=None) -> PosteriorResult:
+    """Run method ``name`` on ``observations`` (default: all of the task's) under a counted budget.
+
+    The simulator is wrapped in a `CountingSimulator` capped at ``budget * len(observations)``;
+    the result's ``method``, ``n_simulations``, ``wall_time`` and ``n_tasks`` are set here.
+    A result whose status is not "ok" is warned about (RuntimeWarning).
+    """
+    spec, impl, cfg, observations, budget, seed = _prepare(name, task, observations, budget, seed, config)
+    counted, counter = task.with_budget(budget * len(observations))
+    t0 = time.perf_counter()
+    result = impl.run(counted, observations, budget=budget, seed=seed, config=cfg)
+    wall = time.perf_counter() - t0
+    result = replace(result, method=name, n_simulations=counter.n_simulations, wall_time=wall,
+                     n_tasks=len(observations))
+    _warn_status(name, result)
+    return result
+
+
+def run_method_sequence(name: str, task: Task, observations: Sequence | None = None, *, budget: int,
+                        seed: int, config=None) -> list[PosteriorResult]:
+    """Results conditioned on the first 1, 2, ..., K observations.
+
+    Continual methods (`Capabilities.continual`) observe the tasks once; the others are
+    rerun from scratch for each k with a fresh counter capped at ``budget * k``. For a
+    continual method the k-th result's ``n_simulations`` and ``wall_time`` are read from the
+    counter (cap ``budget * K``) and the clock here when it yields task k's result.
+    """
+    spec, impl, cfg, observations, budget, seed = _prepare(name, task, observations, budget, seed, config)
+    if not spec.capabilities.continual or impl.run_sequence is None:
+        return [run_method(name, task, observations[: k + 1], budget=budget, seed=seed, config=cfg)
+                for k in range(len(observations))]
+    counted, counter = task.with_budget(budget * len(observations))
+    out, t0 = [], time.perf_counter()
+    for k, r in enumerate(impl.run_sequence(counted, observations, budget=budget, seed=seed, config=cfg)):
+        r = replace(r, method=name, n_tasks=k + 1, n_simulations=counter.n_simulations,
+                    wall_time=time.perf_counter() - t0)
+        _warn_status(name, r)
+        out.append(r)
+    if len(out) != len(observations):
+        raise RuntimeError(f"method {name!r}: run_sequence yielded {len(out)} results for "
+                           f"{len(observations)} observations")
+    return out
+
+
+# ---------------------------------------------------------------------------------- built-ins
+# Loaders import lazily: a real import statement per module (no module-path strings).
+
+
+def _camo() -> Implementation:
+    from camo_sbi.inference import camo
+
+    return Implementation(camo.run, camo.CamoConfig, camo.run_sequence)
+
+
+def _naive() -> Implementation:
+    from camo_sbi.inference import naive
+
+    return Implementation(naive.run, naive.NaiveConfig, naive.run_sequence)
+
+
+def _nominal() -> Implementation:
+    from camo_sbi.inference import baselines
+
+    return Implementation(baselines.run_nominal, baselines.NominalConfig, baselines.sequence_nominal)
+
+
+def _oracle() -> Implementation:
+    from camo_sbi.inference import baselines
+
+    return Implementation(baselines.run_oracle, baselines.OracleConfig, baselines.sequence_oracle)
+
+
+def _abc_smc() -> Implementation:
+    from camo_sbi.inference import abc_smc
+
+    return Implementation(abc_smc.run, abc_smc.AbcSmcConfig)
+
+
+def _npe() -> Implementation:
+    from camo_sbi.inference import npe
+
+    return Implementation(npe.run, npe.NpeConfig, npe.run_sequence)
+
+
+_CAMO = Capabilities(continual=True)
+_BASELINE = Capabilities(spaces=(), continual=True, simulates=False, posterior=False, baseline=True)
+
+register(MethodSpec("camo", "CAMO (Algorithm 1): rejection sampling, per-task KDEs, product, argmax",
+                    _camo, _CAMO))
+register(MethodSpec("camo-js", "CAMO on joint-space observations (the paper's CAMO-JS)", _camo,
+                    replace(_CAMO, spaces=("joint",)), base="camo", defaults={"space": "joint"}, paper=True))
+register(MethodSpec("camo-cs", "CAMO on Cartesian observations (the paper's CAMO-CS)", _camo,
+                    replace(_CAMO, spaces=("cartesian",)), base="camo", defaults={"space": "cartesian"},
+                    paper=True))
+register(MethodSpec("camo-hull", "CAMO-JS with the prior conditioned on the observed postures (not in "
+                    "the paper)", _camo, replace(_CAMO, spaces=("joint",)), base="camo",
+                    defaults={"space": "joint", "contain_observed": True}))
+register(MethodSpec("naive", "observed min/max per joint (the paper's baseline)", _naive,
+                    replace(_BASELINE, spaces=("joint",)), paper=True))
+register(MethodSpec("nominal", "the model's full range of motion (no inference)", _nominal, _BASELINE))
+register(MethodSpec("oracle", "the true limits (synthetic studies; every prediction error is 0)", _oracle,
+                    replace(_BASELINE, needs_truth=True)))
+register(MethodSpec("abc-smc", "ABC-SMC (pyabc) on the joint posterior of all observed tasks", _abc_smc,
+                    Capabilities(workdir=True)))
+register(MethodSpec("npe", "neural posterior estimation (sbi), one flow per task, combined", _npe,
+                    Capabilities(continual=True, workdir=True)))
