@@ -30,7 +30,9 @@ from camo_sbi._validation import as_tensor, check_finite, check_positive_int, nu
 
 __all__ = ["BoxPrior"]
 
-_SAMPLING = ("uniform", "lhs")
+_SAMPLING = ("uniform", "lhs", "grid")
+GRID_LEVELS = 5
+"""Levels per joint of the ``"grid"`` sampling (the authors' code: a 5-level grid per bound)."""
 
 
 class BoxPrior:
@@ -40,7 +42,12 @@ class BoxPrior:
         bounds: (n, 2) full range of motion [L_i, U_i] in radians.
         start: (n,) observed start posture, L_i <= s_i <= U_i; None -> midpoint of bounds.
         fixed: optional {joint index: (lo, hi)} of known limits (strong prior).
-        sampling: "uniform" (i.i.d.) or "lhs" (scipy Latin hypercube).
+        sampling: "uniform" (i.i.d.), "lhs" (scipy Latin hypercube) or "grid": each free
+            bound drawn uniformly from the ``GRID_LEVELS`` equally spaced values of its joint's
+            full range that lie on its side of the split (lower bounds <= the split, upper
+            bounds > it; the range's end itself when none does), as the authors' code does;
+            the full range's ends are grid values, so a bound at its nominal value can be drawn
+            exactly.
         inner: optional (n, 2) [a_i, b_i] with a_i <= s_i <= b_i, postures known to lie
             inside the limits (see `containing`); the split is at it instead of at the start.
     """
@@ -168,6 +175,12 @@ class BoxPrior:
         n = check_positive_int(n, "n")
         rng = numpy_generator(seed)
         k = self.n_free
+        if self.sampling == "grid" and k > 0:
+            theta = self.low.repeat(n, 1)
+            for c in torch.nonzero(self.free_mask).flatten().tolist():
+                values = self._grid_values(c)
+                theta[:, c] = values[torch.from_numpy(rng.integers(0, values.shape[0], size=n))]
+            return theta
         if self.sampling == "lhs" and k > 0:
             u = qmc.LatinHypercube(d=k, seed=rng).random(n)
         else:
@@ -176,6 +189,17 @@ class BoxPrior:
         lo, hi = self.low[self.free_mask], self.high[self.free_mask]
         theta[:, self.free_mask] = lo + torch.from_numpy(u) * (hi - lo)
         return theta
+
+    def _grid_values(self, c: int) -> torch.Tensor:
+        """The grid values free coordinate ``c`` may take (see ``sampling="grid"``)."""
+        j = c // 2
+        grid = torch.linspace(float(self.bounds[j, 0]), float(self.bounds[j, 1]), GRID_LEVELS, dtype=torch.float64)
+        lo, hi = float(self.low[c]), float(self.high[c])
+        if c % 2 == 0:  # a lower bound: grid values in [L, split]
+            values = grid[(grid >= lo) & (grid <= hi)]
+            return values if values.numel() else torch.tensor([lo], dtype=torch.float64)
+        values = grid[(grid > lo) & (grid <= hi)]  # an upper bound: strictly above the split
+        return values if values.numel() else torch.tensor([hi], dtype=torch.float64)
 
     def contains(self, theta) -> torch.Tensor:
         """(B,) bool: inside the box (fixed coordinates equal to their value within 1e-9)."""

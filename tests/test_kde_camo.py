@@ -227,3 +227,63 @@ def test_contain_observed_config_errors():
         CamoConfig(contain_observed=True, space="cartesian")
     with pytest.raises(TypeError, match="contain_observed"):
         CamoConfig(contain_observed=1)
+
+
+def test_kde_proposal_draws_around_kept_vectors_inside_the_box():
+    from camo_sbi.inference.camo import KdeProposal
+
+    points = torch.tensor([[-0.5, 0.5], [-0.2, 0.8]], dtype=torch.float64)
+    sd = torch.tensor([0.05, 0.0], dtype=torch.float64)  # second coordinate fixed
+    low = torch.tensor([-1.0, 0.0], dtype=torch.float64)
+    high = torch.tensor([-0.3, 1.0], dtype=torch.float64)
+    prop = KdeProposal(points, sd, low, high)
+    x = prop.sample(20000, np.random.default_rng(0))
+    assert bool((x >= low).all()) and bool((x <= high).all())
+    assert set(x[:, 1].tolist()) == {0.5, 0.8}  # zero-width kernel: the kept value itself
+    near_first = x[x[:, 1] == 0.5, 0]
+    assert abs(float(near_first.mean()) + 0.5) < 0.005 and abs(float(near_first.std()) - 0.05) < 0.005
+    second = x[x[:, 1] == 0.8, 0]  # around -0.2, outside the box: clipped onto its edge (97.7 % of draws)
+    assert bool((second <= -0.3).all()) and float((second == -0.3).double().mean()) > 0.95
+    torch.testing.assert_close(x, prop.sample(20000, np.random.default_rng(0)))
+
+
+def test_sequential_proposals_contain_every_observed_posture():
+    """camo-seq: from the second task on, candidates come from the last KDE clipped to the
+    observed hull, so every kept vector of tasks >= 2 contains every posture seen so far."""
+    sim, prior, camo = _camo(n_samples=300, keep_best=20, bandwidth=0.01, proposal="sequential")
+    true = torch.tensor([-0.6, 0.5, -0.4, 0.7], dtype=torch.float64)
+    goals = torch.tensor([[0.9, -0.9, 0.0], [-0.9, 0.9, 0.0], [0.3, 0.2, 0.0]], dtype=torch.float64)
+    obs = observe(sim, true, goals)
+    seen = []
+    for i, o in enumerate(obs):
+        camo.observe(o.start, o.goal, o.q)
+        seen.append(o.q)
+        if i >= 1:
+            q = torch.cat(seen)
+            kept = camo.records[-1].kept
+            assert bool((kept[:, 0::2] <= q.min(0).values + 1e-12).all())
+            assert bool((kept[:, 1::2] >= q.max(0).values - 1e-12).all())
+    # the first task still draws from the prior: its kept vectors need not contain later postures
+    plain = _camo(n_samples=300, keep_best=20, bandwidth=0.01)[2]
+    plain.observe(obs[0].start, obs[0].goal, obs[0].q)
+    torch.testing.assert_close(plain.records[0].kept, camo.records[0].kept)
+
+
+def test_euclidean_distance_with_epsilon_acceptance():
+    """distance='euclidean' is Eq. 2 on the held observation; epsilon alone decides acceptance."""
+    from camo_sbi.inference.camo import CamoConfig, _distances
+
+    traj = torch.tensor([[0.0, 0.0], [1.0, 1.0]], dtype=torch.float64)
+    sims = torch.tensor([[[0.0, 0.0], [1.0, 1.0], [1.0, 1.0]], [[0.0, 0.0], [1.0, 2.0], [1.0, 3.0]]],
+                        dtype=torch.float64)
+    d = _distances(traj, sims, torch.tensor([2, 3]), CamoConfig(distance="euclidean"), keep_best=None)
+    torch.testing.assert_close(d, torch.tensor([0.0, math.sqrt(1 + 4)], dtype=torch.float64))
+    with pytest.raises(ValueError, match="^trajectory:"):
+        _distances(torch.zeros(5, 2), sims, torch.tensor([3, 3]), CamoConfig(distance="euclidean"), keep_best=None)
+    sim, prior, camo = _camo(n_samples=400, epsilon=0.3, keep_best=None, distance="euclidean",
+                             sim_dtype="float64")
+    o = observe(sim, torch.tensor([-0.6, 0.5, -0.4, 0.7], dtype=torch.float64),
+                torch.tensor([[0.9, -0.9, 0.0]], dtype=torch.float64))[0]
+    rec = camo.observe(o.start, o.goal, o.q)
+    assert not rec.fallback and rec.n_accepted_epsilon == rec.kept.shape[0] > 0
+    assert bool((rec.distances < 0.3).all())

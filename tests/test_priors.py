@@ -334,3 +334,24 @@ def test_containing_respects_fixed_joints_and_rejects_impossible_postures():
         prior.containing(torch.tensor([[0.0, float("nan"), 0.0]]))
     with pytest.raises(ValueError, match="inner"):
         BoxPrior(BOUNDS, START, inner=torch.tensor([[0.5, 0.6], [-1.0, 1.0], [0.0, 1.0]]))
+
+
+def test_grid_sampling_draws_the_documented_levels():
+    """sampling='grid': each free bound takes one of the 5 equally spaced values of its joint's
+    range on its side of the split (lower: <= split, upper: > split), as the authors' code."""
+    from camo_sbi.priors import GRID_LEVELS
+
+    bounds = torch.tensor([[0.0, math.pi], [-1.0, 3.0]], dtype=torch.float64)
+    start = torch.tensor([math.pi / 2, 0.0], dtype=torch.float64)
+    prior = BoxPrior(bounds, start, sampling="grid")
+    draws = prior.sample(4000, 0)
+    grid0 = np.linspace(0.0, math.pi, GRID_LEVELS)
+    grid1 = np.linspace(-1.0, 3.0, GRID_LEVELS)
+    expected = [grid0[grid0 <= math.pi / 2], grid0[grid0 > math.pi / 2], grid1[grid1 <= 0.0], grid1[grid1 > 0.0]]
+    for c, values in enumerate(expected):
+        got = np.unique(draws[:, c].numpy())
+        np.testing.assert_allclose(got, values, rtol=0, atol=1e-12)  # every level is drawn, nothing else
+    assert bool(prior.contains(draws).all())
+    assert torch.equal(draws, BoxPrior(bounds, start, sampling="grid").sample(4000, 0))  # seeded
+    # the nominal bounds are drawable exactly
+    assert (draws[:, 0] == 0.0).any() and (draws[:, 1] == math.pi).any()

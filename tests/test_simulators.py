@@ -94,6 +94,47 @@ def test_kernel_matches_torch_reference(any_sim):
     assert (a.ee - b.ee).abs().max() < 1e-9
 
 
+PAPER_CONTROLLER = ControllerConfig(max_steps=21, early_stop=False, null_gain=0.0, gain=0.1, derivative_gain=0.5,
+                                    damping=1e-7, max_cartesian_step=1e3, max_joint_step=1e3)
+
+
+def test_fixed_horizon_pd_controller_kernel_matches_torch_reference(any_sim):
+    theta, goals = random_problem(any_sim, 24, seed=5)
+    sims = [any_sim.with_config(PAPER_CONTROLLER, backend=b) for b in ("numba", "torch")]
+    a, b = (s.simulate(theta, goals) for s in sims)
+    assert (a.length == 21).all() and torch.equal(a.length, b.length) and torch.equal(a.reached, b.reached)
+    assert (a.q - b.q).abs().max() < 1e-9 and (a.ee - b.ee).abs().max() < 1e-9
+    # the reached flag is judged at the last point of the fixed horizon
+    assert torch.equal(a.reached, (goals - a.ee[:, -1]).norm(dim=-1) < PAPER_CONTROLLER.tol)
+
+
+def test_fixed_horizon_pd_controller_is_the_authors_law(panda_sim):
+    """The authors' step (Simulator_rtb.controller, no limit penalties inside the limits):
+    dq = dt pinv(J) (P e - D (x_t - x_{t-1}) / dt), dt = 0.02, P = 5, D = 0.5, then a clip.
+    Re-implemented here with numpy's pinv on pytorch-kinematics' Jacobian."""
+    sim = panda_sim.with_config(PAPER_CONTROLLER)
+    lo, hi = sim.bounds[:, 0].clone(), sim.bounds[:, 1].clone()
+    lo[0], hi[0] = sim.start[0] - 0.5, sim.start[0] + 0.5  # one restricted joint, as the authors' truth
+    theta = torch.stack([lo, hi], dim=1).reshape(-1)
+    g = torch.Generator().manual_seed(1)
+    q_goal = sim.bounds[:, 0] + (sim.bounds[:, 1] - sim.bounds[:, 0]) * torch.rand(3, 7, generator=g, dtype=torch.float64)
+    goals = sim.forward_kinematics(q_goal)
+    traj = sim.simulate(theta.expand(3, -1), goals)
+    dt, P, D = 0.02, 5.0, 0.5
+    for b in range(3):
+        q = sim.start.numpy().copy()
+        x_prev = None
+        for t in range(21):
+            J6, pose = sim.chain.reference_jacobian(torch.from_numpy(q)[None])
+            x = pose[0, :3, 3].numpy()
+            np.testing.assert_allclose(traj.q[b, t].numpy(), q, atol=1e-6, rtol=0)
+            vel = np.zeros(3) if x_prev is None else (x - x_prev) / dt
+            x_prev = x
+            dq = dt * np.linalg.pinv(J6[0, :3].numpy()) @ (P * (goals[b].numpy() - x) - D * vel)
+            q = np.clip(q + dq, lo.numpy(), hi.numpy())
+    assert float((traj.q[:, -1] - traj.q[:, -2]).abs().max()) > 1e-4  # not converged after 20 steps
+
+
 def test_output_layout_dtype_and_padding(panda_sim):
     theta, goals = random_problem(panda_sim, 32, seed=3, dtype=torch.float32)
     for backend in ("numba", "torch"):
@@ -291,6 +332,7 @@ def test_simulate_rejects_bad_types(panda_sim):
     ("max_cartesian_step", 0.0, ValueError), ("max_joint_step", float("nan"), ValueError),
     ("null_gain", -1.0, ValueError), ("null_gain", float("inf"), ValueError),
     ("max_steps", 0, ValueError), ("max_steps", 1.5, TypeError),
+    ("derivative_gain", -0.5, ValueError), ("early_stop", 1, TypeError),
 ])
 def test_config_validation(field, value, exc):
     with pytest.raises(exc, match=f"^{field}"):

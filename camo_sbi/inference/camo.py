@@ -18,6 +18,13 @@ Step 1 runs in fixed-size chunks (``CamoConfig.chunk_size``): chunk c of task n 
 workers (``CamoConfig.scheduler``), so the result never depends on the number of workers.
 Each chunk scores its own best k exactly, and the task's best k are among those.
 
+The authors' published code differs from Algorithm 1 as written in ways selectable here
+(see ``REFERENCE_SETTING.md``): ``distance="euclidean"`` (Eq. 2's plain L2 norm instead of
+DTW), acceptance by ``epsilon`` alone (``keep_best=None``), ``sampling="grid"`` (their
+5-level grid prior) and ``proposal="sequential"`` (task n > 1 draws from task n-1's KDE,
+clipped to the observed hull in joint space). The registry's ``camo-seq`` is CAMO-JS with
+sequential proposals.
+
 One opt-in extension, not in the paper (``CamoConfig.contain_observed``, joint space):
 step 1 draws from the prior conditioned on every posture observed so far lying inside
 the limits (`BoxPrior.containing`), and step 3 gives zero density to kept vectors that
@@ -43,16 +50,19 @@ from camo_sbi._validation import (
 )
 from camo_sbi.distributed import parse_scheduler, run_chunks
 from camo_sbi.inference.contract import check_run_args
-from camo_sbi.inference.distances import dtw_distances
+from camo_sbi.inference.distances import dtw_distances, l2_distance
 from camo_sbi.inference.kde import GaussianKDE, scott_bandwidth
 from camo_sbi.inference.result import STATUS_OK, PosteriorResult
 from camo_sbi.priors import BoxPrior
 from camo_sbi.task import contain
 
-__all__ = ["Camo", "CamoConfig", "TaskRecord", "run", "run_sequence"]
+__all__ = ["Camo", "CamoConfig", "KdeProposal", "TaskRecord", "run", "run_sequence"]
 
 _SPACES = ("joint", "cartesian")
 _BANDWIDTH_MODES = ("fixed", "scott")
+_SAMPLINGS = ("uniform", "lhs", "grid")
+_DISTANCES = ("dtw", "euclidean")
+_PROPOSALS = ("prior", "sequential")
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
@@ -72,7 +82,16 @@ class CamoConfig:
         bandwidth: kernel variance h in rad^2 for H = diag(h) ("fixed" mode).
         bandwidth_mode: "fixed" (scalar h, as the paper) or "scott" (per-dimension, per task).
         space: "joint" (CAMO-JS) or "cartesian" (CAMO-CS) observations.
-        sampling: "uniform" or "lhs" (Latin hypercube) prior draws.
+        sampling: "uniform", "lhs" (Latin hypercube) or "grid" (the authors' 5-level grid
+            per bound, `BoxPrior`) prior draws.
+        distance: "dtw" (dynamic time warping, the paper's text) or "euclidean" (the plain
+            L2 norm of the stacked difference, Eq. 2, as the authors' code; the observed
+            trajectory holds its final point up to the simulations' horizon).
+        proposal: "prior" (Algorithm 1 as written: every task draws from the prior) or
+            "sequential" (the authors' code: task n > 1 draws from task n-1's KDE, a kept
+            vector plus Gaussian noise of variance h, clipped in joint space to the observed
+            hull (lo_i <= min observed q_i, hi_i >= max observed q_i) and in Cartesian space to
+            the prior box).
         sim_dtype: "float32" or "float64" for the candidate simulations.
         chunk_size: candidates per chunk. Chunk c of task n draws its candidates from
             ``numpy.random.default_rng([seed, n, c])`` and is simulated and scored on its own,
@@ -99,6 +118,8 @@ class CamoConfig:
     chunk_size: int = 1000
     scheduler: str | None = None
     contain_observed: bool = False
+    distance: str = "dtw"
+    proposal: str = "prior"
 
     def __post_init__(self):
         if self.epsilon is None and self.keep_best is None:
@@ -111,8 +132,9 @@ class CamoConfig:
         check_positive_float(self.bandwidth, "bandwidth")
         check_choice(self.bandwidth_mode, _BANDWIDTH_MODES, "bandwidth_mode")
         check_choice(self.space, _SPACES, "space")
-        if self.sampling not in ("uniform", "lhs"):
-            raise ValueError(f"sampling: expected 'uniform' or 'lhs', got {self.sampling!r}")
+        check_choice(self.sampling, _SAMPLINGS, "sampling")
+        check_choice(self.distance, _DISTANCES, "distance")
+        check_choice(self.proposal, _PROPOSALS, "proposal")
         check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
         check_positive_int(self.chunk_size, "chunk_size")
         parse_scheduler(self.scheduler)
@@ -163,6 +185,7 @@ class Camo:
         self.prior = prior if prior.sampling == config.sampling else prior.with_sampling(config.sampling)
         self._free = self.prior.free_mask
         self._draw_prior = self.prior  # conditioned on the observed postures (contain_observed)
+        self._hull = self.prior  # the prior box split at the hull of every posture seen (joint space)
         self.records: list[TaskRecord] = []
         self._kdes: list[GaussianKDE] = []
         self._kept = torch.empty(0, self.prior.dim, dtype=torch.float64)  # Q_all (M, 2n)
@@ -202,15 +225,24 @@ class Camo:
         for t, name in ((start, "start"), (goal, "goal"), (traj, "trajectory")):
             check_finite(t, name)
         idx = self.n_tasks
+        if cfg.space == "joint" and (cfg.contain_observed or cfg.proposal == "sequential"):
+            self._hull = self._hull.containing(torch.cat([start.unsqueeze(0), traj]))
         if cfg.contain_observed:
-            self._draw_prior = self._draw_prior.containing(torch.cat([start.unsqueeze(0), traj]))
+            self._draw_prior = self._hull
+        proposal = self._draw_prior
+        if cfg.proposal == "sequential" and self.records:
+            last = self.records[-1]
+            sd = torch.zeros(self.prior.dim, dtype=torch.float64)
+            sd[self._free] = last.bandwidth.sqrt()
+            box = self._hull if cfg.space == "joint" else self.prior
+            proposal = KdeProposal(last.kept, sd, box.low, box.high)
 
         t0 = time.perf_counter()
         b_total = self.n_samples
         sizes = [min(cfg.chunk_size, b_total - c) for c in range(0, b_total, cfg.chunk_size)]
         jobs = [(self.seed, idx, c, b) for c, b in enumerate(sizes)]
         parts = run_chunks(_candidate_chunk, jobs, simulator=sim, n_simulations=b_total, scheduler=cfg.scheduler,
-                           prior=self._draw_prior, start=start, goal=goal, trajectory=traj, config=cfg)
+                           prior=proposal, start=start, goal=goal, trajectory=traj, config=cfg)
         theta = torch.cat([p["theta"] for p in parts])
         dist = torch.cat([p["dist"] for p in parts])
         t_sim = sum(p["time_simulate"] for p in parts)
@@ -309,7 +341,39 @@ class Camo:
         )
 
 
-def _candidate_chunk(job, *, simulator, prior: BoxPrior, start, goal, trajectory, config: CamoConfig) -> dict:
+@dataclass(frozen=True)
+class KdeProposal:
+    """The authors' sequential proposal: a Gaussian KDE over the last task's kept vectors.
+
+    points: (m, 2n) kept vectors; sd: (2n,) kernel standard deviations (0 on fixed
+    coordinates); low, high: (2n,) the box every draw is clipped to.
+    """
+
+    points: torch.Tensor
+    sd: torch.Tensor
+    low: torch.Tensor
+    high: torch.Tensor
+
+    def sample(self, n: int, rng: np.random.Generator) -> torch.Tensor:
+        """(n, 2n) draws: a uniformly chosen kept vector plus N(0, sd^2) noise, clipped to the box."""
+        idx = torch.from_numpy(rng.integers(0, self.points.shape[0], size=n))
+        noise = torch.from_numpy(rng.standard_normal((n, self.points.shape[1])))
+        return torch.clamp(self.points[idx] + noise * self.sd, min=self.low, max=self.high)
+
+
+def _distances(trajectory, sim_traj, lengths, config: CamoConfig, *, keep_best) -> torch.Tensor:
+    """(b,) distances of the simulations to the observed trajectory (``config.distance``)."""
+    if config.distance == "dtw":
+        return dtw_distances(trajectory, sim_traj, lengths, epsilon=config.epsilon, keep_best=keep_best)
+    T = sim_traj.shape[1]
+    if trajectory.shape[0] > T:
+        raise ValueError(f"trajectory: {trajectory.shape[0]} points, more than the simulations' horizon {T}; "
+                         f"the euclidean distance needs equal lengths (use distance='dtw')")
+    held = torch.cat([trajectory, trajectory[-1:].expand(T - trajectory.shape[0], -1)])
+    return l2_distance(held, sim_traj)
+
+
+def _candidate_chunk(job, *, simulator, prior, start, goal, trajectory, config: CamoConfig) -> dict:
     """One chunk of one task's candidates: draw, simulate, score (runs in-process or on a worker).
 
     ``job`` = (seed, task index, chunk index, size); the draws come from
@@ -327,10 +391,11 @@ def _candidate_chunk(job, *, simulator, prior: BoxPrior, start, goal, trajectory
     sims = simulator.simulate(theta.to(dtype), goal.to(dtype), start.to(dtype))
     t1 = time.perf_counter()
     sim_traj = sims.q if cfg.space == "joint" else sims.ee
-    dist = dtw_distances(trajectory, sim_traj, sims.length, epsilon=cfg.epsilon, keep_best=cfg.keep_best)
+    dist = _distances(trajectory, sim_traj, sims.length, cfg, keep_best=cfg.keep_best)
     dist_fallback = None
     if cfg.epsilon is not None and not bool((dist < cfg.epsilon).any()):
-        dist_fallback = dtw_distances(trajectory, sim_traj, sims.length, keep_best=cfg.fallback_keep)
+        dist_fallback = (dist if cfg.distance == "euclidean"
+                         else dtw_distances(trajectory, sim_traj, sims.length, keep_best=cfg.fallback_keep))
     return {"theta": theta, "dist": dist, "dist_fallback": dist_fallback,
             "time_simulate": t1 - t0, "time_distance": time.perf_counter() - t1}
 

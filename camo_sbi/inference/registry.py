@@ -309,6 +309,9 @@ register(MethodSpec("camo-cs", "CAMO on Cartesian observations (the paper's CAMO
 register(MethodSpec("camo-hull", "CAMO-JS with the prior conditioned on the observed postures (not in "
                     "the paper)", _camo, replace(_CAMO, spaces=("joint",)), base="camo",
                     defaults={"space": "joint", "contain_observed": True}))
+register(MethodSpec("camo-seq", "CAMO-JS with the authors' sequential proposals (each task draws from the "
+                    "last task's KDE, clipped to the observed hull)", _camo, replace(_CAMO, spaces=("joint",)),
+                    base="camo", defaults={"space": "joint", "proposal": "sequential"}))
 register(MethodSpec("naive", "observed min/max per joint (the paper's baseline)", _naive,
                     replace(_BASELINE, spaces=("joint",)), paper=True))
 register(MethodSpec("nominal", "the model's full range of motion (no inference)", _nominal, _BASELINE))

@@ -4,8 +4,8 @@ This is the readable statement of the controller law, the correctness reference 
 generated numba kernel (`kernel.py`), the backend for non-CPU devices and the baseline
 of ``benchmarks/bench_simulator.py``. At step t, for every sample still moving::
 
-    x = fk(q_t);  e = goal - x;  ||e|| < tol  ->  done, length = t + 1
-    v = gain * e, rescaled so that ||v|| <= max_cartesian_step
+    x = fk(q_t);  e = goal - x;  ||e|| < tol  ->  done, length = t + 1   (early_stop only)
+    v = gain * e - derivative_gain * (x_t - x_{t-1}), rescaled so that ||v|| <= max_cartesian_step
     J = position Jacobian (3, n);  A = J J^T + damping^2 I
     dq0 = null_gain * (mid - q_t),  mid = (lo + hi) / 2          (pushes into the limits)
     dq = J^T A^-1 v + (I - J^T A^-1 J) dq0  =  J^T A^-1 (v - J dq0) + dq0
@@ -13,7 +13,9 @@ of ``benchmarks/bench_simulator.py``. At step t, for every sample still moving::
     q_{t+1} = clamp(q_t + dq, lo, hi)
 
 At most ``max_steps`` points are produced (the start included); afterwards the final
-posture and position are repeated.
+posture and position are repeated. With ``early_stop=False`` every reach runs all
+``max_steps`` points (a fixed horizon, as the authors' code) and ``reached`` is judged at
+the last point. ``x_{-1} = x_0`` (no derivative term at the first step).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
-from camo_sbi._validation import check_positive_float, check_positive_int
+from camo_sbi._validation import check_bool, check_positive_float, check_positive_int
 from camo_sbi.simulators.base import Trajectories
 from camo_sbi.simulators.chain import KinematicChain
 
@@ -41,7 +43,14 @@ class ControllerConfig:
         damping: DLS damping lambda (m); A = J J^T + lambda^2 I.
         max_cartesian_step: cap on the commanded end-effector displacement per step (m).
         max_joint_step: cap on max_i |dq_i| per step (rad or m).
-        null_gain: gain of the null-space motion towards the middle of the limits (0: off).
+        null_gain: gain of the null-space motion towards the middle of the limits (0: off:
+            inside the limits, the limits then do not change the path at all).
+        derivative_gain: damping on the previous step's end-effector displacement,
+            ``v = gain * e - derivative_gain * (x_t - x_{t-1})`` (0: off). The authors' PD step
+            ``dq = dt J+ (P e + D de)`` with dt = 0.02, P = 5, D = 0.5 is gain = 0.1,
+            derivative_gain = 0.5.
+        early_stop: a reach ends once within ``tol`` of its goal (False: a fixed horizon of
+            ``max_steps`` points, no early stop).
 
     The defaults were tuned on goals sampled uniformly inside the limits (1000 goals,
     from the start posture): the Panda reaches 99.9 % of them with its full URDF
@@ -58,12 +67,16 @@ class ControllerConfig:
     max_cartesian_step: float = 0.04
     max_joint_step: float = 0.1
     null_gain: float = 0.01
+    derivative_gain: float = 0.0
+    early_stop: bool = True
 
     def __post_init__(self):
         check_positive_int(self.max_steps, "max_steps")
         for name in ("tol", "gain", "damping", "max_cartesian_step", "max_joint_step"):
             check_positive_float(getattr(self, name), name)
         check_positive_float(self.null_gain, "null_gain", allow_zero=True)
+        check_positive_float(self.derivative_gain, "derivative_gain", allow_zero=True)
+        check_bool(self.early_stop, "early_stop")
 
     def replace(self, **changes) -> ControllerConfig:
         """A copy with ``changes`` applied (unknown names raise TypeError)."""
@@ -71,10 +84,13 @@ class ControllerConfig:
 
 
 def controller_step(J: torch.Tensor, e: torch.Tensor, q: torch.Tensor, lo: torch.Tensor,
-                    hi: torch.Tensor, config: ControllerConfig) -> torch.Tensor:
-    """One step of the law. J (B, 3, n), e (B, 3), q/lo/hi (B, n) -> q_next (B, n)."""
+                    hi: torch.Tensor, config: ControllerConfig, dx: torch.Tensor | None = None) -> torch.Tensor:
+    """One step of the law. J (B, 3, n), e (B, 3), q/lo/hi (B, n), dx (B, 3) the previous
+    end-effector displacement (None: 0) -> q_next (B, n)."""
     c = config
     v = c.gain * e
+    if dx is not None:
+        v = v - c.derivative_gain * dx
     vn = v.norm(dim=-1, keepdim=True)
     v = v * torch.where(vn > c.max_cartesian_step, c.max_cartesian_step / vn, torch.ones_like(vn))
     dq0 = c.null_gain * (0.5 * (lo + hi) - q)
@@ -104,19 +120,23 @@ def reference_simulate(chain: KinematicChain, theta: torch.Tensor, goal: torch.T
     active = torch.ones(B, dtype=torch.bool, device=theta.device)
     q = start.clone()
     t_last = T - 1
+    x_prev = None
     for t in range(T):
         J6, pose = chain.reference_jacobian(q)
         x = pose[:, :3, 3]
         q_out[:, t] = q
         x_out[:, t] = x
         e = goal - x
-        done_now = active & (e.norm(dim=-1) < config.tol)
-        length = torch.where(done_now, t + 1, length)
-        active = active & ~done_now
+        if config.early_stop:
+            done_now = active & (e.norm(dim=-1) < config.tol)
+            length = torch.where(done_now, t + 1, length)
+            active = active & ~done_now
         if t == T - 1 or not bool(active.any()):
             t_last = t
             break
-        q = torch.where(active.unsqueeze(-1), controller_step(J6[:, :3], e, q, lo, hi, config), q)
+        dx = torch.zeros_like(x) if x_prev is None else x - x_prev
+        x_prev = x
+        q = torch.where(active.unsqueeze(-1), controller_step(J6[:, :3], e, q, lo, hi, config, dx), q)
     # padding: every step after length - 1 repeats the final point
     idx = torch.minimum(torch.arange(T, device=theta.device).expand(B, T), (length - 1).unsqueeze(-1))
     idx = torch.minimum(idx, torch.tensor(t_last, device=theta.device))

@@ -31,7 +31,7 @@ from camo_sbi.simulators.chain import ChainSpec
 
 __all__ = ["generate_source", "kernel_fk", "kernel_simulate", "load_kernel", "cache_dir"]
 
-GENERATOR_VERSION = "4"
+GENERATOR_VERSION = "5"
 _DTYPES = {np.dtype(np.float32): "float32", np.dtype(np.float64): "float64"}
 
 # --------------------------------------------------------------------------- symbolic code
@@ -219,7 +219,7 @@ def generate_source(spec: ChainSpec, dtype) -> str:
     sim_src = [
         "@njit(cache=True, parallel=True, nogil=True, error_model=\"numpy\")",
         "def simulate(theta, goal, start, n_steps, tol, gain, lam2, max_cart, max_joint, null_gain,",
-        "             q_out, x_out, length, reached):",
+        "             kd, early_stop, q_out, x_out, length, reached):",
         "    for b in prange(theta.shape[0]):",
         *[f"        lo{k} = theta[b, {2 * k}]\n        hi{k} = theta[b, {2 * k + 1}]" for k in J],
         *[f"        md{k} = F(0.5) * (lo{k} + hi{k})" for k in J],
@@ -227,12 +227,22 @@ def generate_source(spec: ChainSpec, dtype) -> str:
         *[f"        g{r} = goal[b, {r}]" for r in range(3)],
         "        length[b] = n_steps",
         "        reached[b] = False",
+        *[f"        p{r} = F(0.0)" for r in range(3)],
         "        for t in range(n_steps):",
         *w.lines,
         *[f"{i3}q_out[b, t, {k}] = q{k}" for k in J],
         *[f"{i3}x_out[b, t, {r}] = x{r}" for r in range(3)],
         *[f"{i3}e{r} = g{r} - x{r}" for r in range(3)],
-        f"{i3}if math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) < tol:",
+        # derivative term: the previous step's end-effector displacement (0 at the start)
+        f"{i3}if t == 0:",
+        *[f"{i4}p{r} = x{r}" for r in range(3)],
+        *[f"{i3}dx{r} = x{r} - p{r}" for r in range(3)],
+        *[f"{i3}p{r} = x{r}" for r in range(3)],
+        f"{i3}if not early_stop:",
+        f"{i4}if t == n_steps - 1:",
+        f"{i5}reached[b] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) < tol",
+        f"{i5}break",
+        f"{i3}elif math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) < tol:",
         f"{i4}length[b] = t + 1",
         f"{i4}reached[b] = True",
         f"{i4}for u in range(t + 1, n_steps):",
@@ -241,7 +251,7 @@ def generate_source(spec: ChainSpec, dtype) -> str:
         f"{i4}break",
         f"{i3}if t == n_steps - 1:",
         f"{i4}break",
-        *[f"{i3}v{r} = gain * e{r}" for r in range(3)],
+        *[f"{i3}v{r} = gain * e{r} - kd * dx{r}" for r in range(3)],
         f"{i3}vn = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)",
         f"{i3}if vn > max_cart:",
         f"{i4}sc = max_cart / vn",
@@ -329,7 +339,7 @@ def kernel_fk(spec: ChainSpec, q: np.ndarray) -> np.ndarray:
 def kernel_simulate(spec: ChainSpec, theta: np.ndarray, goal: np.ndarray, start: np.ndarray, *,
                     max_steps: int, tol: float, gain: float, damping: float,
                     max_cartesian_step: float, max_joint_step: float, null_gain: float,
-                    out=None):
+                    derivative_gain: float = 0.0, early_stop: bool = True, out=None):
     """Run the controller: theta (B, 2n), goal (B, 3), start (B, n), all C-contiguous, one dtype.
 
     Returns (q (B, T, n), ee (B, T, 3), length (B,) int64, reached (B,) bool); ``out`` may
@@ -343,5 +353,5 @@ def kernel_simulate(spec: ChainSpec, theta: np.ndarray, goal: np.ndarray, start:
                np.empty(B, np.int64), np.empty(B, np.bool_))
     load_kernel(spec, dtype).simulate(
         theta, goal, start, np.int64(T), F(tol), F(gain), F(damping * damping),
-        F(max_cartesian_step), F(max_joint_step), F(null_gain), *out)
+        F(max_cartesian_step), F(max_joint_step), F(null_gain), F(derivative_gain), bool(early_stop), *out)
     return out

@@ -170,7 +170,7 @@ class KinematicSimulator:
         kernel_simulate(self.spec, theta.numpy(), goal.numpy(), start.numpy(),
                         max_steps=T, tol=c.tol, gain=c.gain, damping=c.damping,
                         max_cartesian_step=c.max_cartesian_step, max_joint_step=c.max_joint_step,
-                        null_gain=c.null_gain,
+                        null_gain=c.null_gain, derivative_gain=c.derivative_gain, early_stop=c.early_stop,
                         out=(q.numpy(), ee.numpy(), length.numpy(), reached.numpy()))
         return Trajectories(q, ee, length, reached)
 
