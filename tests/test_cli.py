@@ -70,7 +70,7 @@ def _metric_sets(df, keys):
 def test_reproduce_writes_every_row_once(repro):
     out, df = repro
     assert list(df.columns) == ["run", "model", "subject", "method", "n_tasks", "metric", "value", "status"]
-    methods = ("camo-js", "camo-cs", "camo-hull", *BASELINES)
+    methods = ("camo-js", "camo-cs", "camo-hull", "camo-seq", *BASELINES)
     got = list(zip(df.run, df.method, df.n_tasks, df.metric, strict=True))
     assert len(got) == len(set(got))  # no duplicated row
     sets = _metric_sets(df, ["run", "method", "n_tasks"])
@@ -90,6 +90,7 @@ def test_reproduce_writes_every_row_once(repro):
             assert v[(r, "camo-js", k, "n_simulations")] == 200 * k
             assert v[(r, "camo-cs", k, "n_simulations")] == 200 * k
             assert v[(r, "camo-hull", k, "n_simulations")] == 200 * k
+            assert v[(r, "camo-seq", k, "n_simulations")] == 200 * k
             for b in BASELINES:
                 assert v[(r, b, k, "n_simulations")] == 0
     errs = df[df.metric.isin(PREDICTION | {"limit_error_deg"})]
@@ -102,6 +103,11 @@ def test_reproduce_writes_both_figures_and_config(repro):
     out, _ = repro
     _assert_png(out / "fig2_cartesian_error_vs_tasks.png")
     _assert_png(out / "fig3_final_error.png")
+    _assert_png(out / "limit_error_vs_tasks.png")
+    claims = pd.read_csv(out / "claims.csv")
+    assert list(claims.columns) == ["claim", "setting", "method", "baseline", "statistic", "value", "ci_low",
+                                    "ci_high", "p_value", "p_raw", "test", "holds"]
+    assert set(claims.baseline) >= {"naive", "nominal"} and set(claims.setting) == {"toolkit"}
     assert (out / "config.json").is_file()
     assert len(list((out / "cells").glob("*.csv"))) == 2  # one cell per run
 
@@ -118,8 +124,9 @@ def test_reproduce_other_seed_other_table(repro, tmp_path):
     assert _run([*REPRO, "--runs", "1", "--methods", "naive", "--seed", "1"], tmp_path / "c") == 0
     df2 = pd.read_csv(tmp_path / "c" / "results.csv")
     a = df[(df.run == 0) & (df.method == "naive") & (df.metric == "cartesian_error_mm")].value.to_numpy()
-    b = df2[(df2.metric == "cartesian_error_mm")].value.to_numpy()
+    b = df2[(df2.method == "naive") & (df2.metric == "cartesian_error_mm")].value.to_numpy()
     assert a.shape == b.shape == (2,) and not (a == b).all()
+    assert set(df2.method) == {"naive", "nominal", "oracle"}  # the baselines come with every table
 
 
 def test_reproduce_rerun_skips_finished_cells(repro):
@@ -307,3 +314,25 @@ def test_compare_with_abc_smc_and_npe(tmp_path):
             assert 0 < v[(m, k, "n_simulations")] <= 100 * k  # counted, within the cap
     assert len(list((out / "posteriors").glob("*.nc"))) == 2
     pd.testing.assert_frame_equal(_compare(out, *args), df)  # resumable: finished cells skipped
+
+
+def test_reproduce_paper_setting(tmp_path):
+    """--setting paper: fixed goals in every run (so the nominal and oracle rows repeat), the
+    authors' fixed-horizon controller, the CAMO variants with their epsilon, and claims.csv."""
+    out = tmp_path / "paper"
+    args = ["reproduce", "panda", "--setting", "paper", "--runs", "2", "--tasks", "3", "--test-goals", "3",
+            "--samples", "200"]
+    assert _run(args, out) == 0
+    df = pd.read_csv(out / "results.csv")
+    assert set(df.method) == {"camo-js", "camo-cs", "camo-seq", "camo-hull", "naive", "nominal", "oracle"}
+    assert set(df.subject) == {"one_joint_restricted"}
+    nominal = df[(df.method == "nominal") & (df.metric == "cartesian_error_mm")].pivot_table(
+        index="n_tasks", columns="run", values="value")
+    assert (nominal[0] == nominal[1]).all()  # the same test goals in both runs
+    camo = df[(df.method == "camo-js") & (df.metric == "cartesian_error_mm")].pivot_table(
+        index="n_tasks", columns="run", values="value")
+    assert not (camo[0] == camo[1]).all()  # ... but each run has its own draws
+    assert (df[(df.method == "oracle") & df.metric.isin(PREDICTION)].value == 0).all()
+    assert set(pd.read_csv(out / "claims.csv").setting) == {"paper"}
+    config = __import__("json").loads((out / "config.json").read_text())
+    assert config["setting"] == "paper" and config["horizon"] == 21

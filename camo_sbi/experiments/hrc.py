@@ -3,24 +3,28 @@
 Per run, a person with an impaired range of motion (``--subject``) works on random
 block-stacking trials (`camo_sbi.scenarios.block_stacking`). In training trials, seen one
 after another, the person picks the blocks they can reach and carry; each pick is one
-observed task (the reach from the start posture to the block, in joint space), as in
-the paper's code. ``--tasks`` picks are observed (``--task-unit trial``: the first
-``--tasks`` trials instead, however many picks they hold). After each observed task
-the methods estimate the limits; each estimate predicts, for every block of
-``--test-trials`` unseen trials, whether the person can take it (same reachability
-test as the truth), and precision / recall / F1 ("person" = positive) are recorded.
-The majority-class baseline (always the more frequent true label) is recorded alongside.
+observed task. What the observer sees of a pick is ``--observe``: ``reach`` (the default:
+the joint trajectory from the start posture to the block) or ``carry`` (from the grasp
+posture to the tower slot, which is what the authors' code observes; see
+``REFERENCE_SETTING.md``). ``--tasks`` picks are observed (``--task-unit trial``: the first
+``--tasks`` trials instead, however many picks they hold). After each observed task the
+methods estimate the limits; each estimate predicts, for every block of ``--test-trials``
+unseen trials, whether the person can take it (the same reachability test as the truth, on
+the same layouts), and precision / recall / F1 ("person" = positive) are recorded. The
+majority-class baseline (always the more frequent true label) is recorded alongside.
 
-Methods:
+Methods (registry names):
 
-* ``camo``: the paper's algorithm (argmax of the product of per-task KDEs).
+* ``camo-js`` (``camo-cs`` with ``--space cartesian``): the paper's algorithm (argmax of the
+  product of per-task KDEs).
 * ``camo-hull`` (joint space only; ``--no-hull`` skips it): the same, with the prior
   conditioned on the observed postures (``CamoConfig(contain_observed=True)``): the controller
   clamps to the limits, so every observed joint posture lies inside them. Without it the
   argmax sits inside the flat part of the posterior of limits that no reach has pushed
   against, often narrower than postures already seen, and blocks the person can take
-  are given to the robot (recall ~0.85 under the weak prior).
-* ``naive``: observed min/max per joint (the paper's baseline).
+  are given to the robot.
+* the baselines: ``naive`` (observed min/max per joint, the paper's baseline), ``nominal``
+  (the full range of motion) and ``oracle`` (the true limits: precision = recall = 1).
 
 Priors (both Latin hypercube, ``--samples`` draws per task, at most ``--keep-best`` kept):
 
@@ -29,18 +33,21 @@ Priors (both Latin hypercube, ``--samples`` draws per task, at most ``--keep-bes
   to the subject's true values. The paper: "only the shoulder joint limits and elbow
   joint limits are allowed to vary and the wrist limits are fixed and known"; its code
   also fixes the torso to the truth in every method.
-* weak: uniform over the full range of motion of all 9 joints.
+* weak: uniform over the full range of motion of all 9 joints (with ``--fix-torso``: the
+  torso fixed at its true value, as the authors' code does under both priors).
 
-The naive baseline uses the same knowledge: fixed (known) joints take their known
-limits, the others the observed min/max. When nothing has been observed yet
-(``--task-unit trial`` only) an estimator allocates every block to the robot.
+Every method uses the same knowledge: fixed (known) joints take their known limits. When
+nothing has been observed yet (``--task-unit trial`` only) an estimator allocates every
+block to the robot.
 
-Rows: run, subject, prior, method, n_tasks, metric, value in ``<out>/results.csv``:
-precision, recall, f1, accuracy (methods camo, camo-hull, naive, majority), limit_error
-(estimators: mean absolute error of the prior's free limits, radians) and person_fraction
-(method truth: the person's share of the test blocks); the figure ``fig5_allocation.png``;
+Rows: run, subject, prior, method, n_tasks, metric, value, status in ``<out>/results.csv``:
+precision, recall, f1, accuracy (every method and majority), limit errors in degrees
+(``limit_error_deg`` over the prior's free limits; ``limit_error_binding_deg`` /
+``limit_error_free_deg`` split by whether the bound binds on the test reaches to the
+blocks) and person_fraction (method truth: the person's share of the test blocks);
+``claims.csv`` (`camo_sbi.evaluation.claims.hrc_claims`); the figure ``fig5_allocation.png``;
 ``scene_run00.png`` (with ``--scene-png``, one per run): the first test trial under the
-final strong-prior allocation of camo-hull (camo with ``--no-hull``).
+final strong-prior allocation of camo-hull (camo-js with ``--no-hull``).
 """
 
 from __future__ import annotations
@@ -54,7 +61,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from camo_sbi._validation import derive_seed
 from camo_sbi.inference.camo import CamoConfig
+from camo_sbi.scenarios.block_stacking import OBSERVED_MOTIONS
 
 __all__ = [
     "METRICS",
@@ -76,14 +85,10 @@ METRICS = ("precision", "recall", "f1", "accuracy")
 STRONG_PRIOR_FIXED = ("torso_flexion", "torso_rotation", "forearm_pronation", "wrist_flexion",
                       "wrist_deviation")
 """Joints whose limits the strong prior knows (fixed to the subject's true limits)."""
+TORSO = ("torso_flexion", "torso_rotation")
 TASK_UNITS = ("pick", "trial")
 _CELL_SETTINGS = ("subject", "seed", "tasks", "task_unit", "test_trials", "samples", "keep_best", "epsilon",
-                  "bandwidth", "space", "priors", "no_hull")
-
-
-def derive_seed(*parts: int) -> int:
-    """A 63-bit integer seed derived from ``parts`` (numpy SeedSequence)."""
-    return int(np.random.SeedSequence([int(v) for v in parts]).generate_state(2, np.uint64)[0] >> 1)
+                  "bandwidth", "space", "priors", "no_hull", "observe", "fix_torso")
 
 
 def subject_names() -> list[str]:
@@ -92,19 +97,22 @@ def subject_names() -> list[str]:
     return list(IMPAIRED_PROFILES)
 
 
-def make_prior(sim, true_theta, kind: str):
-    """The strong or weak `BoxPrior` (Latin hypercube) for a subject with ``true_theta``."""
+def make_prior(sim, true_theta, kind: str, *, fix_torso: bool = False):
+    """The strong or weak `BoxPrior` (Latin hypercube) for a subject with ``true_theta``.
+
+    ``fix_torso``: the weak prior also fixes the torso at its true limits (the strong prior
+    always does), as the authors' code does for every method.
+    """
     from camo_sbi.priors import BoxPrior
 
-    if kind == "weak":
-        return BoxPrior(sim.bounds, sim.start, sampling="lhs")
-    if kind != "strong":
+    if kind not in PRIORS:
         raise ValueError(f"prior: expected one of {PRIORS}, got {kind!r}")
+    known = STRONG_PRIOR_FIXED if kind == "strong" else (TORSO if fix_torso else ())
     names = list(sim.joint_names)
     lim = torch.as_tensor(true_theta, dtype=torch.float64).reshape(-1, 2)
     fixed = {names.index(j): (float(lim[names.index(j), 0]), float(lim[names.index(j), 1]))
-             for j in STRONG_PRIOR_FIXED if j in names}
-    return BoxPrior(sim.bounds, sim.start, fixed=fixed, sampling="lhs")
+             for j in known if j in names}
+    return BoxPrior(sim.bounds, sim.start, fixed=fixed or None, sampling="lhs")
 
 
 # --------------------------------------------------------------------------------------
@@ -123,7 +131,7 @@ def run_methods(args) -> list[str]:
 
 
 def collect_run(scene, true_theta, *, n_tasks: int, n_test: int, seed: int, task_unit: str = "pick",
-                max_trials: int | None = None):
+                max_trials: int | None = None, observe: str = "reach"):
     """Training observations and test trials of one run.
 
     Returns (observations, n_tasks_after, test_trials, y_true): the observed picks in
@@ -141,7 +149,7 @@ def collect_run(scene, true_theta, *, n_tasks: int, n_test: int, seed: int, task
                 f"the person cannot provide {n_tasks} observed tasks")
         scene.new_trial(rng)
         trials += 1
-        _, obs = scene.observations(true_theta)
+        _, obs = scene.observations(true_theta, observe=observe)
         for o in obs:
             if task_unit == "pick" and len(observations) == n_tasks:
                 break
@@ -189,13 +197,15 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
     true_theta = torch.as_tensor(impaired_limits(sim, subject), dtype=torch.float64)
     observations, task_of, test_trials, y_true = collect_run(
         scene, true_theta, n_tasks=args.tasks, n_test=args.test_trials, seed=derive_seed(args.seed, run),
-        task_unit=args.task_unit)
+        task_unit=args.task_unit, observe=getattr(args, "observe", "reach"))
     predictor = _Predictor(scene, test_trials)
     grasp = predictor.grasp
     camo_cfg = {"keep_best": args.keep_best, "epsilon": args.epsilon, "bandwidth": args.bandwidth,
                 "sampling": "lhs", "space": args.space}
     estimates: dict[tuple[str, str], list] = {}
-    priors = {kind: make_prior(sim, true_theta, kind) for kind in args.priors}
+    statuses: dict[tuple[str, str], list[str]] = {}
+    priors = {kind: make_prior(sim, true_theta, kind, fix_torso=getattr(args, "fix_torso", False))
+              for kind in args.priors}
     test_starts = sim.start.to(torch.float64).expand(grasp.shape[0], -1).clone()
     binding = {}
     for kind, prior in priors.items():
@@ -210,32 +220,35 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
             results = run_method_sequence(
                 method, task, budget=args.samples, seed=derive_seed(args.seed, run, PRIORS.index(kind)),
                 config=cfg) if observations else []
-            sequences[method] = [r.estimate for r in results]
-        for method, ests in sequences.items():
+            sequences[method] = results
+        for method, results in sequences.items():
             # the estimate after task k: the one after that task's last observation
-            per_task = []
+            per_task, per_status = [], []
             for k in range(1, args.tasks + 1):
                 seen = [i for i, t in enumerate(task_of) if t <= k]
-                per_task.append(ests[seen[-1]] if seen else None)
+                per_task.append(results[seen[-1]].estimate if seen else None)
+                per_status.append(results[seen[-1]].status if seen else "ok")
             estimates[(kind, method)] = per_task
+            statuses[(kind, method)] = per_status
     keys = list(estimates)
     flat = predictor([t for key in keys for t in estimates[key]])
     predictions = {key: flat[i * args.tasks:(i + 1) * args.tasks] for i, key in enumerate(keys)}
     rows = []
 
-    def add(kind, method, k, metric, value):
+    def add(kind, method, k, metric, value, status="ok"):
         rows.append({"run": run, "subject": subject, "prior": kind, "method": method,
-                     "n_tasks": k, "metric": metric, "value": float(value)})
+                     "n_tasks": k, "metric": metric, "value": float(value), "status": status})
 
     base = allocation_metrics(y_true, y_true)  # only its majority-baseline fields are used
     for kind, method in keys:
         for k, (est, pred) in enumerate(zip(estimates[(kind, method)], predictions[(kind, method)], strict=True)):
             m = allocation_metrics(y_true, pred)
+            status = statuses[(kind, method)][k]
             for metric in METRICS:
-                add(kind, method, k + 1, metric, getattr(m, metric))
+                add(kind, method, k + 1, metric, getattr(m, metric), status)
             if est is not None:  # limit errors (degrees) over the free limits; binding on the test grasps
                 for metric, value in limit_errors(est, true_theta, priors[kind], binding[kind]).items():
-                    add(kind, method, k + 1, metric, value)
+                    add(kind, method, k + 1, metric, value, status)
     for kind in args.priors:
         for k in range(args.tasks):
             for metric in METRICS:
@@ -297,6 +310,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="CAMO keeps at most the k best draws per task")
     p.add_argument("--epsilon", type=float, default=None, help="CAMO DTW acceptance threshold (default: none)")
     p.add_argument("--bandwidth", type=float, default=CamoConfig().bandwidth, help="CAMO kernel variance h [rad^2]")
+    p.add_argument("--observe", choices=OBSERVED_MOTIONS, default="reach",
+                   help="what the observer sees of a pick: the reach to the block (default) or the carry to "
+                        "the tower (the authors' code)")
+    p.add_argument("--fix-torso", action="store_true",
+                   help="fix the torso at its true limits under the weak prior too (the authors' code)")
     p.add_argument("--space", choices=("joint", "cartesian"), default="joint",
                    help="CAMO observation space (cartesian: no camo-hull)")
     p.add_argument("--no-hull", action="store_true",
@@ -370,6 +388,10 @@ def main(args) -> int:
                 _render_run(scene, extras, png)
     df = store.write_table()
     fig = make_figure(df, out)
+    from camo_sbi.evaluation.claims import hrc_claims
+
+    claims = hrc_claims(df, setting=f"hrc ({args.subject}, observe {getattr(args, 'observe', 'reach')})")
+    atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     wall = time.perf_counter() - t0
     last = df[(df["n_tasks"] == df["n_tasks"].max())
               & df["metric"].isin(["precision", "recall", "f1", "limit_error_deg"])]
@@ -378,7 +400,8 @@ def main(args) -> int:
     print(f"after {int(df['n_tasks'].max())} tasks (mean over {df['run'].nunique()} runs; "
           f"person's share of test blocks {person:.2f}; limit_error_deg over the free limits):")
     print(summary.to_string(float_format=lambda v: f"{v:.3f}", na_rep="-"))
-    print(f"table: {out / 'results.csv'}  figure: {fig}")
+    print(claims[["claim", "setting", "method", "baseline", "value", "p_value", "holds"]].to_string(index=False))
+    print(f"table: {out / 'results.csv'}  claims: {out / 'claims.csv'}  figure: {fig}")
     print(f"wall time: {wall:.1f} s")
     return 0
 

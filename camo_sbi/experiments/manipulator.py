@@ -1,11 +1,26 @@
-"""`camo-sbi reproduce panda`: the paper's manipulator experiment (Fig. 2 and Fig. 3).
+"""`camo-sbi reproduce panda`: the paper's manipulator experiment (Fig. 2 and Fig. 3), in two settings.
 
-For each run a ground-truth subject (a named restricted-limit profile) reaches
-``--tasks`` training goals and ``--test-goals`` held-out goals, all sampled inside its
-true limits. CAMO-JS (joint observations), CAMO-CS (Cartesian observations), camo-hull
-(CAMO-JS with the prior conditioned on the observed postures, `CamoConfig.contain_observed`;
-not in the paper) and the naive min/max baseline estimate the limits after every observed
-task; each estimate predicts the held-out trajectories. Rows: run, subject, method, n_tasks, metric, value.
+For each run a ground-truth subject reaches ``--tasks`` training goals and ``--test-goals``
+held-out goals (configurations drawn inside its true limits, through FK). After every
+observed task each method estimates the limits and predicts the held-out reaches; every
+metric of `camo_sbi.evaluation.metrics` is recorded, next to the trivial answers (naive,
+nominal, oracle). Rows: run, model, subject, method, n_tasks, metric, value, status.
+
+``--setting toolkit`` (default; the toolkit's harder design): the model's default
+controller (damped least squares, a null-space pull into the limits, stops within 1 cm,
+T = 100), four restricted-limit subjects cycled over runs, each run its own goals (kept
+only if reachable), a uniform prior, DTW, the 100 best kept per task.
+
+``--setting paper`` (the authors' published code, ``REFERENCE_SETTING.md``): ONE restricted
+joint (start +- 0.5 rad); their PD step ``dq = dt J+ (P e + D de)`` (gain 0.1, derivative
+0.5, pseudo-inverse), limits acting only by clamping (no mid-range pull); a fixed horizon
+with no early stop (``--horizon`` points: 21 as their code, 20 steps; 100 as the paper's
+text); the 5-level grid prior; the plain Eq. 2 distance with epsilon acceptance (no cap);
+KDE bandwidth 0.5 (variance 0.25); the same training and test goals in every run (runs
+differ in the methods' random draws only); ``camo-seq``: their sequential proposals.
+
+Each run writes ``claims.csv`` (`camo_sbi.evaluation.claims`): every paper claim tested with
+paired tests across runs against naive and against nominal, Holm-corrected.
 """
 
 from __future__ import annotations
@@ -13,37 +28,99 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from tqdm import tqdm
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import dask_client, parse_scheduler
-from camo_sbi.experiments.plots import plot_bars, plot_lines, save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
-from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
+from camo_sbi.experiments.subjects import ONE_JOINT, build_model, subject_names, subject_theta
 
-__all__ = ["DEFAULT_METHODS", "add_arguments", "main", "method_config", "run_one"]
+__all__ = ["SETTINGS", "Setting", "add_arguments", "main", "make_figures", "method_config", "run_one"]
 
-DEFAULT_METHODS = ("camo-js", "camo-cs", "camo-hull", "naive", "nominal", "oracle")
-"""The paper's CAMO-JS, CAMO-CS and naive; camo-hull (CAMO-JS with the prior conditioned on the
-observed postures; not in the paper); the nominal and oracle baselines."""
+
+@dataclass(frozen=True)
+class Setting:
+    """The experimental design of one ``--setting`` (see the module docstring).
+
+    Attributes:
+        controller: ``ControllerConfig`` field overrides (None: the model's default controller).
+        subjects: ground-truth profiles cycled over runs (None: every profile of the model).
+        fixed_goals: the same training and test goals in every run.
+        require_reached: goals kept only if the subject's controller reaches them.
+        camo: CAMO config fields for every CAMO variant.
+        epsilon: per observation space, CAMO's acceptance threshold (overrides ``camo``).
+        methods: default ``--methods``.
+    """
+
+    controller: dict | None
+    subjects: tuple[str, ...] | None
+    fixed_goals: bool
+    require_reached: bool
+    camo: dict
+    epsilon: dict = field(default_factory=dict)
+    methods: tuple[str, ...] = ()
+
+
+SETTINGS = {
+    "toolkit": Setting(
+        controller=None, subjects=None, fixed_goals=False, require_reached=True,
+        camo={"keep_best": 100, "bandwidth": 0.2, "bandwidth_mode": "fixed", "sampling": "uniform",
+              "distance": "dtw"},
+        methods=("camo-js", "camo-cs", "camo-hull", "camo-seq", "naive", "nominal", "oracle")),
+    "paper": Setting(
+        controller={"early_stop": False, "null_gain": 0.0, "gain": 0.1, "derivative_gain": 0.5,
+                    "damping": 1e-6, "max_cartesian_step": 1e3, "max_joint_step": 1e3},
+        subjects=(ONE_JOINT,), fixed_goals=True, require_reached=False,
+        camo={"keep_best": None, "bandwidth": 0.25, "bandwidth_mode": "fixed", "sampling": "grid",
+              "distance": "euclidean", "fallback_keep": 20},
+        epsilon={"joint": 0.02, "cartesian": 0.01},
+        methods=("camo-js", "camo-cs", "camo-seq", "camo-hull", "naive", "nominal", "oracle")),
+}
+"""The two designs of ``reproduce panda``. The paper setting's epsilons are the authors'
+``THRESH`` (0.02, joint) and ``THRESH_CARTESIAN`` (0.01, here in metres): with the grid prior and
+clamp-only limits about a third of the draws reproduce a reach exactly (distance 0) and the
+next-closest lie beyond 0.05, so acceptance is "does not bind on this reach"."""
+
 # settings that change a run's rows: part of each cell's key, so a re-run with other
 # settings into the same directory computes new cells instead of reusing old ones
-_CELL_SETTINGS = ("model", "tasks", "test_goals", "samples", "epsilon", "keep_best", "bandwidth",
-                  "bandwidth_mode", "sampling", "methods", "seed")
+_CELL_SETTINGS = ("setting", "model", "tasks", "test_goals", "samples", "epsilon", "keep_best", "bandwidth",
+                  "bandwidth_mode", "sampling", "horizon", "methods", "seed")
+
+
+def _setting(args) -> Setting:
+    return SETTINGS[getattr(args, "setting", "toolkit")]
 
 
 def method_config(name: str, args) -> dict | None:
-    """The config a run gives method ``name``: CAMO's options for the CAMO family, else defaults."""
+    """The config a run gives method ``name``: the setting's CAMO options (command-line values
+    override them) for the CAMO family, else the method's defaults."""
     from camo_sbi.inference.registry import get_method
 
     spec = get_method(name)
     if "camo" not in (name, spec.base):
         return None
-    return {"epsilon": args.epsilon, "keep_best": args.keep_best, "bandwidth": args.bandwidth,
-            "bandwidth_mode": args.bandwidth_mode, "sampling": args.sampling,
-            "scheduler": getattr(args, "scheduler", None)}
+    st = _setting(args)
+    cfg = dict(st.camo)
+    for key in ("keep_best", "bandwidth", "bandwidth_mode", "sampling", "epsilon"):
+        value = getattr(args, key, None)
+        if value is not None:
+            cfg[key] = value
+    if getattr(args, "epsilon", None) is None and st.epsilon:
+        cfg["epsilon"] = st.epsilon[spec.defaults.get("space", cfg.get("space", "joint"))]
+    cfg["scheduler"] = getattr(args, "scheduler", None)
+    return cfg
+
+
+def _simulator(args):
+    sim = build_model(args.model)
+    st = _setting(args)
+    changes = dict(st.controller or {})
+    if getattr(args, "horizon", None) is not None:
+        changes["max_steps"] = args.horizon
+    return sim.with_config(**changes) if changes else sim
 
 
 def run_one(sim, model: str, subject: str, run: int, args) -> list[dict]:
@@ -53,9 +130,11 @@ def run_one(sim, model: str, subject: str, run: int, args) -> list[dict]:
     from camo_sbi.inference.registry import run_method_sequence
     from camo_sbi.scenarios.reaching import make_reaching_task
 
+    st = _setting(args)
     true_theta = subject_theta(sim, model, subject)
-    task = make_reaching_task(sim, true_theta, n_train=args.tasks, n_test=args.test_goals,
-                              seed=derive_seed(args.seed, run), name=model, subject=subject)
+    goal_seed = derive_seed(args.seed) if st.fixed_goals else derive_seed(args.seed, run)
+    task = make_reaching_task(sim, true_theta, n_train=args.tasks, n_test=args.test_goals, seed=goal_seed,
+                              name=model, subject=subject, require_reached=st.require_reached)
     true_test = true_test_trajectories(task)
     binding = binding_bounds(sim, true_theta, task.test_starts, task.test_goals, task.prior)
     rows = []
@@ -73,40 +152,61 @@ def run_one(sim, model: str, subject: str, run: int, args) -> list[dict]:
 
 
 def make_figures(df, out: Path) -> list[Path]:
-    """Fig. 2 (Cartesian error vs tasks) and Fig. 3 (joint-space loss after all tasks)."""
+    """Fig. 2 (error on unseen goals vs observed tasks), Fig. 3 (errors after all tasks) and the
+    limit error (binding and free bounds) vs observed tasks."""
     import matplotlib.pyplot as plt
 
+    from camo_sbi.experiments.plots import plot_bars, plot_lines, save_figure
+
+    n_runs = df.run.nunique()
+    ci = f"mean and 95% CI of the mean over {n_runs} runs"
     paths = []
-    fig, ax = plt.subplots(figsize=(6, 4))
-    plot_lines(df[df.metric == "cartesian_error_mm"], ax=ax, ylabel="Cartesian error per point [mm]",
-               title="Error on unseen goals vs observed tasks (mean, 95% CI)")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    plot_lines(df[df.metric == "cartesian_error_mm"], ax=axes[0], ylabel="Cartesian error per point [mm]",
+               title=f"Unseen goals vs observed tasks ({ci})")
+    plot_lines(df[df.metric == "reference_cartesian"], ax=axes[1],
+               ylabel="sum over test goals of sum over axes of L2 over time [m]",
+               title="The authors' Fig. 2 metric")
     paths.append(out / "fig2_cartesian_error_vs_tasks.png")
     save_figure(fig, paths[-1])
     last = df[df.n_tasks == df.n_tasks.max()]
-    fig, axes = plt.subplots(1, 2, figsize=(9, 4))
+    k = int(df.n_tasks.max())
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     plot_bars(last[last.metric == "joint_error_deg"], ax=axes[0], ylabel="joint error per joint and point [deg]",
-              title=f"Joint space, after {int(df.n_tasks.max())} tasks")
-    plot_bars(last[last.metric == "cartesian_error_mm"], ax=axes[1], ylabel="Cartesian error per point [mm]",
-              title=f"Cartesian, after {int(df.n_tasks.max())} tasks")
+              title=f"Joint space after {k} tasks ({ci})")
+    plot_bars(last[last.metric == "reference_joint"], ax=axes[1], ylabel="the authors' joint metric [rad]",
+              title=f"The authors' Fig. 3 metric after {k} tasks")
     paths.append(out / "fig3_final_error.png")
     save_figure(fig, paths[-1])
+    groups = [m for m in ("limit_error_binding_deg", "limit_error_free_deg") if (df.metric == m).any()]
+    if groups:
+        fig, axes = plt.subplots(1, len(groups), figsize=(5.5 * len(groups), 4), squeeze=False)
+        for ax, metric in zip(axes[0], groups, strict=True):
+            which = "binding" if "binding" in metric else "free (not binding)"
+            plot_lines(df[df.metric == metric], ax=ax, ylabel="mean |limit error| [deg]",
+                       title=f"{which} bounds ({ci})")
+        paths.append(out / "limit_error_vs_tasks.png")
+        save_figure(fig, paths[-1])
     return paths
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--setting", choices=tuple(SETTINGS), default="toolkit",
+                   help="toolkit: the toolkit's harder design (default); paper: the authors' published design")
     p.add_argument("--model", choices=("panda", "human"), default="panda", help="simulated agent")
     p.add_argument("--runs", type=int, default=30, help="independent runs (paper: 30)")
     p.add_argument("--tasks", type=int, default=10, help="observed training goals per run")
     p.add_argument("--test-goals", type=int, default=20, help="held-out goals per run")
     p.add_argument("--samples", type=int, default=2000, help="CAMO prior draws per task (b)")
-    p.add_argument("--epsilon", type=float, default=None, help="CAMO DTW acceptance threshold")
-    p.add_argument("--keep-best", type=int, default=100, help="CAMO keeps at most the k best per task")
-    p.add_argument("--bandwidth", type=float, default=0.2, help="CAMO kernel variance h [rad^2]")
-    p.add_argument("--bandwidth-mode", choices=("fixed", "scott"), default="fixed")
-    p.add_argument("--sampling", choices=("uniform", "lhs"), default="uniform")
-    p.add_argument("--methods", default=",".join(DEFAULT_METHODS),
-                   help="comma-separated registered methods (default: %(default)s)")
-    p.add_argument("--subjects", default=None, help="comma-separated ground-truth profiles (default: all, cycled)")
+    p.add_argument("--horizon", type=int, default=None,
+                   help="trajectory points (paper setting default 21 = the authors' 20 steps; the paper's text: 100)")
+    p.add_argument("--epsilon", type=float, default=None, help="CAMO acceptance threshold (default: the setting's)")
+    p.add_argument("--keep-best", type=int, default=None, help="CAMO keeps at most the k best per task")
+    p.add_argument("--bandwidth", type=float, default=None, help="CAMO kernel variance h [rad^2]")
+    p.add_argument("--bandwidth-mode", choices=("fixed", "scott"), default=None)
+    p.add_argument("--sampling", choices=("uniform", "lhs", "grid"), default=None)
+    p.add_argument("--methods", default=None, help="comma-separated registered methods (default: the setting's)")
+    p.add_argument("--subjects", default=None, help="comma-separated ground-truth profiles (default: the setting's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scheduler", default=None,
                    help="run CAMO's candidate chunks on Dask: 'local:N' or 'tcp://host:8786' "
@@ -114,25 +214,46 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("runs/reproduce_panda"))
 
 
-def main(args) -> int:
-    from camo_sbi.inference.registry import get_method
+def _check(args) -> None:
+    from camo_sbi.inference.registry import get_method, names
 
-    args.methods = [m.strip() for m in str(args.methods).split(",") if m.strip()] if isinstance(args.methods, str) else args.methods
-    for m in args.methods:
+    st = _setting(args)
+    methods = args.methods if args.methods is not None else ",".join(st.methods)
+    if isinstance(methods, str):
+        methods = [m.strip() for m in methods.split(",") if m.strip()]
+    for m in methods:
         try:
             get_method(m)
         except ValueError as exc:
             raise ValueError(f"--methods: {exc}") from exc
+    # the trivial answers are in every table
+    args.methods = list(methods) + [b for b in names(baseline=True) if b not in methods]
     for name in ("runs", "tasks", "test_goals", "samples"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
+    if args.setting == "paper" and args.horizon is None:
+        args.horizon = 21
+    if args.horizon is not None and args.horizon < 2:
+        raise ValueError(f"--horizon: must be >= 2 points, got {args.horizon}")
     try:
         parse_scheduler(getattr(args, "scheduler", None))
     except ValueError as exc:
         raise ValueError(f"--{exc}") from exc
+
+
+def main(args) -> int:
+    from camo_sbi.evaluation.claims import manipulator_claims
+
+    if not hasattr(args, "setting"):
+        args.setting = "toolkit"
+    _check(args)
     t0 = time.perf_counter()
-    sim = build_model(args.model)
-    subjects = args.subjects.split(",") if args.subjects else subject_names(args.model)
+    st = _setting(args)
+    sim = _simulator(args)
+    if args.subjects:
+        subjects = args.subjects.split(",")
+    else:
+        subjects = list(st.subjects) if st.subjects else subject_names(args.model)
     for s in subjects:
         subject_theta(sim, args.model, s)  # validates names before any work
     out = Path(args.out)
@@ -140,7 +261,7 @@ def main(args) -> int:
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "reproduce panda", **settings}, indent=2))
     with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
-        for run in tqdm(range(args.runs), desc=f"reproduce {args.model}", unit="run"):
+        for run in tqdm(range(args.runs), desc=f"reproduce {args.model} ({args.setting})", unit="run"):
             subject = subjects[run % len(subjects)]
             key = cell_key({"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}})
             if store.done(key):
@@ -148,11 +269,19 @@ def main(args) -> int:
             store.put(key, run_one(sim, args.model, subject, run, args))
     df = store.write_table()
     figs = make_figures(df, out)
+    claims = manipulator_claims(df, setting=args.setting)
+    atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     wall = time.perf_counter() - t0
-    last = df[(df.n_tasks == df.n_tasks.max()) & (df.metric.isin(["cartesian_error_mm", "joint_error_deg", "limit_error_deg",
-                                                                    "limit_error_binding_deg"]))]
+    metrics = ["cartesian_error_mm", "joint_error_deg", "reference_cartesian", "limit_error_binding_deg",
+               "limit_error_free_deg"]
+    last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(metrics)]
     summary = last.groupby(["method", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
-    print(summary.to_string(float_format=lambda v: f"{v:.4f}"))
-    print(f"table: {out / 'results.csv'}  figures: {', '.join(str(f) for f in figs)}")
+    print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
+    print(claims[["claim", "method", "baseline", "value", "p_value", "holds"]].to_string(index=False))
+    bad = df[df.status != "ok"]
+    if len(bad):
+        print(f"non-ok statuses: {bad.groupby(['method', 'status']).size().to_dict()}")
+    print(f"table: {out / 'results.csv'}  claims: {out / 'claims.csv'}  figures: "
+          f"{', '.join(str(f) for f in figs)}")
     print(f"wall time: {wall:.1f} s")
     return 0

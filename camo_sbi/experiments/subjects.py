@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["PANDA_PROFILES", "build_model", "subject_names", "subject_theta"]
+__all__ = ["ONE_JOINT", "PANDA_PROFILES", "PAPER_JOINT", "build_model", "subject_names", "subject_theta"]
 
 # Panda profiles: {joint index: fraction of the range kept on each side of the start posture}.
 # Restricting a joint to a fraction f keeps lo = s - f (s - L), hi = s + f (U - s).
@@ -14,6 +14,14 @@ PANDA_PROFILES: dict[str, dict[int, float]] = {
     "wrist_restricted": {4: 0.3, 5: 0.3, 6: 0.3},
     "mixed_restricted": {0: 0.5, 1: 0.5, 3: 0.5, 5: 0.5},
 }
+
+
+ONE_JOINT = "one_joint_restricted"
+"""The authors' ground truth: ONE restricted joint, start +- 0.5 rad, every other joint at its
+full range (their shoulder roll [pi/2 - 0.5, pi/2 + 0.5] around the start pi/2)."""
+PAPER_JOINT = {"panda": "panda_joint1", "human": "shoulder_flexion"}
+"""The joint the one-joint subject restricts: the first joint of the arm (the authors' shoulder roll)."""
+_ONE_JOINT_HALF_WIDTH = 0.5
 
 
 def build_model(model: str):
@@ -38,7 +46,16 @@ def subject_names(model: str) -> list[str]:
 
 
 def subject_theta(sim, model: str, name: str) -> torch.Tensor:
-    """(2n,) float64 true limits of subject ``name`` for ``model``."""
+    """(2n,) float64 true limits of subject ``name`` for ``model`` (``ONE_JOINT`` for either model)."""
+    if name == ONE_JOINT:
+        if model not in PAPER_JOINT:
+            raise ValueError(f"model: expected one of {sorted(PAPER_JOINT)}, got {model!r}")
+        b, s = sim.bounds.to(torch.float64), sim.start.to(torch.float64)
+        lim = b.clone()
+        j = list(sim.joint_names).index(PAPER_JOINT[model])
+        lim[j, 0] = max(float(b[j, 0]), float(s[j]) - _ONE_JOINT_HALF_WIDTH)
+        lim[j, 1] = min(float(b[j, 1]), float(s[j]) + _ONE_JOINT_HALF_WIDTH)
+        return lim.reshape(-1)
     if model == "human":
         from camo_sbi.simulators import impaired_limits
 

@@ -29,8 +29,10 @@ For limits theta, block b is the person's if the batched controller (the simulat
    tabletop, and the hand's single box is longer than a grasping hand). Blocks are not
    obstacles (the hand touching its block is the grasp).
 
-Only positive examples are observed: in a training trial the person reaches, in
-stacking order, the blocks they can; each reach to a block is one `Observation`.
+Only positive examples are observed: in a training trial the person takes, in stacking
+order, the blocks they can; each pick is one `Observation`: by default the reach to the
+block (start posture -> grasp point); with ``observe="carry"`` the carry to the tower (grasp
+posture -> tower slot), which is what the authors' code observes.
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ __all__ = [
     "COLOURS",
     "PERSON",
     "ROBOT",
+    "OBSERVED_MOTIONS",
     "AllocationMetrics",
     "BlockStackingScene",
     "Reachability",
@@ -72,6 +75,10 @@ COLOURS: tuple[str, ...] = ("red", "green", "yellow", "blue")
 """Block colours; every per-block array of this module is in this order."""
 
 PERSON, ROBOT = "person", "robot"
+
+OBSERVED_MOTIONS = ("reach", "carry")
+"""What the observer sees of a pick: the reach to the block (default) or the carry to the tower
+(the authors' code)."""
 
 ARM_LINKS: tuple[str, ...] = ("right_upper_arm", "right_forearm", "right_hand")
 """Links of the human model checked against the table (the torso and the rigid, hanging
@@ -644,23 +651,32 @@ class BlockStackingScene:
         return self.reachability(theta, grasp.reshape(-1, 3), tower.reshape(-1, 3)).reachable.reshape(
             len(trials), len(COLOURS))
 
-    def observations(self, theta) -> tuple[tuple[str, ...], tuple[Observation, ...]]:
+    def observations(self, theta, *, observe: str = "reach") -> tuple[tuple[str, ...], tuple[Observation, ...]]:
         """The person (true limits ``theta``) acting on the current trial.
 
-        Returns the colours the person picks, in stacking order, and one `Observation`
-        per pick: the reach from the start posture to the block's grasp point.
+        Returns the colours the person picks, in stacking order, and one `Observation` per
+        pick: with ``observe="reach"`` (the default) the reach from the start posture to the
+        block's grasp point; with ``observe="carry"`` (what the authors' code observes) the
+        carry from the grasp posture to the block's tower slot, whose start is the grasp
+        posture.
         """
+        if observe not in OBSERVED_MOTIONS:
+            raise ValueError(f"observe: expected one of {OBSERVED_MOTIONS}, got {observe!r}")
         grasp, tower = self.goals()
         res = self.reachability(theta, grasp, tower)
         start = as_tensor(self.simulator.start, "simulator.start", dtype=torch.float64)
         picked, obs = [], []
         for colour in self.order:
             k = COLOURS.index(colour)
-            if res.reachable[k]:
-                picked.append(colour)
-                obs.append(Observation(start.clone(), grasp[k].clone(),
-                                       res.to_block.trimmed(k, "joint").clone(),
+            if not res.reachable[k]:
+                continue
+            picked.append(colour)
+            if observe == "reach":
+                obs.append(Observation(start.clone(), grasp[k].clone(), res.to_block.trimmed(k, "joint").clone(),
                                        res.to_block.trimmed(k, "cartesian").clone()))
+            else:
+                q = res.to_tower.trimmed(k, "joint").clone()
+                obs.append(Observation(q[0].clone(), tower[k].clone(), q, res.to_tower.trimmed(k, "cartesian").clone()))
         return tuple(picked), tuple(obs)
 
     # --- rendering ------------------------------------------------------------------

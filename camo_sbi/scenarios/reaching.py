@@ -68,7 +68,8 @@ def reachable_goals(simulator, true_theta, n: int, generator, start=None, *, max
 
 def make_reaching_task(simulator, true_theta, *, n_train: int = 10, n_test: int = 20, seed,
                        prior: BoxPrior | None = None, name: str = "reaching",
-                       subject: str = "custom", start=None, noise: NoiseModel | None = None) -> Task:
+                       subject: str = "custom", start=None, noise: NoiseModel | None = None,
+                       require_reached: bool = True) -> Task:
     """A synthetic subject with limits ``true_theta`` (2n,) observed on ``n_train`` goals.
 
     Goals (train and test) are joint configurations drawn uniformly inside the true
@@ -77,7 +78,9 @@ def make_reaching_task(simulator, true_theta, *, n_train: int = 10, n_test: int 
     reaches start from ``start`` (default: the simulator's start posture). The default
     prior is the simulator's full range split at the start posture. ``noise``: the
     observation-noise model recorded in the task (the observations themselves are exact;
-    add noise with `NoiseModel.perturb`).
+    add noise with `NoiseModel.perturb`). ``require_reached=False`` keeps every sampled
+    goal (the authors' design: their fixed-horizon controller does not converge, so no goal
+    is "reached"; goals are FK images of configurations inside the true limits all the same).
     """
     n_train = check_positive_int(n_train, "n_train")
     n_test = check_positive_int(n_test, "n_test")
@@ -88,7 +91,12 @@ def make_reaching_task(simulator, true_theta, *, n_train: int = 10, n_test: int 
     if bool(((start < lim[:, 0] - 1e-9) | (start > lim[:, 1] + 1e-9)).any()):
         raise ValueError("start: posture lies outside true_theta's limits")
     gen = torch_generator(seed)
-    goals = reachable_goals(simulator, true_theta, n_train + n_test, gen, start)
+    if require_reached:
+        goals = reachable_goals(simulator, true_theta, n_train + n_test, gen, start)
+    else:
+        from camo_sbi.simulators import sample_goals
+
+        goals = sample_goals(simulator, theta_to_limits(true_theta), n_train + n_test, gen).to(torch.float64)
     obs = observe(simulator, true_theta, goals[:n_train], start)
     if prior is None:
         prior = BoxPrior(simulator.bounds, start)
