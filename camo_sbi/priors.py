@@ -126,14 +126,18 @@ class BoxPrior:
         """The same box with another sampling scheme."""
         return BoxPrior(self.bounds, self.start, fixed=self.fixed, sampling=sampling, inner=self.inner)
 
-    def containing(self, postures, *, tol: float = 1e-5) -> BoxPrior:
+    def containing(self, postures, *, tol: float = 1e-5, margin: float = 0.0) -> BoxPrior:
         """The prior conditioned on observed joint-space postures lying inside the limits.
 
         postures: (L, n) observed joint positions (any number of rows). Returns a new
         `BoxPrior` whose inner box is the hull of the current one and ``postures``, so
         ``lo_i <= min_t q_t,i`` and ``hi_i >= max_t q_t,i`` for every draw. Postures
         beyond a bound or a fixed (known) limit by at most ``tol`` (float32 rounding of a
-        clamped simulation) are clipped onto it; farther ones raise ValueError.
+        clamped simulation, or observation noise) are clipped onto it; farther ones raise
+        ValueError. ``margin`` >= 0 (noisy postures: k sigma) shrinks the postures' hull on
+        each side first, ``[min q + margin, max q - margin]`` (a joint whose shrunk hull is
+        empty adds nothing), so a noisy posture constrains the limits only as far as noise
+        cannot explain it.
         """
         q = as_tensor(postures, "postures", dtype=torch.float64).cpu()
         if q.dim() != 2 or q.shape[1] != self.n_joints:
@@ -141,8 +145,14 @@ class BoxPrior:
         check_finite(q, "postures")
         if q.shape[0] == 0:
             return self
-        a = torch.minimum(self.inner[:, 0], q.min(dim=0).values)
-        b = torch.maximum(self.inner[:, 1], q.max(dim=0).values)
+        margin = float(margin)
+        if not margin >= 0.0:
+            raise ValueError(f"margin: must be a finite number >= 0, got {margin}")
+        qa, qb = q.min(dim=0).values + margin, q.max(dim=0).values - margin
+        empty = qa > qb
+        qa, qb = torch.where(empty, self.inner[:, 0], qa), torch.where(empty, self.inner[:, 1], qb)
+        a = torch.minimum(self.inner[:, 0], qa)
+        b = torch.maximum(self.inner[:, 1], qb)
         outer_lo, outer_hi = self.low[0::2], self.high[1::2]  # bounds or fixed limits
         outside = (a < outer_lo - tol) | (b > outer_hi + tol)
         if bool(outside.any()):

@@ -29,6 +29,7 @@ import math
 import numbers
 from dataclasses import dataclass, field, replace
 
+import numpy as np
 import torch
 
 from camo_sbi._validation import as_tensor, check_finite, check_theta
@@ -36,10 +37,14 @@ from camo_sbi.budget import CountingSimulator
 from camo_sbi.priors import BoxPrior
 from camo_sbi.simulators.base import Trajectories
 
-__all__ = ["SPACES", "NoiseModel", "Observation", "Task", "check_observations", "contain", "predict"]
+__all__ = ["NOISE_K", "SPACES", "NoiseModel", "Observation", "Task", "check_observations", "contain", "predict"]
 
 SPACES = ("joint", "cartesian")
 """Observation spaces: joint angles (q) or end-effector positions (ee)."""
+
+NOISE_K = 3.0
+"""Noise standard deviations treated as the plausible reach of observation noise (3 sigma: a
+value beyond it has probability < 0.3 % per coordinate)."""
 
 
 def contain(theta, postures) -> torch.Tensor:
@@ -117,13 +122,27 @@ class NoiseModel:
             return self.ee_mm / 1000.0
         raise ValueError(f"space: expected one of {SPACES}, got {space!r}")
 
-    def perturb(self, x: torch.Tensor, space: str, generator: torch.Generator) -> torch.Tensor:
-        """``x`` plus noise of this model in ``space`` (a new tensor; unchanged if sigma is 0)."""
+    def perturb(self, x: torch.Tensor, space: str, generator) -> torch.Tensor:
+        """``x`` plus noise of this model in ``space`` (a new tensor; unchanged if sigma is 0).
+
+        generator: a ``torch.Generator`` or a ``numpy.random.Generator`` (no draw is made when
+        sigma is 0, so a noise-free model leaves the generator's stream untouched).
+        """
         s = self.sigma(space)
         if s == 0.0:
             return x.clone()
-        noise = torch.randn(x.shape, generator=generator, dtype=torch.float64)
-        return x + (s * noise).to(x.dtype)
+        if isinstance(generator, np.random.Generator):
+            noise = torch.from_numpy(generator.standard_normal(tuple(x.shape)))
+        elif isinstance(generator, torch.Generator):
+            noise = torch.randn(x.shape, generator=generator, dtype=torch.float64)
+        else:
+            raise TypeError(f"generator: expected a torch or numpy Generator, got {type(generator).__name__}")
+        return x + (s * noise).to(device=x.device, dtype=x.dtype)
+
+    def tolerance(self, space: str) -> float:
+        """``NOISE_K`` standard deviations in the space's unit: how far noise may plausibly move a
+        value (camo-hull's containment margin; the recording loader's bound check)."""
+        return NOISE_K * self.sigma(space)
 
 
 @dataclass(frozen=True)

@@ -71,7 +71,7 @@ from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.distances import dtw_distances
 from camo_sbi.inference.result import PosteriorResult, weighted_median
 from camo_sbi.priors import BoxPrior
-from camo_sbi.task import contain
+from camo_sbi.task import NoiseModel, contain
 
 
 def _import_pyabc():
@@ -284,9 +284,13 @@ class JointDistance:
     """
 
     def __init__(self, simulator, prior: BoxPrior, observations, *, space: str, dtype, budget: int,
-                 chunk_size: int = 1024, scheduler: str | None = None):
+                 chunk_size: int = 1024, scheduler: str | None = None, noise: NoiseModel | None = None,
+                 seed: int = 0):
         self.simulator, self.prior, self.space, self.dtype = simulator, prior, space, dtype
         self.chunk_size = check_positive_int(chunk_size, "chunk_size")
+        self.noise = NoiseModel() if noise is None else noise
+        self.seed = check_positive_int(seed, "seed", minimum=0)
+        self._calls = 0  # noise streams: default_rng([seed, call, task, chunk])
         parse_scheduler(scheduler)
         self.scheduler = scheduler
         self.budget = int(budget)
@@ -331,16 +335,18 @@ class JointDistance:
         B = theta.shape[0]
         total = np.zeros(B)
         alive = np.ones(B, dtype=bool)
-        for start, goal, traj in self._tasks:
+        call = self._calls
+        self._calls += 1
+        for i, (start, goal, traj) in enumerate(self._tasks):
             idx = np.flatnonzero(alive)
             if idx.size == 0:
                 break
             # every alive particle is simulated to this task: charged before anything runs
-            jobs = [(theta[torch.from_numpy(c)], float(total[c].min()))
-                    for c in np.array_split(idx, max(1, math.ceil(idx.size / self.chunk_size)))]
+            jobs = [(theta[torch.from_numpy(c)], float(total[c].min()), (self.seed, call, i, j))
+                    for j, c in enumerate(np.array_split(idx, max(1, math.ceil(idx.size / self.chunk_size))))]
             parts = run_chunks(_task_chunk, jobs, simulator=self.simulator, n_simulations=int(idx.size),
                                scheduler=self.scheduler, start=start, goal=goal, trajectory=traj,
-                               space=self.space, dtype=self.dtype, eps=eps)
+                               space=self.space, dtype=self.dtype, eps=eps, noise=self.noise)
             total[idx] += np.concatenate([p[0] for p in parts])
             self.n_simulations += int(idx.size)
             self.time_simulate += sum(p[1] for p in parts)
@@ -360,21 +366,25 @@ class JointDistance:
         return {_DISTANCE_KEY: float(d[0])}
 
 
-def _task_chunk(job, *, simulator, start, goal, trajectory, space: str, dtype, eps: float):
+def _task_chunk(job, *, simulator, start, goal, trajectory, space: str, dtype, eps: float, noise: NoiseModel):
     """DTW of one chunk of particles to one task (in-process or on a Dask worker).
 
-    ``job`` = (theta (b, 2n) full vectors, the smallest partial distance among them). With a
+    ``job`` = (theta (b, 2n) full vectors, the smallest partial distance among them, the key of
+    its noise stream). With observation noise the simulated trajectories are perturbed by the
+    same noise model before the DTW (noisy ABC), from ``default_rng(key)``. With a
     finite ``eps`` the DTW is pruned at the chunk's remaining allowance ``eps - that
     minimum``: a distance beyond it comes back as inf (> eps, rejected). An accepted
     particle's every term is below its allowance, so its distance is exact whatever the
     chunking; only rejected particles' lower bounds depend on it.
     Returns (distances (b,), simulate time, distance time).
     """
-    theta, partial_min = job
+    theta, partial_min, key = job
     t0 = time.perf_counter()
     sims = simulator.simulate(contain(theta, start).to(dtype), goal=goal.to(dtype), start=start.to(dtype))
     t1 = time.perf_counter()
     x = sims.q if space == "joint" else sims.ee
+    if noise.sigma(space) > 0:
+        x = noise.perturb(x, space, np.random.default_rng(key))
     allowance = None
     if math.isfinite(eps):
         # DTW >= epsilon comes back as inf: nextafter makes that "> allowance"
@@ -586,7 +596,7 @@ def run(task, observations, *, budget: int, seed: int, config: AbcSmcConfig | No
     t_start = time.perf_counter()
     distance = JointDistance(task.simulator, prior, observations, space=config.space,
                              dtype=_DTYPES[config.sim_dtype], budget=budget * k,
-                             chunk_size=config.chunk_size, scheduler=config.scheduler)
+                             chunk_size=config.chunk_size, scheduler=config.scheduler, noise=task.noise, seed=seed)
     names = parameter_names(prior)
     pyabc_prior = to_pyabc_prior(prior)
     low = prior.low[prior.free_mask].numpy()

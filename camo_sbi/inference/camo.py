@@ -52,9 +52,9 @@ from camo_sbi.distributed import parse_scheduler, run_chunks
 from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.distances import dtw_distances, l2_distance
 from camo_sbi.inference.kde import GaussianKDE, scott_bandwidth
-from camo_sbi.inference.result import STATUS_OK, PosteriorResult
+from camo_sbi.inference.result import STATUS_OK, PosteriorResult, weighted_quantile
 from camo_sbi.priors import BoxPrior
-from camo_sbi.task import contain
+from camo_sbi.task import NoiseModel, contain
 
 __all__ = ["Camo", "CamoConfig", "KdeProposal", "TaskRecord", "run", "run_sequence"]
 
@@ -63,6 +63,7 @@ _BANDWIDTH_MODES = ("fixed", "scott")
 _SAMPLINGS = ("uniform", "lhs", "grid")
 _DISTANCES = ("dtw", "euclidean")
 _PROPOSALS = ("prior", "sequential")
+_ESTIMATORS = ("argmax", "mean", "median", "outer")
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
@@ -92,6 +93,12 @@ class CamoConfig:
             vector plus Gaussian noise of variance h, clipped in joint space to the observed
             hull (lo_i <= min observed q_i, hi_i >= max observed q_i) and in Cartesian space to
             the prior box).
+        estimator: the point estimate: "argmax" (Eq. 6, the paper), "mean" (weighted by the
+            joint density), "median" (coordinate-wise weighted median) or "outer" (each lower
+            bound at its ``outer_quantile`` weighted quantile, each upper bound at 1 -
+            ``outer_quantile``: identified bounds stay where the posterior puts them,
+            unidentified ones are left wide). Not in the paper except "argmax".
+        outer_quantile: the level of the "outer" estimator, in (0, 0.5].
         sim_dtype: "float32" or "float64" for the candidate simulations.
         chunk_size: candidates per chunk. Chunk c of task n draws its candidates from
             ``numpy.random.default_rng([seed, n, c])`` and is simulated and scored on its own,
@@ -120,6 +127,8 @@ class CamoConfig:
     contain_observed: bool = False
     distance: str = "dtw"
     proposal: str = "prior"
+    estimator: str = "argmax"
+    outer_quantile: float = 0.05
 
     def __post_init__(self):
         if self.epsilon is None and self.keep_best is None:
@@ -135,6 +144,10 @@ class CamoConfig:
         check_choice(self.sampling, _SAMPLINGS, "sampling")
         check_choice(self.distance, _DISTANCES, "distance")
         check_choice(self.proposal, _PROPOSALS, "proposal")
+        check_choice(self.estimator, _ESTIMATORS, "estimator")
+        check_positive_float(self.outer_quantile, "outer_quantile")
+        if self.outer_quantile > 0.5:
+            raise ValueError(f"outer_quantile: must be in (0, 0.5], got {self.outer_quantile}")
         check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
         check_positive_int(self.chunk_size, "chunk_size")
         parse_scheduler(self.scheduler)
@@ -167,13 +180,17 @@ class Camo:
         prior: `BoxPrior`; fixed (known) coordinates are excluded from the KDE.
         config: `CamoConfig`.
         n_samples: b, the prior draws simulated per task.
+        noise: the observation-noise model (`NoiseModel`; default none). With noise, every
+            simulated candidate trajectory is perturbed by the same model before its distance
+            to the observation is computed (noisy ABC: like is compared with like), and
+            camo-hull's containment tolerates ``NOISE_K`` sigma (`BoxPrior.containing`).
         seed: int; chunk c of task n draws from ``numpy.random.default_rng([seed, n, c])``
             so each task's stream is independent of how many tasks came before it and of
             where (which worker) its chunks run.
     """
 
     def __init__(self, simulator, prior: BoxPrior, config: CamoConfig = CamoConfig(), *, n_samples: int = 2000,
-                 seed: int):
+                 seed: int, noise: NoiseModel | None = None):
         if not isinstance(prior, BoxPrior):
             raise TypeError(f"prior: expected a BoxPrior, got {type(prior).__name__}")
         if prior.n_joints != simulator.n_joints:
@@ -182,6 +199,9 @@ class Camo:
             raise TypeError(f"config: expected CamoConfig, got {type(config).__name__}")
         self.simulator, self.config, self.seed = simulator, config, check_positive_int(seed, "seed", minimum=0)
         self.n_samples = check_positive_int(n_samples, "n_samples")
+        self.noise = NoiseModel() if noise is None else noise
+        if not isinstance(self.noise, NoiseModel):
+            raise TypeError(f"noise: expected a NoiseModel, got {type(self.noise).__name__}")
         self.prior = prior if prior.sampling == config.sampling else prior.with_sampling(config.sampling)
         self._free = self.prior.free_mask
         self._draw_prior = self.prior  # conditioned on the observed postures (contain_observed)
@@ -226,7 +246,9 @@ class Camo:
             check_finite(t, name)
         idx = self.n_tasks
         if cfg.space == "joint" and (cfg.contain_observed or cfg.proposal == "sequential"):
-            self._hull = self._hull.containing(torch.cat([start.unsqueeze(0), traj]))
+            k_sigma = self.noise.tolerance("joint")
+            self._hull = self._hull.containing(torch.cat([start.unsqueeze(0), traj]), tol=max(1e-5, k_sigma),
+                                               margin=k_sigma)
         if cfg.contain_observed:
             self._draw_prior = self._hull
         proposal = self._draw_prior
@@ -242,7 +264,7 @@ class Camo:
         sizes = [min(cfg.chunk_size, b_total - c) for c in range(0, b_total, cfg.chunk_size)]
         jobs = [(self.seed, idx, c, b) for c, b in enumerate(sizes)]
         parts = run_chunks(_candidate_chunk, jobs, simulator=sim, n_simulations=b_total, scheduler=cfg.scheduler,
-                           prior=proposal, start=start, goal=goal, trajectory=traj, config=cfg)
+                           prior=proposal, start=start, goal=goal, trajectory=traj, config=cfg, noise=self.noise)
         theta = torch.cat([p["theta"] for p in parts])
         dist = torch.cat([p["dist"] for p in parts])
         t_sim = sum(p["time_simulate"] for p in parts)
@@ -308,10 +330,20 @@ class Camo:
         return self
 
     def estimate(self) -> np.ndarray:
-        """(2n,) the kept vector with the highest joint density over the tasks so far (Eq. 6)."""
+        """(2n,) the point estimate (``config.estimator``; default: the kept vector with the
+        highest joint density over the tasks so far, Eq. 6)."""
         if not self.records:
             raise RuntimeError("estimate: no task observed yet; call observe() first")
-        return self._kept[int(torch.argmax(self._logp))].numpy().copy()
+        est = self.config.estimator
+        if est == "argmax":
+            return self._kept[int(torch.argmax(self._logp))].numpy().copy()
+        kept, w = self._kept.numpy(), self.posterior_weights()
+        if est == "mean":
+            value = w @ kept
+        else:
+            a = 0.5 if est == "median" else self.config.outer_quantile
+            value = weighted_quantile(kept, w, np.tile([a, 1.0 - a], self.prior.n_joints))
+        return self.prior.with_known(torch.from_numpy(value)).numpy()
 
     def posterior_weights(self) -> np.ndarray:
         """(M,) kept vectors' weights, proportional to their joint density."""
@@ -373,7 +405,8 @@ def _distances(trajectory, sim_traj, lengths, config: CamoConfig, *, keep_best) 
     return l2_distance(held, sim_traj)
 
 
-def _candidate_chunk(job, *, simulator, prior, start, goal, trajectory, config: CamoConfig) -> dict:
+def _candidate_chunk(job, *, simulator, prior, start, goal, trajectory, config: CamoConfig,
+                     noise: NoiseModel) -> dict:
     """One chunk of one task's candidates: draw, simulate, score (runs in-process or on a worker).
 
     ``job`` = (seed, task index, chunk index, size); the draws come from
@@ -391,6 +424,8 @@ def _candidate_chunk(job, *, simulator, prior, start, goal, trajectory, config: 
     sims = simulator.simulate(theta.to(dtype), goal.to(dtype), start.to(dtype))
     t1 = time.perf_counter()
     sim_traj = sims.q if cfg.space == "joint" else sims.ee
+    if noise.sigma(cfg.space) > 0:  # compare like with like: the candidates seen through the same noise
+        sim_traj = noise.perturb(sim_traj, cfg.space, rng)
     dist = _distances(trajectory, sim_traj, sims.length, cfg, keep_best=cfg.keep_best)
     dist_fallback = None
     if cfg.epsilon is not None and not bool((dist < cfg.epsilon).any()):
@@ -403,7 +438,7 @@ def _candidate_chunk(job, *, simulator, prior, start, goal, trajectory, config: 
 def _camo_for(task, observations, budget, seed, config) -> tuple[Camo, tuple]:
     config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
                                                                CamoConfig)
-    return Camo(task.simulator, prior, config, n_samples=budget, seed=seed), observations
+    return Camo(task.simulator, prior, config, n_samples=budget, seed=seed, noise=task.noise), observations
 
 
 def run_sequence(task, observations, *, budget: int, seed: int, config: CamoConfig | None = None):

@@ -2,6 +2,11 @@
 
 Known (fixed) joints of a strong prior take their known limits, as every method does.
 The start posture is part of each reach (its first row), so the estimate contains it.
+
+Noise rule: with joint-space observation noise (``task.noise.joint_deg > 0``), each
+reach's joint trajectory is median-filtered over 3 consecutive samples (the end points over
+the 2 they have) before the min/max, so no single outlying sample can set a limit; a real
+excursion lasts at least 2 samples and survives the filter. Without noise nothing is filtered.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ import torch
 from camo_sbi.inference.baselines import point_result
 from camo_sbi.inference.contract import check_run_args
 
-__all__ = ["NaiveConfig", "naive_limits", "run", "run_sequence"]
+__all__ = ["NaiveConfig", "median3", "naive_limits", "run", "run_sequence"]
 
 
 @dataclass(frozen=True)
@@ -37,8 +42,20 @@ def naive_limits(joint_trajectories) -> np.ndarray:
     return torch.stack([allq.min(dim=0).values, allq.max(dim=0).values], dim=1).reshape(-1).numpy()
 
 
-def _estimate(prior, observations) -> np.ndarray:
-    return prior.with_known(torch.from_numpy(naive_limits([o.q for o in observations]))).numpy()
+def median3(q: torch.Tensor) -> torch.Tensor:
+    """(L, n) -> (L, n): the median of each sample and its neighbours (2 at the ends; L < 3 as is)."""
+    if q.shape[0] < 3:
+        return q
+    mid = torch.stack([q[:-2], q[1:-1], q[2:]]).median(dim=0).values
+    ends = [torch.stack([q[:2]]).mean(dim=1), torch.stack([q[-2:]]).mean(dim=1)]  # median of 2 = their mean
+    return torch.cat([ends[0], mid, ends[1]])
+
+
+def _estimate(task, prior, observations) -> np.ndarray:
+    qs = [o.q for o in observations]
+    if task.noise.joint_deg > 0:
+        qs = [median3(q) for q in qs]
+    return prior.with_known(torch.from_numpy(naive_limits(qs))).numpy()
 
 
 def run_sequence(task, observations, *, budget: int, seed: int, config: NaiveConfig | None = None):
@@ -47,7 +64,7 @@ def run_sequence(task, observations, *, budget: int, seed: int, config: NaiveCon
     _, _, _, observations, prior = check_run_args(task, observations, budget, seed, config, NaiveConfig,
                                                   space="joint")
     for k in range(len(observations)):
-        yield point_result("naive", _estimate(prior, observations[: k + 1]), k + 1, t0)
+        yield point_result("naive", _estimate(task, prior, observations[: k + 1]), k + 1, t0)
 
 
 def run(task, observations, *, budget: int, seed: int, config: NaiveConfig | None = None):
@@ -55,4 +72,4 @@ def run(task, observations, *, budget: int, seed: int, config: NaiveConfig | Non
     t0 = time.perf_counter()
     _, _, _, observations, prior = check_run_args(task, observations, budget, seed, config, NaiveConfig,
                                                   space="joint")
-    return point_result("naive", _estimate(prior, observations), len(observations), t0)
+    return point_result("naive", _estimate(task, prior, observations), len(observations), t0)

@@ -68,7 +68,7 @@ from camo_sbi.distributed import parse_scheduler, run_chunks
 from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.result import PosteriorResult, weighted_median
 from camo_sbi.priors import BoxPrior
-from camo_sbi.task import contain
+from camo_sbi.task import NoiseModel, contain
 
 __all__ = [
     "ImportanceSample",
@@ -609,10 +609,18 @@ def _check_run_args(task, observations, budget, seed, config):
     return observations, budget, seed, config
 
 
-def _simulate_summaries(theta, *, simulator, start, goal, dtype, config: NpeConfig) -> torch.Tensor:
-    """Summaries of one chunk of draws simulated to one task (in-process or on a Dask worker)."""
+def _simulate_summaries(job, *, simulator, start, goal, dtype, config: NpeConfig,
+                        noise: NoiseModel) -> torch.Tensor:
+    """Summaries of one chunk of draws simulated to one task (in-process or on a Dask worker).
+
+    ``job`` = (theta chunk, key of its noise stream): with observation noise the training
+    trajectories are perturbed by the task's noise model (noise-augmented training data).
+    """
+    theta, key = job
     out = simulator.simulate(contain(theta, start).to(dtype), goal=goal.to(dtype), start=start.to(dtype))
     x = out.q if config.space == "joint" else out.ee
+    if noise.sigma(config.space) > 0:
+        x = noise.perturb(x, config.space, np.random.default_rng(key))
     return summarize(x, out.length, n_points=config.n_points, include_length=config.include_length)
 
 
@@ -632,10 +640,11 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0, i)))
         theta = prior.sample(budget, rng)
         t0 = time.perf_counter()
-        chunks = [theta[s : s + config.simulation_batch_size]
-                  for s in range(0, budget, config.simulation_batch_size)]
+        chunks = [(theta[s : s + config.simulation_batch_size], (seed, 3, i, c))
+                  for c, s in enumerate(range(0, budget, config.simulation_batch_size))]
         feats = run_chunks(_simulate_summaries, chunks, simulator=sim, n_simulations=budget,
-                           scheduler=config.scheduler, start=start, goal=goal, dtype=dtype, config=config)
+                           scheduler=config.scheduler, start=start, goal=goal, dtype=dtype, config=config,
+                           noise=task.noise)
         t_sim = time.perf_counter() - t0
         x = torch.cat(feats)
         xo = summarize(traj_obs, torch.tensor([traj_obs.shape[0]]), n_points=config.n_points,

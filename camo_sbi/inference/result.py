@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["STATUS_OK", "PosteriorResult", "check_status", "weighted_median"]
+__all__ = ["STATUS_OK", "PosteriorResult", "check_status", "weighted_median", "weighted_quantile"]
 
 STATUS_OK = "ok"
 _STATUS_PREFIXES = ("fallback: ", "failed: ")
@@ -106,11 +106,21 @@ class PosteriorResult:
         return self.samples[idx]
 
 
-def weighted_median(x: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Coordinate-wise weighted median of ``x`` (N, D) with weights ``w`` (N,) -> (D,)."""
+def weighted_quantile(x: np.ndarray, w: np.ndarray, q) -> np.ndarray:
+    """Coordinate-wise weighted quantile of ``x`` (N, D) with weights ``w`` (N,) -> (D,).
+
+    ``q``: a level in [0, 1], or (D,) levels, one per coordinate. The value returned for a
+    coordinate is the smallest sample whose cumulative weight reaches ``q`` of the total.
+    """
+    levels = np.broadcast_to(np.asarray(q, dtype=np.float64), (x.shape[1],))
     out = np.empty(x.shape[1])
     for j in range(x.shape[1]):
         order = np.argsort(x[:, j], kind="stable")
         cw = np.cumsum(w[order])
-        out[j] = x[order[np.searchsorted(cw, 0.5 * cw[-1])], j]
+        out[j] = x[order[min(np.searchsorted(cw, levels[j] * cw[-1]), len(order) - 1)], j]
     return out
+
+
+def weighted_median(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Coordinate-wise weighted median of ``x`` (N, D) with weights ``w`` (N,) -> (D,)."""
+    return weighted_quantile(x, w, 0.5)
