@@ -1,8 +1,8 @@
 """Exact DTW (`dtw_distances`) against independent references, with and without pruning.
 
-References: `dtw_reference` (a plain numpy O(n m) table) and, when installed, the ``dtw-python``
-package (``dtw.dtw(..., dist_method="euclidean", step_pattern="symmetric1")``, the same
-recursion). Pruned results must be bit-identical to the unpruned ones on every candidate they
+References: `dtw_reference` (tests/_dtw_reference.py, a plain numpy O(n m) table) and, when
+installed, the ``dtw-python`` package (``dtw.dtw(..., dist_method="euclidean",
+step_pattern="symmetric1")``, the same recursion). Pruned results must be bit-identical to the unpruned ones on every candidate they
 report; the lower bounds must never exceed the true DTW.
 """
 
@@ -14,12 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from camo_sbi.inference.distances import (
-    _candidate_bounds,
-    dtw_distances,
-    dtw_reference,
-    l2_distance,
-)
+from camo_sbi.inference.distances import _candidate_bounds, dtw_distances, l2_distance
+from tests._dtw_reference import dtw_reference
 
 # ----------------------------------------------------------------------------------------------
 # data
