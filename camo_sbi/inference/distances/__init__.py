@@ -35,13 +35,14 @@ Modules, each with its own docstring (shapes, invariants):
 * `chunks`: what one thread does with its chunk of blocks (bounds, thresholds, DP);
 * `kernels`: the DP of a lane block (pruned, exact) and of one candidate;
 * `bounds`: LB_Keogh-style envelope bounds with LB_Kim ends, the straight-path upper bound;
+* `costs`: the local cost of a cell, computed one way for the DP and the upper bound;
 * `blocks`: the lane block layout, its constants and the exactness margins;
 * `numba_cache`: keeps numba's on-disk cache of the kernels in step with all their modules.
 """
 
 from __future__ import annotations
 
-from camo_sbi.inference.distances import blocks, bounds, chunks, kernels, numba_cache
+from camo_sbi.inference.distances import blocks, bounds, chunks, costs, kernels, numba_cache
 from camo_sbi.inference.distances.api import _candidate_bounds as _candidate_bounds  # tests
 from camo_sbi.inference.distances.api import dtw_distances, l2_distance
 
@@ -49,5 +50,5 @@ __all__ = ["dtw_distances", "l2_distance"]
 
 # The modules of numba kernels. Before any kernel runs: numba alone would not see an edit of
 # one of them in the on-disk cache of a kernel of another.
-KERNEL_MODULES = (blocks, bounds, kernels, chunks)
+KERNEL_MODULES = (blocks, costs, bounds, kernels, chunks)
 numba_cache.flush_if_changed(KERNEL_MODULES)

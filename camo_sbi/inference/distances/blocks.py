@@ -26,6 +26,7 @@ __all__ = [
     "SHRINK",
     "SLACK",
     "gather_block",
+    "record_nonfinite",
 ]
 
 # Candidates computed together, one per SIMD lane: their independent recursions fill the vector
@@ -44,15 +45,23 @@ MIN_CELLS_FOR_LANES = 1024
 
 
 @njit(cache=True, nogil=True)
-def gather_block(sim, lengths, ids, start, count, Yf, mlen, box, want_box, bad):
-    """Copy candidates ``ids[start:start+count]`` into the lane block Yf.
+def record_nonfinite(sim, b, m, bad):
+    """bad[0] = b * T + j for the first step j < m of sim[b] (B, T, D) holding NaN or inf,
+    unless bad[0] is already set (>= 0). The caller raises; bad (1,) int64."""
+    for j in range(m):
+        for k in range(sim.shape[2]):
+            if not np.isfinite(sim[b, j, k]) and bad[0] < 0:
+                bad[0] = b * sim.shape[1] + j
 
-    Points j < the block's largest length (returned) are written; steps >= a candidate's length
-    repeat its last valid point whatever the input padding holds; unused lanes replicate the
-    first one. With ``want_box``, box[0, k, lane] / box[1, k, lane] receive the lane's
-    bounding box. A NaN/inf
-    among the valid points is recorded in bad[0] (as b * T + step) and replaced by 0 (the
-    caller raises).
+
+@njit(cache=True, nogil=True)
+def gather_block(sim, lengths, ids, start, count, Yf, mlen, box, want_box, bad):
+    """Copy candidates ``ids[start:start+count]`` of sim (B, T, D) into the lane block Yf.
+
+    Points j < the block's largest length (returned) are written; mlen receives the lanes'
+    lengths. With ``want_box``, box[0, k, lane] / box[1, k, lane] ((2, D, LANES)) receive the
+    lane's bounding box. A NaN/inf among the valid points is recorded in bad[0] (as b * T + step,
+    see `record_nonfinite`) and replaced by 0 in Yf (the caller raises).
     """
     D = Yf.shape[0]
     T = sim.shape[1]
@@ -94,11 +103,7 @@ def gather_block(sim, lengths, ids, start, count, Yf, mlen, box, want_box, bad):
                     hi[lane] = v if v > hi[lane] else hi[lane]
     for lane in range(count):
         if chk[lane] != 0.0:
-            b = ids[start + lane]
-            for j in range(mlen[lane]):
-                for k in range(D):
-                    if not np.isfinite(sim[b, j, k]) and bad[0] < 0:
-                        bad[0] = b * T + j
+            record_nonfinite(sim, ids[start + lane], mlen[lane], bad)
             for k in range(D):
                 for j in range(mmax):
                     if not np.isfinite(Yf[k, j * nl + lane]):

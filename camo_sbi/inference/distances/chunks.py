@@ -40,6 +40,27 @@ __all__ = ["coarse_chunk", "dtw_chunk", "fine_bounds"]
 
 
 @njit(cache=True, nogil=True)
+def _bound_scratch(n, D, T):
+    """Scratch arrays of the block bounds: Yf, mlen, box, acc_r, best_r, acc_c, best_c, scol,
+    suffix_blk, rows, cols, lbb (shapes as the kernels of `blocks` and `bounds` take them)."""
+    L = LANES
+    return (
+        np.empty((D, T * L)),
+        np.empty(L, dtype=np.int64),
+        np.empty((2, D, L)),
+        np.empty(n),
+        np.empty(n),
+        np.empty(T * L),
+        np.empty(T * L),
+        np.empty((T + 1) * L),
+        np.empty((n + 1, L)),
+        np.empty(L),
+        np.empty(L),
+        np.empty(L),
+    )
+
+
+@njit(cache=True, nogil=True)
 def coarse_chunk(c, n_chunks, x, sim, lengths, ids, lb, ub, bad):
     """Cheap lower bound (one box per trajectory, LB_Kim ends) and upper bound of candidates
     ``ids`` (sorted by length for short blocks), written to lb[b], ub[b]; blocks c,
@@ -48,17 +69,8 @@ def coarse_chunk(c, n_chunks, x, sim, lengths, ids, lb, ub, bad):
     T = sim.shape[1]
     n_ids = ids.shape[0]
     xT = np.ascontiguousarray(x.T)
-    olo, ohi = seg_boxes(x, n)
-    Yf = np.empty((D, T * LANES))
-    mlen = np.empty(LANES, dtype=np.int64)
-    box = np.empty((2, D, LANES))
-    acc_r = np.empty(n)
-    acc_c = np.empty(T * LANES)
-    best_c = np.empty(T * LANES)
-    scol = np.empty((T + 1) * LANES)
-    rows = np.empty(LANES)
-    cols = np.empty(LANES)
-    lbb = np.empty(LANES)
+    olo, ohi = seg_boxes(xT, n)
+    Yf, mlen, box, acc_r, _, acc_c, best_c, scol, _, rows, cols, lbb = _bound_scratch(n, D, T)
     ubb = np.empty(LANES)
     for start in range(c * LANES, n_ids, n_chunks * LANES):
         count = min(LANES, n_ids - start)
@@ -75,23 +87,15 @@ def coarse_chunk(c, n_chunks, x, sim, lengths, ids, lb, ub, bad):
 
 @njit(cache=True)
 def fine_bounds(x, sim, lengths, seg, lb, ub, suffix, col_suffix):
-    """Fine lower bounds, upper bounds, row and column suffix bounds of every candidate."""
+    """Fine lower bounds lb, upper bounds ub (B,), row suffix bounds suffix (B, n+1) and column
+    suffix bounds col_suffix (B, T+1) of every candidate, as `dtw_chunk` uses them."""
     n, D = x.shape
     B, T = sim.shape[0], sim.shape[1]
     xT = np.ascontiguousarray(x.T)
-    olo, ohi = seg_boxes(x, seg)
-    Yf = np.empty((D, T * LANES))
-    mlen = np.empty(LANES, dtype=np.int64)
-    box = np.empty((2, D, LANES))
-    acc_r = np.empty(n)
-    best_r = np.empty(n)
-    acc_c = np.empty(T * LANES)
-    best_c = np.empty(T * LANES)
-    scol = np.empty((T + 1) * LANES)
-    suffix_blk = np.empty((n + 1, LANES))
-    rows = np.empty(LANES)
-    cols = np.empty(LANES)
-    lbb = np.empty(LANES)
+    olo, ohi = seg_boxes(xT, seg)
+    Yf, mlen, box, acc_r, best_r, acc_c, best_c, scol, suffix_blk, rows, cols, lbb = (
+        _bound_scratch(n, D, T)
+    )
     ubb = np.empty(LANES)
     ids = np.arange(B)
     bad = np.full(1, -1)
@@ -130,6 +134,7 @@ def sift_down(heap, i, v):
     heap[i] = v
 
 
+
 @njit(cache=True, nogil=True)
 def dtw_chunk(c, n_chunks, x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, out, bad):
     """DTW of candidates ``ids`` in blocks of ``LANES``: blocks c, c + n_chunks, ... here.
@@ -144,7 +149,7 @@ def dtw_chunk(c, n_chunks, x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, out
         dead from the start and a block without live lanes skips the DP. In mode 2 ids are in
         ascending coarse bound lb0 and a chunk stops at its first block whose bounds all exceed
         tau.
-    Blocks whose tables are below ``MIN_CELLS_FOR_LANES`` cells use `dtw_scalar` instead
+    Blocks whose tables are below ``MIN_CELLS_FOR_LANES`` cells use `kernels.dtw_scalar` instead
     (threshold: +inf in mode 0, min(tau, upper bound) otherwise; the coarse bound decides).
     out[b] = exact DTW if <= the lane's threshold, else +inf.
     """
@@ -153,20 +158,11 @@ def dtw_chunk(c, n_chunks, x, sim, lengths, ids, mode, lb0, ub, thr0, heap0, out
     n_ids = ids.shape[0]
     k = heap0.shape[0]
     xT = np.ascontiguousarray(x.T)
-    olo, ohi = seg_boxes(x, SEG)
+    olo, ohi = seg_boxes(xT, SEG)
     n_blocks = (n_ids + LANES - 1) // LANES
-    Yf = np.empty((D, T * LANES))
-    mlen = np.empty(LANES, dtype=np.int64)
-    box = np.empty((2, D, LANES))
-    acc_r = np.empty(n)
-    best_r = np.empty(n)
-    acc_c = np.empty(T * LANES)
-    best_c = np.empty(T * LANES)
-    scol = np.empty((T + 1) * LANES)
-    suffix_blk = np.empty((n + 1, LANES))
-    rows = np.empty(LANES)
-    cols = np.empty(LANES)
-    lbb = np.empty(LANES)
+    Yf, mlen, box, acc_r, best_r, acc_c, best_c, scol, suffix_blk, rows, cols, lbb = (
+        _bound_scratch(n, D, T)
+    )
     prev = np.empty((T + 2) * LANES)
     cur = np.empty((T + 2) * LANES)
     cost = np.empty(T * LANES)

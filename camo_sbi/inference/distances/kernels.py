@@ -18,82 +18,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from camo_sbi.inference.distances.blocks import EXTEND, LANES, SLACK
+from camo_sbi.inference.distances.blocks import EXTEND, LANES, SLACK, record_nonfinite
+from camo_sbi.inference.distances.costs import sq_costs
 
 __all__ = ["dtw_block", "dtw_scalar", "row_pass"]
 
 
 @njit(cache=True, nogil=True)
-def _acc_dims(x, i, Yf, t0, t1, cst, k0, cnt, first):
-    """cst[t] (+)= sum of (x[i, k] - Yf[k, t0 + t])^2 for k in k0..k0+cnt-1 (cnt <= 4).
-
-    Adds left to right like ``acc += d * d`` coordinate after coordinate (same rounding), with
-    several coordinates per pass over memory.
-    """
-    w = t1 - t0
-    a0 = x[i, k0]
-    y0 = Yf[k0, t0:t1]
-    if cnt == 1:
-        if first:
-            for t in range(w):
-                d0 = a0 - y0[t]
-                cst[t] = d0 * d0
-        else:
-            for t in range(w):
-                d0 = a0 - y0[t]
-                cst[t] = cst[t] + d0 * d0
-        return
-    a1 = x[i, k0 + 1]
-    y1 = Yf[k0 + 1, t0:t1]
-    if cnt == 2:
-        if first:
-            for t in range(w):
-                d0 = a0 - y0[t]
-                d1 = a1 - y1[t]
-                cst[t] = d0 * d0 + d1 * d1
-        else:
-            for t in range(w):
-                d0 = a0 - y0[t]
-                d1 = a1 - y1[t]
-                cst[t] = cst[t] + d0 * d0 + d1 * d1
-        return
-    a2 = x[i, k0 + 2]
-    y2 = Yf[k0 + 2, t0:t1]
-    if cnt == 3:
-        if first:
-            for t in range(w):
-                d0 = a0 - y0[t]
-                d1 = a1 - y1[t]
-                d2 = a2 - y2[t]
-                cst[t] = d0 * d0 + d1 * d1 + d2 * d2
-        else:
-            for t in range(w):
-                d0 = a0 - y0[t]
-                d1 = a1 - y1[t]
-                d2 = a2 - y2[t]
-                cst[t] = cst[t] + d0 * d0 + d1 * d1 + d2 * d2
-        return
-    a3 = x[i, k0 + 3]
-    y3 = Yf[k0 + 3, t0:t1]
-    if first:
-        for t in range(w):
-            d0 = a0 - y0[t]
-            d1 = a1 - y1[t]
-            d2 = a2 - y2[t]
-            d3 = a3 - y3[t]
-            cst[t] = d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3
-    else:
-        for t in range(w):
-            d0 = a0 - y0[t]
-            d1 = a1 - y1[t]
-            d2 = a2 - y2[t]
-            d3 = a3 - y3[t]
-            cst[t] = cst[t] + d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3
-
-
-@njit(cache=True, nogil=True)
 def row_pass(x, i, Yf, prev, cur, cost, c0, c1):
-    """Cells (i, c0..c1) of every lane: cost, then min over above / diagonal, then left.
+    """Cells (i, c0..c1) of every lane: cost (`costs.sq_costs`), then min over above / diagonal,
+    then left.
 
     Reads prev columns c0-1..c1 and cur column c0-1. Slices starting at 0 let LLVM prove the
     accesses disjoint and vectorise every loop. Per cell this is exactly
@@ -101,13 +35,11 @@ def row_pass(x, i, Yf, prev, cur, cost, c0, c1):
     c + min(a, b, e) == min(c + min(a, b), c + e) in floating point.
     """
     L = LANES
-    D = x.shape[1]
     t0 = c0 * L
     t1 = (c1 + 1) * L
     w = t1 - t0
     cst = cost[t0:t1]
-    for k0 in range(0, D, 4):
-        _acc_dims(x, i, Yf, t0, t1, cst, k0, min(4, D - k0), k0 == 0)
+    sq_costs(x, i, Yf, t0, t1, cst)
     up_left = prev[t0:t1]
     up = prev[t0 + L : t1 + L]
     here = cur[t0 + L : t1 + L]
@@ -139,11 +71,7 @@ def dtw_scalar(x, sim, b, m, thr, prev, cur, bad):
         for k in range(D):
             chk += sim[b, j, k] * 0.0
     if chk != 0.0:
-        if bad[0] < 0:
-            for j in range(m):
-                for k in range(D):
-                    if not np.isfinite(sim[b, j, k]) and bad[0] < 0:
-                        bad[0] = b * sim.shape[1] + j
+        record_nonfinite(sim, b, m, bad)
         return inf
     thr_eff = thr * SLACK
     for j in range(m + 1):
@@ -171,6 +99,25 @@ def dtw_scalar(x, sim, b, m, thr, prev, cur, bad):
         prev, cur = cur, prev
     v = prev[m]
     return v if v <= thr else inf
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _column_alive(cur, j, i1, suffix_blk, scol, mlen, thr_eff):
+    """Whether cell (i1 - 1, j) of some lane can lie on a path within the lane's threshold.
+
+    cur: DP row i1 - 1. The cell is dead for a lane if j >= its length, or if its value plus
+    the larger of the bounds of the rows below (suffix_blk[i1]) and of the columns to its right
+    (scol from column j + 1) exceeds thr_eff.
+    """
+    base = (j + 1) * LANES
+    alive = False
+    for lane in range(LANES):
+        r = suffix_blk[i1, lane]
+        r2 = scol[base + lane]
+        r = r if r > r2 else r2
+        if j < mlen[lane] and cur[base + lane] + r <= thr_eff[lane]:
+            alive = True
+    return alive
 
 
 @njit(cache=True, nogil=True)
@@ -208,15 +155,7 @@ def dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, scol, prev, cur, cost, thr_eff
             if e + 1 >= mmax:
                 break
             # beyond the previous row's alive columns only the left neighbour can be alive
-            base = (e + 1) * L
-            alive = False
-            for lane in range(L):
-                r = suffix_blk[i1, lane]
-                r2 = scol[base + lane]
-                r = r if r > r2 else r2
-                if e < mlen[lane] and cur[base + lane] + r <= thr_eff[lane]:
-                    alive = True
-            if not alive:
+            if not _column_alive(cur, e, i1, suffix_blk, scol, mlen, thr_eff):
                 break
             c0 = e + 1
             e = min(e + EXTEND, mmax - 1)
@@ -227,28 +166,16 @@ def dtw_block(x, Yf, mlen, mmax, thr, suffix_blk, scol, prev, cur, cost, thr_eff
         a = -1
         b = -1
         for j in range(s, e + 1):
-            base = (j + 1) * L
-            for lane in range(L):
-                r = suffix_blk[i1, lane]
-                r2 = scol[base + lane]
-                r = r if r > r2 else r2
-                if j < mlen[lane] and cur[base + lane] + r <= thr_eff[lane]:
-                    a = j
-            if a >= 0:
+            if _column_alive(cur, j, i1, suffix_blk, scol, mlen, thr_eff):
+                a = j
                 break
         if a < 0:
             for lane in range(L):
                 out[lane] = inf
             return False
         for j in range(e, a - 1, -1):
-            base = (j + 1) * L
-            for lane in range(L):
-                r = suffix_blk[i1, lane]
-                r2 = scol[base + lane]
-                r = r if r > r2 else r2
-                if j < mlen[lane] and cur[base + lane] + r <= thr_eff[lane]:
-                    b = j
-            if b >= 0:
+            if _column_alive(cur, j, i1, suffix_blk, scol, mlen, thr_eff):
+                b = j
                 break
         prev, cur = cur, prev
     for lane in range(L):
