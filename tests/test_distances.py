@@ -2,8 +2,10 @@
 
 References: `dtw_reference` (tests/_dtw_reference.py, a plain numpy O(n m) table) and, when
 installed, the ``dtw-python`` package (``dtw.dtw(..., dist_method="euclidean",
-step_pattern="symmetric1")``, the same recursion). Pruned results must be bit-identical to the unpruned ones on every candidate they
-report; the lower bounds must never exceed the true DTW.
+step_pattern="symmetric1")``, the same recursion). Pruned results must be bit-identical to the
+unpruned ones on every candidate they report; the lower bounds must never exceed the true DTW.
+The golden values (tests/data/dtw_golden.npz) freeze the outputs of the code before it became
+a package.
 """
 
 from __future__ import annotations

@@ -120,7 +120,7 @@ def dtw_distances(
 
     Returns:
         (B,) float64 CPU tensor: DTW = min over warping paths of the sum of Euclidean point
-        distances (see the module docstring), or +inf where pruned as described above. The
+        distances (see the package docstring), or +inf where pruned as described above. The
         values do not depend on ``workers`` or on the pruning options (bit-for-bit).
 
     Raises:
@@ -163,7 +163,7 @@ def dtw_distances(
 
 
 def _dtw_with_pruning(x, sim, lens, eps, k, n_threads, out, bad) -> None:
-    """The pruned pipeline (see the module docstring); out[b] = exact DTW or +inf."""
+    """The pruned cascade (see the `chunks` docstring); out[b] = exact DTW or +inf."""
     B = sim.shape[0]
     lb0 = np.empty(B)
     ub = np.empty(B)
