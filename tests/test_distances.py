@@ -1,23 +1,23 @@
 """Exact DTW (`dtw_distances`) against independent references, with and without pruning.
 
-References: `dtw_reference` (a plain numpy O(n m) table) and, when installed, the ``dtw-python``
-package (``dtw.dtw(..., dist_method="euclidean", step_pattern="symmetric1")``, the same
-recursion). Pruned results must be bit-identical to the unpruned ones on every candidate they
-report; the lower bounds must never exceed the true DTW.
+References: `dtw_reference` (tests/_dtw_reference.py, a plain numpy O(n m) table) and, when
+installed, the ``dtw-python`` package (``dtw.dtw(..., dist_method="euclidean",
+step_pattern="symmetric1")``, the same recursion). Pruned results must be bit-identical to the
+unpruned ones on every candidate they report; the lower bounds must never exceed the true DTW.
+The golden values (tests/data/dtw_golden.npz) freeze the outputs of the code before it became
+a package.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from camo_sbi.inference.distances import (
-    _candidate_bounds,
-    dtw_distances,
-    dtw_reference,
-    l2_distance,
-)
+from camo_sbi.inference.distances import _candidate_bounds, dtw_distances, l2_distance
+from tests._dtw_reference import dtw_reference
 
 # ----------------------------------------------------------------------------------------------
 # data
@@ -290,6 +290,52 @@ def test_bounds_bracket_the_true_dtw(D):
             Dm = acc[1:, 1:]
             assert np.all(Dm.min(axis=1)[:-1] + rs[1:n] <= true[b] * (1 + 1e-12))
             assert np.all(Dm.min(axis=0)[:-1] + cs[1:m] <= true[b] * (1 + 1e-12))
+
+
+# ----------------------------------------------------------------------------------------------
+# golden values: outputs of the code as it was before distances.py became a package
+# (tests/data/make_dtw_golden.py says how they were made; never re-freeze them to pass)
+# ----------------------------------------------------------------------------------------------
+
+_GOLDEN = Path(__file__).parent / "data" / "dtw_golden.npz"
+with np.load(_GOLDEN) as _z:
+    _GOLDEN_CASES = sorted({key.split("/")[0] for key in _z.files})
+
+
+@pytest.fixture(scope="module")
+def golden():
+    with np.load(_GOLDEN) as z:
+        return {key: z[key] for key in z.files}
+
+
+def _assert_bits_equal(got, want, what):
+    np.testing.assert_array_equal(got, want, err_msg=what)
+    assert got.dtype == want.dtype, what
+    assert np.array_equal(got.view(np.uint64), want.view(np.uint64)), what  # -0.0 != 0.0 too
+
+
+@pytest.mark.parametrize("case", _GOLDEN_CASES)
+def test_golden_values_are_unchanged(golden, case):
+    obs, sim, lens = golden[f"{case}/obs"], golden[f"{case}/sim"], golden[f"{case}/lens"]
+    n = int(golden[f"{case}/n"])
+    calls = sorted(key for key in golden if key.startswith(f"{case}/dtw/"))
+    assert len(calls) == 8
+    for key in calls:
+        opt = key.split("/")[2]
+        prefix = f"{case}/kw/{opt}/"
+        kw = {k[len(prefix) :]: golden[k].item() for k in golden if k.startswith(prefix)}
+        got = dtw_distances(obs, sim, lens, observed_length=n, **kw).numpy()
+        _assert_bits_equal(got, golden[key], key)
+    x = np.asarray(obs[:n], dtype=np.float64)
+    s64 = np.where(np.isnan(sim), 0.0, sim).astype(np.float64)
+    for seg in (20, 3, 1000):
+        bounds = _candidate_bounds(x, s64, lens, seg=seg)
+        for name, v in bounds.items():
+            key = f"{case}/bounds/{seg}/{name}"
+            if key in golden:
+                _assert_bits_equal(v, golden[key], key)
+    eq = sim[:, :n] if not np.isnan(sim[:, :n]).any() else np.nan_to_num(sim[:, :n])
+    _assert_bits_equal(l2_distance(obs[:n], eq).numpy(), golden[f"{case}/l2"], f"{case}/l2")
 
 
 # ----------------------------------------------------------------------------------------------
