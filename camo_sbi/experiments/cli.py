@@ -51,7 +51,9 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _demo_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", choices=("panda", "human"), default="panda")
+    from camo_sbi.experiments.models import add_model_arguments
+
+    add_model_arguments(p, limits=False)
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/demo")

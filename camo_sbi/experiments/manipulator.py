@@ -19,9 +19,14 @@ from tqdm import tqdm
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import dask_client, parse_scheduler
+from camo_sbi.experiments.models import (
+    add_model_arguments,
+    model_from_args,
+    subject_list,
+    true_limits,
+)
 from camo_sbi.experiments.plots import plot_bars, plot_lines, save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
-from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
 
 __all__ = ["DEFAULT_METHODS", "add_arguments", "main", "method_config", "run_one"]
 
@@ -46,16 +51,16 @@ def method_config(name: str, args) -> dict | None:
             "scheduler": getattr(args, "scheduler", None)}
 
 
-def run_one(sim, model: str, subject: str, run: int, args) -> list[dict]:
-    """All methods on one run's subject; returns tidy rows."""
+def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
+    """All methods on one run's subject (``model``: its `ModelSpec`); returns tidy rows."""
     from camo_sbi.evaluation.evaluate import evaluate_result, true_test_trajectories
     from camo_sbi.evaluation.metrics import binding_bounds
     from camo_sbi.inference.registry import run_method_sequence
     from camo_sbi.scenarios.reaching import make_reaching_task
 
-    true_theta = subject_theta(sim, model, subject)
+    true_theta = true_limits(model, sim, subject)
     task = make_reaching_task(sim, true_theta, n_train=args.tasks, n_test=args.test_goals,
-                              seed=derive_seed(args.seed, run), name=model, subject=subject)
+                              seed=derive_seed(args.seed, run), name=model.name, subject=subject)
     true_test = true_test_trajectories(task)
     binding = binding_bounds(sim, true_theta, task.test_starts, task.test_goals, task.prior)
     rows = []
@@ -67,7 +72,7 @@ def run_one(sim, model: str, subject: str, run: int, args) -> list[dict]:
             metrics["n_simulations"] = res.n_simulations
             metrics["wall_time"] = res.wall_time
             for metric, value in metrics.items():
-                rows.append({"run": run, "model": model, "subject": subject, "method": name,
+                rows.append({"run": run, "model": model.name, "subject": subject, "method": name,
                              "n_tasks": res.n_tasks, "metric": metric, "value": value, "status": res.status})
     return rows
 
@@ -94,7 +99,7 @@ def make_figures(df, out: Path) -> list[Path]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", choices=("panda", "human"), default="panda", help="simulated agent")
+    add_model_arguments(p)
     p.add_argument("--runs", type=int, default=30, help="independent runs (paper: 30)")
     p.add_argument("--tasks", type=int, default=10, help="observed training goals per run")
     p.add_argument("--test-goals", type=int, default=20, help="held-out goals per run")
@@ -106,7 +111,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sampling", choices=("uniform", "lhs"), default="uniform")
     p.add_argument("--methods", default=",".join(DEFAULT_METHODS),
                    help="comma-separated registered methods (default: %(default)s)")
-    p.add_argument("--subjects", default=None, help="comma-separated ground-truth profiles (default: all, cycled)")
+    p.add_argument("--subjects", default=None, help="comma-separated ground-truth profiles (default: all, cycled; "
+                                                     "with --urdf the --limits file is the subject)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scheduler", default=None,
                    help="run CAMO's candidate chunks on Dask: 'local:N' or 'tcp://host:8786' "
@@ -131,21 +137,24 @@ def main(args) -> int:
     except ValueError as exc:
         raise ValueError(f"--{exc}") from exc
     t0 = time.perf_counter()
-    sim = build_model(args.model)
-    subjects = args.subjects.split(",") if args.subjects else subject_names(args.model)
+    model = model_from_args(args)
+    sim = model.build()
+    subjects = subject_list(model, args.subjects, default_all=True)
     for s in subjects:
-        subject_theta(sim, args.model, s)  # validates names before any work
+        true_limits(model, sim, s)  # validates names before any work
     out = Path(args.out)
     store = ResultStore(out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
+    # a built-in model with its defaults keeps the cell keys it always had
+    settings["model"] = model.name if model.is_default else json.dumps(model.key(), sort_keys=True)
     atomic_write_text(out / "config.json", json.dumps({"experiment": "reproduce panda", **settings}, indent=2))
     with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
-        for run in tqdm(range(args.runs), desc=f"reproduce {args.model}", unit="run"):
+        for run in tqdm(range(args.runs), desc=f"reproduce {model.name}", unit="run"):
             subject = subjects[run % len(subjects)]
             key = cell_key({"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}})
             if store.done(key):
                 continue
-            store.put(key, run_one(sim, args.model, subject, run, args))
+            store.put(key, run_one(sim, model, subject, run, args))
     df = store.write_table()
     figs = make_figures(df, out)
     wall = time.perf_counter() - t0
