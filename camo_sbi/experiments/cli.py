@@ -16,7 +16,7 @@ def _demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from camo_sbi.experiments import calibrate, compare, hrc, manipulator
+    from camo_sbi.experiments import calibrate, compare, hrc, manipulator, recorded
 
     parser = argparse.ArgumentParser(prog="camo-sbi", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -37,6 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
          calibrate.main),
         ("report", "write a self-contained HTML report of a run directory", _report_arguments, _report),
         ("demo", "simulate a batch of reaches and plot them", _demo_arguments, _demo),
+        ("simulate-observations", "write synthetic recorded reaches of a subject (recording format)",
+         recorded.add_simulate_arguments, recorded.simulate_main),
+        ("infer", "infer joint limits from recorded reaches", recorded.add_infer_arguments, recorded.infer_main),
     )
     for name, help_text, add_arguments, func in commands:
         p = sub.add_parser(name, help=help_text)
