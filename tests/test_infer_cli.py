@@ -324,3 +324,36 @@ def test_urdf_changed_since_setup_is_refused(tmp_path):
     spec = ModelSpec(kind="urdf", urdf=str(urdf), digest="0" * 64, ee="tool")
     with pytest.raises(ValueError, match="^--urdf: .* changed since the run was set up"):
         spec.build()
+
+
+def test_reaches_from_different_starts(tmp_path, sim, capsys):
+    """The prior splits at the first reach's start and is conditioned on every other start lying
+    inside the limits, so every estimate contains every observed start."""
+    import torch
+
+    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.scenarios.reaching import observe, reachable_goals
+
+    theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)
+    starts = torch.tensor([[0.0, 0.4, 0.0, -1.1, 0.0, 0.7, 0.0], [0.9, -0.4, 1.5, -0.4, 0.6, -1.0, 2.0],
+                           [-1.0, 0.9, -2.0, -1.8, -0.8, 1.2, -2.5]], dtype=torch.float64)
+    goals = reachable_goals(sim, theta, 3, torch.Generator().manual_seed(0))
+    path = save_recordings(tmp_path / "starts.csv", observe(sim, theta, goals, starts), sim)
+    out = tmp_path / "out"
+    assert main(["infer", "--observations", str(path), *MODEL, "--methods", "camo,naive,nominal", "--budget",
+                 "100", "--out", str(out)]) == 0
+    df = pd.read_csv(out / "limits.csv")
+    s = starts.numpy()
+    for m, g in df.groupby("method"):
+        est = g.estimate_rad.to_numpy()
+        assert (est[0::2] <= s.min(axis=0) + 1e-9).all() and (est[1::2] >= s.max(axis=0) - 1e-9).all(), m
+
+
+def test_demo_and_calibrate_on_a_urdf(tmp_path):
+    assert main(["demo", *MODEL, "--batch", "8", "--out", str(tmp_path / "demo")]) == 0
+    assert (tmp_path / "demo" / "demo.png").stat().st_size > 1000
+    out = tmp_path / "cal"
+    assert main(["calibrate", *MODEL, "--methods", "camo,naive", "--subjects", "2", "--tasks", "1", "--budget",
+                 "40", "--sbc-draws", "10", "--out", str(out)]) == 0
+    cov = pd.read_csv(out / "coverage.csv")
+    assert set(cov.task) == {"arm7"} and set(cov.method) == {"camo", "naive"}

@@ -245,6 +245,16 @@ def test_value_beyond_model_range(csv_file, sim):
         load_recordings(csv_file, sim)
 
 
+def test_ee_must_match_the_joints_forward_kinematics(csv_file, sim, exact):
+    line = 2 + exact[0].length + 3  # reach 1, its fourth sample
+    value = float(_lines(csv_file)[line - 1].split(",")[-3])
+    _edit(csv_file, line, "ee_x", repr(value + 0.03))
+    with pytest.raises(ValueError, match=_err(csv_file, rf"column 'ee_x', line {line}: the model's end effector "
+                                                        r"at this row's joint values is 30.0 mm from")):
+        load_recordings(csv_file, sim)
+    load_recordings(csv_file, sim, noise=NoiseModel(ee_mm=10.0))  # within the noise allowance
+
+
 def test_ee_only_reach_must_start_at_the_start_posture(tmp_path, sim, exact):
     moved = tuple(Observation(o.start, o.goal, None, o.ee + torch.tensor([0.05, 0.0, 0.0], dtype=torch.float64))
                   for o in exact)

@@ -13,7 +13,9 @@ names as 1-D arrays of equal length)::
     ee_x, ee_y, ee_z   end-effector position in metres (base frame)
 
 A file has the joint columns, the end-effector columns, or both (all of a group or none).
-Any other column is an error. With joint columns the start posture of a reach is its first
+Any other column is an error. With both, the model's forward kinematics of each row's joint
+values must lie within `EE_FK_TOL_M` (plus the noise allowance) of its ee_* values (a file
+recorded at another link than the model's end effector is refused). With joint columns the start posture of a reach is its first
 row; an end-effector-only file uses the model's start posture (``start=``, the CLI's
 ``--start``) for every reach and must begin each reach where that posture puts the end
 effector (within `START_TOL_M` plus the noise allowance).
@@ -66,6 +68,9 @@ START_TOL_M = 0.005
 """An end-effector-only reach must start within this distance (plus the noise allowance) of
 the end effector at the model's start posture."""
 GOAL_TOL = 1e-9
+EE_FK_TOL_M = 0.01
+"""With joint and end-effector columns, FK of each row's joints must lie within this distance (plus
+the noise allowance) of its ee_* values."""
 RESAMPLE_MODES = ("time", "arclength")
 RATE_SNAP = 0.15
 """An estimated rate within this relative distance of an integer is taken as that integer."""
@@ -257,6 +262,21 @@ def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel) ->
     return np.clip(q, b[:, 0], b[:, 1])
 
 
+def _check_ee_matches_fk(table: _Table, simulator, q: np.ndarray, ee: np.ndarray, noise: NoiseModel) -> None:
+    """With both spaces recorded, the model's FK of the joint values must land near ee_*: a file
+    recorded at another link than ``--ee`` (or for another robot) is refused, not inferred on."""
+    fk = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
+    dist = np.linalg.norm(fk - ee, axis=1)
+    lever = float(np.linalg.norm(ee, axis=1).max())  # joint noise moves the end effector by ~ lever * sigma
+    tol = EE_FK_TOL_M + K_SIGMA * (math.sqrt(3) * noise.sigma("cartesian")
+                                   + math.sqrt(simulator.n_joints) * lever * noise.sigma("joint"))
+    i = int(np.argmax(dist))
+    if dist[i] > tol:
+        raise ValueError(f"{table.where('ee_x', i)}: the model's end effector at this row's joint values is "
+                         f"{dist[i] * 1000:.1f} mm from ee_x, ee_y, ee_z (tolerance {tol * 1000:.1f} mm): was the "
+                         f"recording made at another link than the model's end effector (--ee)?")
+
+
 def load_recordings(path, simulator, *, degrees: bool = False, noise: NoiseModel | None = None,
                     start=None, resample: str | None = "time", rate: float | None = None,
                     ) -> tuple[Observation, ...]:
@@ -307,6 +327,8 @@ def load_recordings(path, simulator, *, degrees: bool = False, noise: NoiseModel
                                  f"starts {dist * 1000:.1f} mm from where the start posture puts the end "
                                  f"effector (tolerance {tol * 1000:.1f} mm): an end-effector-only recording "
                                  f"starts at the model's start posture (give it with --start)")
+    if has_q and has_ee:
+        _check_ee_matches_fk(table, simulator, q_all, ee_all, noise)
     obs = []
     for idx in reaches:
         q = torch.from_numpy(q_all[idx].copy()) if has_q else None
