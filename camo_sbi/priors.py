@@ -24,7 +24,6 @@ from collections.abc import Mapping
 
 import numpy as np
 import torch
-from scipy.stats import qmc
 
 from camo_sbi._validation import as_tensor, check_finite, check_positive_int, numpy_generator
 
@@ -169,6 +168,8 @@ class BoxPrior:
         rng = numpy_generator(seed)
         k = self.n_free
         if self.sampling == "lhs" and k > 0:
+            from scipy.stats import qmc  # imports all of scipy.stats (~1 s): only for LHS draws
+
             u = qmc.LatinHypercube(d=k, seed=rng).random(n)
         else:
             u = rng.random((n, k))
