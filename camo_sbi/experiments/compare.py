@@ -220,7 +220,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seeds", type=int, default=2, help="number of seeds (subjects' observations differ per seed)")
     p.add_argument("--tasks", type=int, default=3, help="observed tasks K (rows for 1..K)")
     p.add_argument("--test-goals", type=int, default=10)
-    p.add_argument("--subjects", default=None, help="comma-separated subject profiles (default: the first)")
+    p.add_argument("--subjects", default=None, help="comma-separated subject profiles (default: the first; "
+                                                     "with --limits the file is the subject)")
     p.add_argument("--space", choices=("joint", "cartesian"), default="joint")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes (without --scheduler)")
     p.add_argument("--scheduler", default=None,

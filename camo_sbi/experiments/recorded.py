@@ -249,9 +249,11 @@ def _report(out: Path, task, results: dict, notes: list[str], table, settings: d
         fig = Figure(figsize=(3.2 * len(methods), 5.6), constrained_layout=True)
         axes = fig.subplots(2, len(methods), squeeze=False)
         for c, m in enumerate(methods):
-            th = contain(draws[m], o.start)
+            # float32, as CAMO's candidates: a new chain's float64 kernel is not compiled for a figure
+            th = contain(draws[m], o.start).to(torch.float32)
             pred = sim.simulate(th, o.goal, o.start)
-            est = sim.simulate(contain(torch.as_tensor(results[m].estimate), o.start), o.goal, o.start)
+            est = sim.simulate(contain(torch.as_tensor(results[m].estimate), o.start).to(torch.float32), o.goal,
+                               o.start)
             top, side = axes[0, c], axes[1, c]
             for b in range(th.shape[0]):
                 e = _ee_of(pred.ee, pred.length, b)
