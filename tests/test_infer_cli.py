@@ -173,10 +173,14 @@ def test_ee_only_recording(recording, tmp_path, sim, capsys):
 
 
 def test_oracle_is_skipped_on_recordings(recording, tmp_path, capsys):
-    argv = ["infer", "--observations", str(recording), *MODEL, "--methods", "nominal,oracle", "--out",
+    argv = ["infer", "--observations", str(recording), *MODEL, *NOISE, "--methods", "nominal,oracle", "--out",
             str(tmp_path / "o")]
     assert main(argv) == 0
     assert "oracle: skipped (needs the true limits" in capsys.readouterr().out
+    # without its noise model the noisy recording's ee_* are too far from the FK of its joints
+    without = [a for a in argv if a not in NOISE]
+    line = _exit_2(without, capsys)
+    assert line.startswith(f"camo-sbi: error: {recording}: column 'ee_x', line ") and "(--ee)?" in line
 
 
 def _csv_edit(src: Path, dst: Path, fn) -> Path:
@@ -217,7 +221,8 @@ def test_bad_files_exit_2_naming_the_column(recording, tmp_path, capsys, sim):
 ])
 def test_infer_bad_options_exit_2(extra, needle, recording, tmp_path, capsys):
     # argparse keeps the last of a repeated option, so ``extra`` may override --methods
-    argv = ["infer", "--observations", str(recording), *MODEL, "--methods", "camo", "--out", str(tmp_path / "y")]
+    argv = ["infer", "--observations", str(recording), *MODEL, *NOISE, "--methods", "camo", "--out",
+            str(tmp_path / "y")]
     if needle is None:  # a recording with both spaces: --space cartesian is fine
         assert main([*argv, *extra]) == 0
         return
