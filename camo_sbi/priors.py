@@ -24,7 +24,6 @@ from collections.abc import Mapping
 
 import numpy as np
 import torch
-from scipy.stats import qmc
 
 from camo_sbi._validation import as_tensor, check_finite, check_positive_int, numpy_generator
 
@@ -192,6 +191,8 @@ class BoxPrior:
                 theta[:, c] = values[torch.from_numpy(rng.integers(0, values.shape[0], size=n))]
             return theta
         if self.sampling == "lhs" and k > 0:
+            from scipy.stats import qmc  # imports all of scipy.stats (~1 s): only for LHS draws
+
             u = qmc.LatinHypercube(d=k, seed=rng).random(n)
         else:
             u = rng.random((n, k))

@@ -10,6 +10,7 @@ import pytest
 
 from camo_sbi.diagnostics.calibration import central_interval_coverage, sbc_ranks
 from camo_sbi.experiments import calibrate
+from camo_sbi.experiments.models import ModelSpec
 
 TINY = ["--model", "panda", "--methods", "camo,naive", "--subjects", "3", "--tasks", "1", "--budget", "40",
         "--sbc-draws", "20", "--config", 'camo={"keep_best": 20}']
@@ -124,7 +125,7 @@ def test_redraws_subject_deterministically(monkeypatch):
         return real(sim, theta, **kw)
 
     monkeypatch.setattr(reaching, "make_reaching_task", flaky)
-    sim = calibrate._model("panda")
+    sim = ModelSpec("panda").build()
     task, attempt = calibrate.draw_subject(sim, "panda", 4, n_tasks=1, seed=0)
     assert attempt == 2 and len(set(seen)) == 3
     monkeypatch.setattr(reaching, "make_reaching_task", real)

@@ -33,7 +33,7 @@ from matplotlib.figure import Figure
 
 from camo_sbi._io import atomic_write_text
 
-__all__ = ["SECTIONS", "RESULTS_COLUMNS", "write_report"]
+__all__ = ["SECTIONS", "RESULTS_COLUMNS", "figure_html", "table_html", "write_page", "write_report"]
 
 SECTIONS: tuple[tuple[str, str], ...] = (
     ("settings", "Settings"),
@@ -456,16 +456,35 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
         "calibration": _guard(lambda: _calibration(run_dir)),
         "diagnostics": _guard(lambda: _diagnostics(posts, post_why)),
     }
-    nav = "".join(f'<li><a href="#{sid}">{_esc(name)}</a></li>' for sid, name in SECTIONS)
-    sections = "".join(f'<section id="{sid}"><h2>{_esc(name)}</h2>{bodies[sid]}</section>\n'
-                       for sid, name in SECTIONS)
+    return write_page(out_path, title, [(sid, name, bodies[sid]) for sid, name in SECTIONS],
+                      meta=f"run directory: {run_dir.resolve()}")
+
+
+def figure_html(fig: Figure, caption: str, alt: str | None = None) -> str:
+    """A matplotlib figure as an embedded PNG ``<figure>`` (the figure is cleared)."""
+    return _fig_html(fig, caption, alt)
+
+
+def table_html(df: pd.DataFrame, *, index: bool = False, float_format: str = "{:.4g}") -> str:
+    """A DataFrame as an HTML table (at most the first 400 rows)."""
+    return _table_html(df, index=index, float_format=float_format)
+
+
+def write_page(out_path, title: str, sections, *, meta: str = "") -> Path:
+    """Write a self-contained HTML page atomically: ``sections`` is [(id, heading, html body)].
+
+    Every section gets ``<section id=...>``; ``meta`` is a line under the title (escaped).
+    """
+    nav = "".join(f'<li><a href="#{sid}">{_esc(name)}</a></li>' for sid, name, _ in sections)
+    body = "".join(f'<section id="{sid}"><h2>{_esc(name)}</h2>{html_}</section>\n'
+                   for sid, name, html_ in sections)
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     doc = (
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
         f"<title>{_esc(title)}</title><style>{_CSS}</style></head><body>"
         f"<h1>{_esc(title)}</h1>"
-        f'<p class="meta">run directory: {_esc(run_dir.resolve())} · generated {stamp}</p>'
-        f"<nav><ul>{nav}</ul></nav>\n{sections}</body></html>\n"
+        f'<p class="meta">{_esc(meta) + " · " if meta else ""}generated {stamp}</p>'
+        f"<nav><ul>{nav}</ul></nav>\n{body}</body></html>\n"
     )
     atomic_write_text(out_path, doc)
-    return out_path
+    return Path(out_path)

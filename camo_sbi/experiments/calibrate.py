@@ -70,9 +70,9 @@ from camo_sbi.diagnostics.calibration import (
     sbc_uniformity,
 )
 from camo_sbi.experiments.compare import run_in_processes
+from camo_sbi.experiments.models import add_model_arguments, model_from_args
 from camo_sbi.experiments.plots import save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
-from camo_sbi.experiments.subjects import build_model
 
 __all__ = [
     "add_arguments",
@@ -88,16 +88,9 @@ __all__ = [
 
 MAX_ATTEMPTS = 25
 _VERSION = "calibrate/1"
-_SIMS: dict[str, object] = {}
 _POINT_LABEL = " (point estimate)"
 # |mean(coverage - alpha)| below this is reported as "approximately calibrated"
 _CALIBRATED_TOL = 0.03
-
-
-def _model(name: str):
-    if name not in _SIMS:
-        _SIMS[name] = build_model(name)
-    return _SIMS[name]
 
 
 def coordinate_names(sim) -> list[str]:
@@ -123,7 +116,7 @@ def _parse_methods(text: str) -> list[str]:
     return items
 
 
-def _parse_configs(entries, methods: list[str]) -> dict[str, dict]:
+def parse_configs(entries, methods: list[str]) -> dict[str, dict]:
     """``--config METHOD=JSON`` (repeatable) -> {method: overrides}, validated against the config class."""
     from camo_sbi.inference.registry import make_config
 
@@ -171,9 +164,12 @@ def cell_specs(args) -> list[dict]:
             raise ValueError(f"--{opt.replace('_', '-')}: must be an integer >= 1, got {v!r}")
     if args.seed < 0:
         raise ValueError(f"--seed: must be >= 0, got {args.seed}")
-    if args.model not in ("panda", "human"):
-        raise ValueError(f"--model: expected 'panda' or 'human', got {args.model!r}")
-    overrides = _parse_configs(args.config, methods)
+    if getattr(args, "limits", None) is not None:
+        raise ValueError("--limits: calibrate draws its subjects' limits from the prior; give no --limits")
+    model = model_from_args(args)
+    # a built-in model with its defaults keeps the cell keys it always had
+    model_key = {} if model.is_default else {"model_settings": json.dumps(model.key(), sort_keys=True)}
+    overrides = parse_configs(args.config, methods)
     configs = {m: method_config(m, args.budget, overrides.get(m)) for m in methods}
     for m, cfg in configs.items():
         if m == "abc-smc" and cfg.get("population_size", 100) > args.budget:
@@ -182,10 +178,11 @@ def cell_specs(args) -> list[dict]:
     specs = []
     for subject in range(args.subjects):
         for m in methods:
-            spec = {"version": _VERSION, "model": args.model, "method": m, "subject": subject,
+            spec = {"version": _VERSION, "model": model.name, "method": m, "subject": subject,
                     "tasks": args.tasks, "budget": args.budget, "seed": args.seed,
                     "sbc_draws": args.sbc_draws, "config": json.dumps(configs[m], sort_keys=True)}
-            spec["key"] = cell_key(spec)
+            spec["key"] = cell_key({**spec, **model_key})
+            spec["model_spec"] = model  # a picklable ModelSpec: workers rebuild the simulator from it
             specs.append(spec)
     return specs
 
@@ -267,7 +264,7 @@ def run_cell(spec: dict, out: str) -> str:
     from camo_sbi.inference.registry import run_method
 
     store = ResultStore(out)
-    sim = _model(spec["model"])
+    sim = spec["model_spec"].build()
     task, attempt = draw_subject(sim, spec["model"], spec["subject"], n_tasks=spec["tasks"], seed=spec["seed"])
     res = run_method(spec["method"], task, budget=spec["budget"], seed=derive_seed(spec["seed"], spec["subject"], 7),
                      config=json.loads(spec["config"]))
@@ -359,7 +356,7 @@ def _at(g: pd.DataFrame, alpha: float) -> float:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", choices=("panda", "human"), default="panda")
+    add_model_arguments(p, limits=False)  # subjects are drawn from the model's prior
     p.add_argument("--methods", default="camo,abc-smc,npe,naive", help="comma-separated method names")
     p.add_argument("--subjects", type=int, default=50, help="synthetic subjects drawn from the prior")
     p.add_argument("--tasks", type=int, default=3, help="observed reaching tasks per subject")
@@ -379,11 +376,13 @@ def main(args) -> int:
     store = ResultStore(out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
     settings["method_configs"] = {s["method"]: json.loads(s["config"]) for s in specs}
+    settings["model"] = specs[0]["model"]
     atomic_write_text(out / "config.json", json.dumps({"experiment": "calibrate", **settings}, indent=2))
     todo = [s for s in specs if not store.done(s["key"])]
     print(f"{len(specs)} cells ({args.subjects} subjects x {len(specs) // args.subjects} methods), "
           f"{len(specs) - len(todo)} already finished")
-    bar = tqdm(total=len(todo), desc=f"calibrate {args.model}", unit="cell")
+    model = specs[0]["model"]
+    bar = tqdm(total=len(todo), desc=f"calibrate {model}", unit="cell")
     if args.workers == 1:
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
@@ -412,12 +411,12 @@ def main(args) -> int:
                                        for m, p in zip(coverage["method"], coverage["point_estimate"], strict=True)])
     n_subj = args.subjects
     fig = plot_coverage(labelled, coordinate="overall",
-                        title=f"Coverage of central intervals, {args.model}: {n_subj} prior subjects, "
+                        title=f"Coverage of central intervals, {model}: {n_subj} prior subjects, "
                               f"{args.tasks} tasks, budget {args.budget}", figsize=(6.0, 6.0))
     save_figure(fig, out / "coverage.png")
     redrawn = int((ranks.drop_duplicates(["method", "subject"]).groupby("subject")["attempt"].first() > 0).sum())
     cell_time = float(df.loc[(df["record"] == "meta") & (df["name"] == "wall_time"), "value"].sum())
-    text = _format_summary(summary, args, redrawn, time.perf_counter() - t0, cell_time)
+    text = _format_summary(summary, args, model, redrawn, time.perf_counter() - t0, cell_time)
     print(text)
     atomic_write_text(out / "summary.txt", text + "\n")
     print(f"tables: {out / 'coverage.csv'}, {out / 'sbc.csv'}  figure: {out / 'coverage.png'}")
@@ -434,11 +433,11 @@ def _uniformity_table(ranks: pd.DataFrame, sbc_draws: int) -> pd.DataFrame:
                                                 "chi2_pvalue", "ks_pvalue"]]
 
 
-def _format_summary(summary: pd.DataFrame, args, redrawn: int, wall: float, cell_time: float) -> str:
+def _format_summary(summary: pd.DataFrame, args, model: str, redrawn: int, wall: float, cell_time: float) -> str:
     cols = ["method", "subjects", "mean_abs_dev", "mean_dev", "max_abs_dev", "cov@0.5", "cov@0.9", "direction",
             "dev_lo", "dev_hi", "sbc_chi2_p", "sbc_ks_p", "coords_ks_p<.05", "ess_mean", "n_sims_mean",
             "wall_s_mean"]
-    head = (f"calibration: model={args.model} subjects={args.subjects} tasks={args.tasks} budget={args.budget} "
+    head = (f"calibration: model={model} subjects={args.subjects} tasks={args.tasks} budget={args.budget} "
             f"sbc_draws={args.sbc_draws} seed={args.seed} methods={args.methods}"
             + (f" config={args.config}" if args.config else ""))
     notes = [

@@ -16,7 +16,7 @@ def _demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from camo_sbi.experiments import calibrate, compare, hrc, manipulator
+    from camo_sbi.experiments import calibrate, compare, hrc, manipulator, recorded
 
     parser = argparse.ArgumentParser(prog="camo-sbi", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -37,6 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
          calibrate.main),
         ("report", "write a self-contained HTML report of a run directory", _report_arguments, _report),
         ("demo", "simulate a batch of reaches and plot them", _demo_arguments, _demo),
+        ("simulate-observations", "write synthetic recorded reaches of a subject (recording format)",
+         recorded.add_simulate_arguments, recorded.simulate_main),
+        ("infer", "infer joint limits from recorded reaches", recorded.add_infer_arguments, recorded.infer_main),
     )
     for name, help_text, add_arguments, func in commands:
         p = sub.add_parser(name, help=help_text)
@@ -51,7 +54,9 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _demo_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", choices=("panda", "human"), default="panda")
+    from camo_sbi.experiments.models import add_model_arguments
+
+    add_model_arguments(p, limits=False)
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/demo")

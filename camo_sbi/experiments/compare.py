@@ -23,20 +23,16 @@ from tqdm import tqdm
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import DEFAULT_RETRIES, dask_client, map_unordered, parse_scheduler
+from camo_sbi.experiments.models import (
+    add_model_arguments,
+    model_from_args,
+    subject_list,
+    true_limits,
+)
 from camo_sbi.experiments.plots import plot_lines, save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
-from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
 
 __all__ = ["add_arguments", "main", "run_cell", "run_cells_on", "cell_specs"]
-
-_SIMS: dict[str, object] = {}
-
-
-def _model(name: str):
-    if name not in _SIMS:
-        _SIMS[name] = build_model(name)
-    return _SIMS[name]
-
 
 def _parse_list(text: str, name: str, cast=str) -> list:
     items = [t.strip() for t in str(text).split(",") if t.strip()]
@@ -71,19 +67,23 @@ def cell_specs(args) -> list[dict]:
         raise ValueError("--budgets: every budget must be >= 1")
     if args.seeds < 1 or args.tasks < 1 or args.test_goals < 1:
         raise ValueError("--seeds/--tasks/--test-goals: must be >= 1")
-    subjects = _parse_list(args.subjects, "subjects") if args.subjects else subject_names(args.model)[:1]
-    sim = _model(args.model)
+    model = model_from_args(args)
+    subjects = subject_list(model, args.subjects)
+    sim = model.build()
     for s in subjects:
-        subject_theta(sim, args.model, s)
+        true_limits(model, sim, s)
+    # a built-in model with its defaults keeps the cell keys it always had
+    model_key = {} if model.is_default else {"model": json.dumps(model.key(), sort_keys=True)}
     specs = []
     for subject in subjects:
         for method in methods:
             for budget in budgets:
                 for seed in range(args.seeds):
-                    spec = {"task": args.model, "subject": subject, "method": method, "budget": budget,
+                    spec = {"task": model.name, "subject": subject, "method": method, "budget": budget,
                             "seed": seed, "tasks": args.tasks, "test_goals": args.test_goals,
                             "space": args.space, "base_seed": args.seed}
-                    spec["key"] = cell_key({k: v for k, v in spec.items()})
+                    spec["key"] = cell_key({**spec, **model_key})
+                    spec["model"] = model  # a picklable ModelSpec: workers rebuild the simulator from it
                     specs.append(spec)
     return specs
 
@@ -112,8 +112,8 @@ def run_cell(spec: dict, out: str) -> str:
 
     out = Path(out)
     store = ResultStore(out)
-    sim = _model(spec["task"])
-    true_theta = subject_theta(sim, spec["task"], spec["subject"])
+    sim = spec["model"].build()
+    true_theta = true_limits(spec["model"], sim, spec["subject"])
     # the task (observations, test goals) depends on the seed only: identical across methods
     task = make_reaching_task(sim, true_theta, n_train=spec["tasks"], n_test=spec["test_goals"],
                               seed=derive_seed(spec["base_seed"], spec["seed"]), name=spec["task"],
@@ -214,13 +214,14 @@ def run_in_processes(cell_fn, specs: list[dict], out, workers: int, *, on_done) 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", choices=("panda", "human"), default="panda")
+    add_model_arguments(p)
     p.add_argument("--methods", default="camo,naive,abc-smc,npe", help="comma-separated method names")
     p.add_argument("--budgets", default="500", help="comma-separated simulations per observed task")
     p.add_argument("--seeds", type=int, default=2, help="number of seeds (subjects' observations differ per seed)")
     p.add_argument("--tasks", type=int, default=3, help="observed tasks K (rows for 1..K)")
     p.add_argument("--test-goals", type=int, default=10)
-    p.add_argument("--subjects", default=None, help="comma-separated subject profiles (default: the first)")
+    p.add_argument("--subjects", default=None, help="comma-separated subject profiles (default: the first; "
+                                                     "with --limits the file is the subject)")
     p.add_argument("--space", choices=("joint", "cartesian"), default="joint")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes (without --scheduler)")
     p.add_argument("--scheduler", default=None,
@@ -244,6 +245,7 @@ def main(args) -> int:
     out = Path(args.out)
     store = ResultStore(out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
+    settings["model"] = specs[0]["model"].name if specs else args.model
     atomic_write_text(out / "config.json", json.dumps({"experiment": "compare", **settings}, indent=2))
     todo = [s for s in specs if not store.done(s["key"])]
     print(f"{len(specs)} cells, {len(specs) - len(todo)} already finished")

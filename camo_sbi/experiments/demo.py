@@ -8,8 +8,8 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import torch
 
+from camo_sbi.experiments.models import model_from_args
 from camo_sbi.experiments.plots import save_figure
-from camo_sbi.experiments.subjects import build_model
 from camo_sbi.priors import BoxPrior
 
 __all__ = ["main"]
@@ -20,7 +20,8 @@ def main(args) -> int:
         raise ValueError("--batch: must be >= 1")
     from camo_sbi.simulators import sample_goals
 
-    sim = build_model(args.model)
+    model = model_from_args(args)
+    sim = model.build()
     prior = BoxPrior(sim.bounds, sim.start)
     theta = prior.sample(args.batch, args.seed)
     gen = torch.Generator().manual_seed(args.seed)
@@ -37,7 +38,7 @@ def main(args) -> int:
         ax.plot(e[:, 0], e[:, 1], e[:, 2], lw=0.8, color="C0" if bool(traj.reached[b]) else "C3")
     g = goal.numpy()
     ax.scatter([g[0]], [g[1]], [g[2]], color="k", marker="*", s=80)
-    ax.set_title(f"{args.model}: {args.batch} limit vectors, one goal\n(blue reached, red not)")
+    ax.set_title(f"{model.name}: {args.batch} limit vectors, one goal\n(blue reached, red not)")
     ax2 = fig.add_subplot(1, 2, 2)
     j = 1
     for b in range(min(args.batch, 8)):
@@ -48,7 +49,7 @@ def main(args) -> int:
     ax2.set_xlabel("step")
     ax2.set_ylabel(f"{sim.joint_names[j]} [rad] (dotted: its limits)")
     save_figure(fig, out / "demo.png")
-    print(f"{args.model}: {sim.n_joints} joints {sim.joint_names}")
+    print(f"{model.name}: {sim.n_joints} joints {sim.joint_names}")
     print(f"simulated {args.batch} x {traj.q.shape[1]} steps in {dt * 1e3:.1f} ms; "
           f"reached {int(traj.reached.sum())}/{args.batch}; mean length {traj.length.float().mean():.1f}")
     print(f"figure: {out / 'demo.png'}")

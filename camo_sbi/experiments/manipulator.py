@@ -35,8 +35,14 @@ from tqdm import tqdm
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import dask_client, parse_scheduler
+from camo_sbi.experiments.models import (
+    add_model_arguments,
+    model_from_args,
+    subject_list,
+    true_limits,
+)
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
-from camo_sbi.experiments.subjects import ONE_JOINT, build_model, subject_names, subject_theta
+from camo_sbi.experiments.subjects import ONE_JOINT
 
 __all__ = ["SETTINGS", "Setting", "add_arguments", "main", "make_figures", "method_config", "run_one"]
 
@@ -114,8 +120,8 @@ def method_config(name: str, args) -> dict | None:
     return cfg
 
 
-def _simulator(args):
-    sim = build_model(args.model)
+def _simulator(args, model=None):
+    sim = (model if model is not None else model_from_args(args)).build()
     st = _setting(args)
     changes = dict(st.controller or {})
     if getattr(args, "horizon", None) is not None:
@@ -123,18 +129,18 @@ def _simulator(args):
     return sim.with_config(**changes) if changes else sim
 
 
-def run_one(sim, model: str, subject: str, run: int, args) -> list[dict]:
-    """All methods on one run's subject; returns tidy rows."""
+def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
+    """All methods on one run's subject (``model``: its `ModelSpec`); returns tidy rows."""
     from camo_sbi.evaluation.evaluate import evaluate_result, true_test_trajectories
     from camo_sbi.evaluation.metrics import binding_bounds
     from camo_sbi.inference.registry import run_method_sequence
     from camo_sbi.scenarios.reaching import make_reaching_task
 
     st = _setting(args)
-    true_theta = subject_theta(sim, model, subject)
+    true_theta = true_limits(model, sim, subject)
     goal_seed = derive_seed(args.seed) if st.fixed_goals else derive_seed(args.seed, run)
     task = make_reaching_task(sim, true_theta, n_train=args.tasks, n_test=args.test_goals, seed=goal_seed,
-                              name=model, subject=subject, require_reached=st.require_reached)
+                              name=model.name, subject=subject, require_reached=st.require_reached)
     true_test = true_test_trajectories(task)
     binding = binding_bounds(sim, true_theta, task.test_starts, task.test_goals, task.prior)
     rows = []
@@ -146,7 +152,7 @@ def run_one(sim, model: str, subject: str, run: int, args) -> list[dict]:
             metrics["n_simulations"] = res.n_simulations
             metrics["wall_time"] = res.wall_time
             for metric, value in metrics.items():
-                rows.append({"run": run, "model": model, "subject": subject, "method": name,
+                rows.append({"run": run, "model": model.name, "subject": subject, "method": name,
                              "n_tasks": res.n_tasks, "metric": metric, "value": value, "status": res.status})
     return rows
 
@@ -193,7 +199,7 @@ def make_figures(df, out: Path) -> list[Path]:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--setting", choices=tuple(SETTINGS), default="toolkit",
                    help="toolkit: the toolkit's harder design (default); paper: the authors' published design")
-    p.add_argument("--model", choices=("panda", "human"), default="panda", help="simulated agent")
+    add_model_arguments(p)
     p.add_argument("--runs", type=int, default=30, help="independent runs (paper: 30)")
     p.add_argument("--tasks", type=int, default=10, help="observed training goals per run")
     p.add_argument("--test-goals", type=int, default=20, help="held-out goals per run")
@@ -206,7 +212,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bandwidth-mode", choices=("fixed", "scott"), default=None)
     p.add_argument("--sampling", choices=("uniform", "lhs", "grid"), default=None)
     p.add_argument("--methods", default=None, help="comma-separated registered methods (default: the setting's)")
-    p.add_argument("--subjects", default=None, help="comma-separated ground-truth profiles (default: the setting's)")
+    p.add_argument("--subjects", default=None, help="comma-separated ground-truth profiles (default: the setting's; "
+                                                     "with --urdf the --limits file is the subject)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scheduler", default=None,
                    help="run CAMO's candidate chunks on Dask: 'local:N' or 'tcp://host:8786' "
@@ -249,24 +256,25 @@ def main(args) -> int:
     _check(args)
     t0 = time.perf_counter()
     st = _setting(args)
-    sim = _simulator(args)
-    if args.subjects:
-        subjects = args.subjects.split(",")
-    else:
-        subjects = list(st.subjects) if st.subjects else subject_names(args.model)
+    model = model_from_args(args)
+    sim = _simulator(args, model)
+    given = args.subjects or (",".join(st.subjects) if st.subjects and model.limits is None else None)
+    subjects = subject_list(model, given, default_all=True)
     for s in subjects:
-        subject_theta(sim, args.model, s)  # validates names before any work
+        true_limits(model, sim, s)  # validates names before any work
     out = Path(args.out)
     store = ResultStore(out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
+    # a built-in model with its defaults keeps the cell keys it always had
+    settings["model"] = model.name if model.is_default else json.dumps(model.key(), sort_keys=True)
     atomic_write_text(out / "config.json", json.dumps({"experiment": "reproduce panda", **settings}, indent=2))
     with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
-        for run in tqdm(range(args.runs), desc=f"reproduce {args.model} ({args.setting})", unit="run"):
+        for run in tqdm(range(args.runs), desc=f"reproduce {model.name} ({args.setting})", unit="run"):
             subject = subjects[run % len(subjects)]
             key = cell_key({"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}})
             if store.done(key):
                 continue
-            store.put(key, run_one(sim, args.model, subject, run, args))
+            store.put(key, run_one(sim, model, subject, run, args))
     df = store.write_table()
     figs = make_figures(df, out)
     claims = manipulator_claims(df, setting=args.setting)

@@ -1,0 +1,15 @@
+"""Reading and writing observed reaches (recordings) in the documented file format."""
+
+from camo_sbi.io.recordings import (
+    EE_COLUMNS,
+    GOAL_COLUMNS,
+    K_SIGMA,
+    estimate_rate,
+    load_goals,
+    load_recordings,
+    resample_to_controller,
+    save_recordings,
+)
+
+__all__ = ["EE_COLUMNS", "GOAL_COLUMNS", "K_SIGMA", "estimate_rate", "load_goals", "load_recordings",
+           "resample_to_controller", "save_recordings"]
