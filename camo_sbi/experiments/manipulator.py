@@ -19,7 +19,6 @@ from tqdm import tqdm
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import dask_client, parse_scheduler
-from camo_sbi.experiments.plots import plot_bars, plot_lines, save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
 from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
 
@@ -74,20 +73,26 @@ def run_one(sim, model: str, subject: str, run: int, args) -> list[dict]:
 
 def make_figures(df, out: Path) -> list[Path]:
     """Fig. 2 (Cartesian error vs tasks) and Fig. 3 (joint-space loss after all tasks)."""
-    import matplotlib.pyplot as plt
+    from camo_sbi.diagnostics.style import (
+        metric_label,
+        new_figure,
+        plot_bars,
+        plot_lines,
+        save_figure,
+    )
 
     paths = []
-    fig, ax = plt.subplots(figsize=(6, 4))
-    plot_lines(df[df.metric == "cartesian_error_mm"], ax=ax, ylabel="Cartesian error per point [mm]",
-               title="Error on unseen goals vs observed tasks (mean, 95% CI)")
+    fig, axes = new_figure(1, 1)
+    plot_lines(df[df.metric == "cartesian_error_mm"], ax=axes[0, 0], ylabel=metric_label("cartesian_error_mm"),
+               title="Error on unseen goals vs observed tasks")
     paths.append(out / "fig2_cartesian_error_vs_tasks.png")
     save_figure(fig, paths[-1])
     last = df[df.n_tasks == df.n_tasks.max()]
-    fig, axes = plt.subplots(1, 2, figsize=(9, 4))
-    plot_bars(last[last.metric == "joint_error_deg"], ax=axes[0], ylabel="joint error per joint and point [deg]",
-              title=f"Joint space, after {int(df.n_tasks.max())} tasks")
-    plot_bars(last[last.metric == "cartesian_error_mm"], ax=axes[1], ylabel="Cartesian error per point [mm]",
-              title=f"Cartesian, after {int(df.n_tasks.max())} tasks")
+    fig, axes = new_figure(1, 2)
+    for ax, metric, space in zip(axes[0], ("joint_error_deg", "cartesian_error_mm"), ("Joint space", "Cartesian"),
+                                 strict=True):
+        plot_bars(last[last.metric == metric], ax=ax, ylabel=metric_label(metric),
+                  title=f"{space}, after {int(df.n_tasks.max())} tasks")
     paths.append(out / "fig3_final_error.png")
     save_figure(fig, paths[-1])
     return paths
