@@ -140,10 +140,12 @@ def run_cell(spec: dict, out: str) -> str:
 
 
 def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
-    from camo_sbi.diagnostics.arviz_io import save_netcdf, to_inference_data
+    from camo_sbi.diagnostics.arviz_io import observed_arrays, save_netcdf, to_inference_data
 
+    observed, dims = observed_arrays(task)
     idata = to_inference_data(res, sim.joint_names, prior=task.prior, true_theta=task.true_theta,
-                              seed=derive_seed(spec["base_seed"], spec["seed"], 13))
+                              seed=derive_seed(spec["base_seed"], spec["seed"], 13), observed=observed,
+                              observed_dims=dims, attrs={"task": spec["task"], "status": res.status})
     idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"]})
     (out / "posteriors").mkdir(parents=True, exist_ok=True)
     save_netcdf(idata, out / "posteriors" / f"{spec['key']}.nc")
