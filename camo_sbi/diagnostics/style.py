@@ -231,10 +231,10 @@ def summarize(df: pd.DataFrame, x: str | None, hue: str = "method", value: str =
     return pd.DataFrame(rows, columns=keys + ["mean", "ci", "n"])
 
 
-def run_counts(df: pd.DataFrame, x: str | None = None, hue: str = "method") -> np.ndarray:
+def run_counts(df: pd.DataFrame, x: str | None = None, hue: str = "method", by: Sequence[str] = ()) -> np.ndarray:
     """How many runs (finite values) each plotted point of ``df`` averages, for `band_label`
-    (per hue, x and, when the table has one, metric)."""
-    keys = ([hue] if x is None else [hue, x]) + (["metric"] if "metric" in df.columns else [])
+    (per hue, x, the columns ``by`` (e.g. the panel's prior) and, when the table has one, metric)."""
+    keys = ([hue] if x is None else [hue, x]) + list(by) + (["metric"] if "metric" in df.columns else [])
     return df.groupby(keys, dropna=False)["value"].count().to_numpy()
 
 
@@ -423,9 +423,11 @@ def plot_lines(df: pd.DataFrame, *, x: str = "n_tasks", hue: str = "method", ax:
         upper = mean + ci
         if geometric:
             mean, lower, upper = 10.0**mean, 10.0**lower, 10.0**upper
-        ax.plot(xs, mean, ms=4, lw=1.4, label=h, **st.line_kwargs())
+        z = 2.0 if st.baseline else 3.0  # the methods above the baselines' reference lines
+        ax.plot(xs, mean, ms=4, lw=1.4, label=h, zorder=z, **st.line_kwargs())
         if (ci > 0).any():
-            ax.fill_between(xs, lower, upper, color=st.color, alpha=0.15 if not st.baseline else 0.1, lw=0)
+            ax.fill_between(xs, lower, upper, color=st.color, alpha=0.15 if not st.baseline else 0.1, lw=0,
+                            zorder=z - 1)
         series[h] = Series(xs, mean, lower, upper)
     xvals = df[x].dropna()
     integral = pd.api.types.is_integer_dtype(df[x]) or x in ("n_tasks", "budget", "run", "seed")

@@ -273,7 +273,7 @@ def make_figure(df, out: Path) -> Path:
                        title=f"{metric_label(metric)} ({kind} prior)", robust=False)
             axes[r, c].set_ylim(-0.05, 1.05)
     sel = df[df["metric"].isin(metrics)]
-    figure_legend(fig, axes, title=band_label(run_counts(sel, "n_tasks")))
+    figure_legend(fig, axes, title=band_label(run_counts(sel, "n_tasks", by=("prior",))))
     fig.suptitle("Block allocation to the person: blocks the person takes are positives")
     path = out / "fig5_allocation.png"
     save_figure(fig, path)
