@@ -123,3 +123,18 @@ def test_save_figure_writes_a_png_atomically(tmp_path):
     path = style.save_figure(fig, tmp_path / "sub" / "f.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert [p.name for p in path.parent.iterdir()] == ["f.png"]
+
+
+def test_demo_writes_the_file_it_is_given_with_labelled_axes(tmp_path, monkeypatch):
+    import argparse
+
+    drawn = []
+    make = demo.make_figure
+    monkeypatch.setattr(demo, "make_figure", lambda *a: drawn.append(make(*a)) or drawn[-1])
+    out = tmp_path / "figs" / "demo.png"
+    assert demo.main(argparse.Namespace(model="panda", batch=8, seed=0, out=str(out))) == 0
+    assert out.is_file() and out.read_bytes()[:4] == b"\x89PNG"
+    ax3d = next(a for a in drawn[0].axes if a.name == "3d")
+    assert (ax3d.get_xlabel(), ax3d.get_ylabel(), ax3d.get_zlabel()) == ("x [m]", "y [m]", "z [m]")
+    colors = {to_hex(ln.get_color()) for ln in ax3d.get_lines()}
+    assert colors <= {to_hex(demo.REACHED_COLOR), to_hex(demo.NOT_REACHED_COLOR), "#000000"}

@@ -651,8 +651,11 @@ def plot_forest(idatas: Sequence[az.InferenceData], model_names: Sequence[str], 
     """Forest plot of the limits across methods (one row per model per limit).
 
     With ``truth=True`` and true limits stored in the first InferenceData, the truth is
-    added as an extra model named "truth" (a point, zero-width interval).
+    added as an extra model named "truth" (a point, zero-width interval). Each model in its
+    method's colour (`camo_sbi.diagnostics.style`); the legend sits outside, to the right.
     """
+    from camo_sbi.diagnostics.style import method_style
+
     if isinstance(idatas, az.InferenceData) or not isinstance(idatas, Sequence) or not idatas:
         raise TypeError("idatas: expected a non-empty list of arviz.InferenceData")
     for i, d in enumerate(idatas):
@@ -678,7 +681,8 @@ def plot_forest(idatas: Sequence[az.InferenceData], model_names: Sequence[str], 
     ax = fig.subplots()
     with _quiet_arviz():
         az.plot_forest(data, model_names=labels, var_names=[VAR_NAME], coords={"joint": sel},
-                       combined=True, hdi_prob=hdi_prob, ax=ax, textsize=8, show=False)
+                       combined=True, hdi_prob=hdi_prob, ax=ax, textsize=8, show=False,
+                       colors=[method_style(m).color for m in labels])
     ax.set_title(f"joint limits, {hdi_prob:.0%} HDI per method", fontsize=10)
     legend = ax.get_legend()
     if legend is not None:  # arviz puts it over the first rows: move it outside, to the right

@@ -392,15 +392,16 @@ def _legend_handle(name: str) -> Line2D:
 
 def plot_lines(df: pd.DataFrame, *, x: str = "n_tasks", hue: str = "method", ax: Axes | None = None,
                ylabel: str = "", title: str = "", logx: bool = False, logy: bool = False,
-               robust: bool = True, legend: bool | None = None, factor: float = DWARF_FACTOR) -> Axes:
+               robust: bool = True, legend: bool = True, factor: float = DWARF_FACTOR) -> Axes:
     """Mean of ``value`` against ``x`` per ``hue``, with a band for the 95% CI of the mean.
 
     Each method in its `method_style`. ``x`` columns of integers (task counts) get integer
     ticks; ``logx`` is honoured only with at least two distinct positive x values (a single
     budget stays linear). A non-negative metric's band is not drawn below 0. ``robust``:
     `robust_ylim` clips a dwarfing series (not with ``logy``). ``legend``: draw a legend
-    (outside the axes, to the right) with the band's meaning as its title; default: only
-    when the axes are the figure's only axes. Returns the axes (a new Figure's when
+    with the band's meaning as its title: outside the axes, to the right, when they are the
+    figure's only axes, else inside in the emptiest corner; False for none (a figure of
+    several panels gets one `figure_legend` instead). Returns the axes (a new Figure's when
     ``ax`` is None).
     """
     if not isinstance(df, pd.DataFrame):
@@ -442,11 +443,12 @@ def plot_lines(df: pd.DataFrame, *, x: str = "n_tasks", hue: str = "method", ax:
     ax.grid(alpha=0.3)
     if robust and not logy:
         robust_ylim(ax, series, factor=factor)
-    if legend is None:
-        legend = len(ax.figure.axes) == 1
-    if legend and len(s):
-        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False,
-                  title=band_label(s["n"], geometric=geometric), title_fontsize=7, alignment="left")
+    if legend:
+        alone = len(ax.figure.axes) == 1  # outside to the right; beside other panels: inside, best corner
+        where = {"loc": "upper left", "bbox_to_anchor": (1.02, 1.0)} if alone else {"loc": "best"}
+        if len(s):
+            ax.legend(fontsize=8 if alone else 7, frameon=not alone, framealpha=0.85, title_fontsize=7,
+                      title=band_label(s["n"], geometric=geometric), alignment="left", **where)
     return ax
 
 

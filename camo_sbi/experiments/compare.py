@@ -175,7 +175,7 @@ def make_figures(df, out: Path) -> list[Path]:
         fig, axes = new_figure(1, 2)
         for ax, metric in zip(axes[0], metrics, strict=True):
             m = sub[sub.metric == metric]
-            plot_lines(m, x=x, ax=ax, ylabel=metric_label(metric), title=title(metric), **kw)
+            plot_lines(m, x=x, ax=ax, ylabel=metric_label(metric), title=title(metric), legend=False, **kw)
         figure_legend(fig, axes, title=band_label(run_counts(sub[sub.metric == metrics[0]], x)))
         paths.append(out / name)
         save_figure(fig, paths[-1])

@@ -270,7 +270,7 @@ def make_figure(df, out: Path) -> Path:
         for c, metric in enumerate(metrics):
             sub = df[(df["prior"] == kind) & (df["metric"] == metric)]
             plot_lines(sub, ax=axes[r, c], ylabel=f"{kind} prior" if c == 0 else "",
-                       title=f"{metric_label(metric)} ({kind} prior)", robust=False)
+                       title=f"{metric_label(metric)} ({kind} prior)", robust=False, legend=False)
             axes[r, c].set_ylim(-0.05, 1.05)
     sel = df[df["metric"].isin(metrics)]
     figure_legend(fig, axes, title=band_label(run_counts(sel, "n_tasks", by=("prior",))))
