@@ -357,13 +357,18 @@ def make_run_dir(root, prior: BoxPrior, truth: np.ndarray):
                                      err * (1 + 0.1 * rng.standard_normal())))
                         rows.append(("reach", subject, method, budget, seed, n_tasks, "wall_time",
                                      abs(rng.normal(5.0, 1.0))))
-    pd.DataFrame(rows, columns=list(report.RESULTS_COLUMNS)).to_csv(root / "results.csv", index=False)
+    table = pd.DataFrame(rows, columns=list(report.RESULTS_COLUMNS))
+    table["status"] = "ok"
+    table.loc[(table.method == "abc-smc") & (table.seed == 1), "status"] = "fallback: stopped at the prior population"
+    table.to_csv(root / "results.csv", index=False)
     (root / "posteriors").mkdir()
-    for i, method in enumerate(("camo", "npe")):
-        r = _informative_result(prior, truth, method=method, seed=i, weighted=method == "npe", width=0.1)
+    for i, method in enumerate(("camo", "npe", "naive")):
+        r = _informative_result(prior, truth, method=method, seed=i, weighted=method == "camo", width=0.1)
+        if method == "naive":  # a baseline: one point, no posterior
+            r = dataclasses.replace(r, samples=truth[None, :] + 0.05, weights=None, estimate=truth + 0.05)
         idata = arviz_io.to_inference_data(r, JOINTS, seed=0, prior=prior, prior_draws=200, true_theta=truth,
-                                           attrs={"task": "reach", "subject": "s0"})
-        arviz_io.save_netcdf(idata, root / "posteriors" / f"reach_s0_{method}.nc")
+                                           attrs={"task": "reach", "subject": "s0", "seed": 0})
+        arviz_io.save_netcdf(idata, root / "posteriors" / f"base_seed=0__budget=5000__method={method}__1a2b.nc")
     post, theta, _, _ = _gaussian_toy(S=50, N=200)
     post3, _, _, _ = _gaussian_toy(S=50, N=200, shrink=3.0)
     cov = pd.concat([calibration.central_interval_coverage(post, theta).assign(method="npe"),
@@ -388,14 +393,37 @@ def test_report_has_every_section_and_embeds_every_image(tmp_path, prior, truth)
     text = out.read_text(encoding="utf-8")
     for sid, name in report.SECTIONS:
         assert f'<section id="{sid}"><h2>{name}</h2>' in text
+    sections = {sid: text.split(f'<section id="{sid}">', 1)[1].split("</section>", 1)[0] for sid, _ in report.SECTIONS}
     assert "Toy &lt;run&gt;" in text  # escaped title
-    assert "not available" not in text  # every input was present
+    # every input was present (the toy posteriors hold no observed reaches to replay)
+    assert [sid for sid, body in sections.items() if "not available" in body] == ["posterior-predictive"]
     assert "camo.n_samples" in text and "reaching" in text  # settings flattened
-    assert "± " in text and "limit_rmse" in text and "abc-smc" in text  # comparison table
+    # comparison: one table per metric, methods as rows, budgets as columns, mean ± 95% CI
+    tables = re.findall(r"<table.*?</table>", sections["comparison-table"], flags=re.S)
+    assert len(tables) == 2 * 2  # (limit_rmse, wall_time) x (subject s0, s1)
+    assert all(len(re.findall(r"<th[ >]", t)) <= 4 for t in tables)  # method, 1000, 5000, "any budget"
+    lim = next(t for t in tables if "<caption>limit rmse</caption>" in t)
+    assert "95% confidence interval of the mean" in text
+    assert "abc-smc †" in lim and "camo †" not in lim
+    assert "fallback: stopped at the prior population" in sections["comparison-table"]
+    # headings in words, never the cell's file name
+    heads = re.findall(r"<(?:h3|summary)>(.*?)</(?:h3|summary)>", text)
+    assert heads and not any(".nc" in h or "__" in h for h in heads)
+    assert "budget 5000 simulations per observed task, seed 0" in sections["posteriors"]
+    # the baseline is a point on the limits plot, never its own marginal panels
+    assert "Marginal posteriors: camo" in text and "Marginal posteriors: naive" not in text
+    # diagnostics: the weighted posterior shows its Kish ESS and no MCMC columns
+    diag = sections["diagnostics"]
+    camo_ess = 1 / np.sum(_informative_result(prior, truth, seed=0, weighted=True).weights ** 2)
+    assert f"{camo_ess:.1f} of 2000" in diag and "resampled from weighted samples" in diag
+    camo_details = diag.split("<summary>camo", 1)[1].split("</details>", 1)[0]
+    npe_details = diag.split("<summary>npe", 1)[1].split("</details>", 1)[0]
+    assert "<th>ess_bulk</th>" not in camo_details and "<th>r_hat</th>" not in camo_details
+    assert "<th>ess_bulk</th>" in npe_details
     assert "limits[shoulder, lower]" in text  # diagnostics: arviz summary by name
     srcs = _check_self_contained(text)
-    # error vs tasks, error vs budget, 2 posterior plots, 1 forest plot, 1 coverage plot
-    assert len(srcs) == 6
+    # error vs tasks, error vs budget, limits, corner, 2 marginal plots, 1 coverage plot
+    assert len(srcs) == 7
 
 
 def test_report_with_missing_inputs_says_not_available(tmp_path):
@@ -447,3 +475,51 @@ def test_posterior_comparison_identical_vs_shifted(prior, truth):
     row = table[(table["method A"] == "camo") & (table["method B"] == "npe")].iloc[0]
     assert row["mean W1 over free marginals"] == pytest.approx(0.25, rel=0.05)
     assert row["C2ST accuracy"] > 0.95
+
+
+def test_weighted_draws_are_marked_resampled_and_lose_the_mcmc_columns(prior, truth):
+    """arviz's ess_bulk counts resampled draws (~N); the weights' Kish ESS is what they are worth."""
+    r = _informative_result(prior, truth, weighted=True)
+    r = dataclasses.replace(r, weights=np.r_[np.full(5, 1.0), np.full(r.samples.shape[0] - 5, 1e-4)])
+    idata = arviz_io.to_inference_data(r, JOINTS, seed=0, true_theta=truth)
+    a = idata.posterior.attrs
+    assert a["draws"] == arviz_io.DRAWS_RESAMPLED == arviz_io.draws_kind(idata)
+    assert a["weights_ess"] == pytest.approx(r.ess) and r.ess < 10
+    s = arviz_io.summary(idata)
+    assert not {"ess_bulk", "ess_tail", "mcse_mean", "mcse_sd", "r_hat"} & set(s.columns)
+    assert {"mean", "sd", "hdi_3%", "hdi_97%", "truth"} <= set(s.columns)
+    plain = arviz_io.to_inference_data(dataclasses.replace(r, weights=None), JOINTS, seed=0)
+    assert arviz_io.draws_kind(plain) == arviz_io.DRAWS_INDEPENDENT and "ess_bulk" in arviz_io.summary(plain)
+    point = dataclasses.replace(r, samples=truth[None, :], weights=None, estimate=truth)
+    assert arviz_io.draws_kind(arviz_io.to_inference_data(point, JOINTS, seed=0)) == arviz_io.DRAWS_POINT
+
+
+def test_report_replays_the_observed_reaches_against_posterior_draws(tmp_path):
+    """compare saves the observed reaches beside the posterior; the report simulates 50 draws."""
+    import torch
+
+    from camo_sbi.scenarios.reaching import make_reaching_task
+    from camo_sbi.simulators import panda
+
+    sim = panda()
+    theta = torch.stack([sim.bounds[:, 0] * 0.6 + 0.4 * sim.start, sim.bounds[:, 1] * 0.6 + 0.4 * sim.start],
+                        dim=1).reshape(-1).to(torch.float64)
+    task = make_reaching_task(sim, theta, n_train=2, n_test=1, seed=0, name="panda", subject="toy")
+    rng = np.random.default_rng(0)
+    samples = np.clip(theta.numpy() + 0.05 * rng.standard_normal((300, theta.numel())), None, None)
+    samples[:, 0::2] = np.minimum(samples[:, 0::2], samples[:, 1::2])
+    r = PosteriorResult("camo", samples, rng.random(300), theta.numpy(), 600, 0.1, 2)
+    observed, dims = arviz_io.observed_arrays(task)
+    idata = arviz_io.to_inference_data(r, sim.joint_names, seed=0, prior=task.prior, true_theta=theta,
+                                       observed=observed, observed_dims=dims,
+                                       attrs={"task": "panda", "subject": "toy", "seed": 0, "budget": 300})
+    run = tmp_path / "run"
+    (run / "posteriors").mkdir(parents=True)
+    arviz_io.save_netcdf(idata, run / "posteriors" / "cell.nc")
+    loaded = arviz_io.load_netcdf(run / "posteriors" / "cell.nc")
+    L = task.observations[1].length
+    np.testing.assert_allclose(loaded.observed_data["observed_ee"].values[1, :L], task.observations[1].ee.numpy())
+    assert np.isnan(loaded.observed_data["observed_ee"].values[1, L:]).all()
+    ppc = report._predictive([(run / "posteriors" / "cell.nc", loaded, "")], "")  # the report's section
+    assert "not available" not in ppc and ppc.count("<img") == 1
+    assert "<h3>camo, budget 300, seed 0, 2 tasks</h3>" in ppc and "50 posterior draws" in ppc

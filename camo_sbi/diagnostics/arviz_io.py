@@ -12,8 +12,12 @@ Layout of the InferenceData built by :func:`to_inference_data`:
 * ``constant_data``: ``estimate`` (the method's point estimate), ``true_limits``
   (when known), ``prior_low`` / ``prior_high`` (a box prior's edges, when given).
 * ``attrs`` (on every group): method, budget, n_simulations, wall_time, n_tasks,
-  units, resampled, resample_seed, weights_ess, n_samples_original, and any
-  scalar extras of the result as ``extra_<key>``.
+  units, resampled, ``draws`` (what the draws are: "independent draws", "resampled
+  from weighted samples (not MCMC)" or "point estimate"), resample_seed, weights_ess
+  (the Kish effective sample size the weights imply, ``(sum w)^2 / sum w^2``; N for
+  equal weights), n_samples_original, and any scalar extras of the result as
+  ``extra_<key>``. Resampled draws repeat the weighted samples: their effective sample
+  size is ``weights_ess``, not what MCMC diagnostics (ess_bulk, r_hat) would report.
 
 The file written by :func:`save_netcdf` loads with plain ``arviz.from_netcdf``
 and ``arviz.summary`` prints rows like ``limits[shoulder_pan, lower]``.
@@ -41,6 +45,13 @@ from camo_sbi.inference.result import PosteriorResult
 
 __all__ = [
     "BOUNDS",
+    "DRAWS_INDEPENDENT",
+    "DRAWS_POINT",
+    "DRAWS_RESAMPLED",
+    "draws_kind",
+    "limit_draws",
+    "true_limits",
+    "observed_arrays",
     "VAR_NAME",
     "to_inference_data",
     "save_netcdf",
@@ -55,6 +66,10 @@ __all__ = [
 ]
 
 VAR_NAME = "limits"
+DRAWS_INDEPENDENT = "independent draws"
+DRAWS_RESAMPLED = "resampled from weighted samples (not MCMC)"
+DRAWS_POINT = "point estimate"
+_MCMC_COLUMNS = ("mcse_mean", "mcse_sd", "ess_bulk", "ess_tail", "r_hat")
 BOUNDS = ("lower", "upper")
 _UNITS = ("rad", "deg")
 _DIMS = ["joint", "bound"]
@@ -156,6 +171,16 @@ def _truth(idata) -> np.ndarray | None:
     return None
 
 
+def limit_draws(idata) -> tuple[np.ndarray, list[str]]:
+    """(S, n, 2) posterior draws of the limits (units as stored) and the n joint names."""
+    return _draws(_check_idata(idata))
+
+
+def true_limits(idata) -> np.ndarray | None:
+    """(n, 2) true limits stored with the posterior, or None."""
+    return _truth(_check_idata(idata))
+
+
 def _index(joints: list[str]) -> pd.MultiIndex:
     return pd.MultiIndex.from_product([joints, list(BOUNDS)], names=["joint", "bound"])
 
@@ -224,9 +249,8 @@ def to_inference_data(
         n_resample = check_positive_int(n_resample, "n_resample")
     if resampled:
         samples = result.resample(n_resample or n_orig, rng)
-        weights_ess = float(1.0 / np.sum(w**2))
-    else:
-        weights_ess = float(n_orig)
+    weights_ess = result.ess  # Kish: (sum w)^2 / sum w^2; N for equal weights
+    draws_kind = DRAWS_POINT if n_orig == 1 else DRAWS_RESAMPLED if resampled else DRAWS_INDEPENDENT
     post = (samples * scale).reshape(1, samples.shape[0], n, 2)
 
     coords = {"joint": names, "bound": list(BOUNDS)}
@@ -286,6 +310,7 @@ def to_inference_data(
         "n_tasks": int(result.n_tasks),
         "units": units,
         "resampled": int(resampled),
+        "draws": draws_kind,
         "resample_seed": seed_attr,
         "weights_ess": weights_ess,
         "n_samples_original": int(n_orig),
@@ -317,6 +342,39 @@ def to_inference_data(
     for g in idata.groups():  # from_dict puts attrs on posterior only in some versions
         getattr(idata, g).attrs.update(meta)
     return idata
+
+
+def observed_arrays(task) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
+    """A `Task`'s observed reaches and held-out goals as arrays for ``to_inference_data(observed=...)``.
+
+    Returns ({name: array}, {name: dims}): ``observed_q`` (reach, step, joint) and
+    ``observed_ee`` (reach, step, xyz), padded with NaN after each reach's ``observed_length``
+    (a space the reach was not recorded in is all NaN); ``observed_goal`` (reach, xyz);
+    ``observed_start`` (reach, joint); ``test_goal`` (test, xyz) and ``test_start``
+    (test, joint) when the task has held-out goals. Radians and metres.
+    """
+    obs = task.observations
+    if not obs:
+        raise ValueError("task: has no observations")
+    n, T, m = task.n_joints, max(o.length for o in obs), len(obs)
+    q = np.full((m, T, n), np.nan)
+    ee = np.full((m, T, 3), np.nan)
+    for i, o in enumerate(obs):
+        if o.q is not None:
+            q[i, : o.length] = _to_numpy(o.q, "q")
+        if o.ee is not None:
+            ee[i, : o.length] = _to_numpy(o.ee, "ee")
+    arrays = {"observed_q": q, "observed_ee": ee,
+              "observed_length": np.array([o.length for o in obs], dtype=np.int64),
+              "observed_goal": np.stack([_to_numpy(o.goal, "goal") for o in obs]).astype(np.float64),
+              "observed_start": np.stack([_to_numpy(o.start, "start") for o in obs]).astype(np.float64)}
+    dims = {"observed_q": ["reach", "step", "joint"], "observed_ee": ["reach", "step", "xyz"],
+            "observed_length": ["reach"], "observed_goal": ["reach", "xyz"], "observed_start": ["reach", "joint"]}
+    if task.test_goals is not None:
+        arrays["test_goal"] = _to_numpy(task.test_goals, "test_goals").astype(np.float64)
+        arrays["test_start"] = _to_numpy(task.test_starts, "test_starts").astype(np.float64)
+        dims.update({"test_goal": ["test", "xyz"], "test_start": ["test", "joint"]})
+    return arrays, dims
 
 
 # --------------------------------------------------------------------------- netCDF
@@ -364,18 +422,38 @@ def _check_prob(hdi_prob) -> float:
     return float(hdi_prob)
 
 
-def summary(idata: az.InferenceData, hdi_prob: float = 0.94) -> pd.DataFrame:
-    """Per joint limit: mean, sd, hdi, mcse and ess (arviz.summary); r_hat only with >1 chain.
+def draws_kind(idata: az.InferenceData) -> str:
+    """What the posterior draws are (`DRAWS_INDEPENDENT`, `DRAWS_RESAMPLED`, `DRAWS_POINT`).
 
-    Rows are named like ``limits[shoulder, lower]``; a ``truth`` column is added when
-    the true limits are stored. Fixed (zero-variance) limits show sd 0.
+    Read from ``attrs["draws"]``; files written before that attribute existed are judged by
+    ``attrs["resampled"]`` and the number of draws.
+    """
+    _check_idata(idata)
+    a = idata.posterior.attrs
+    if "draws" in a:
+        return str(a["draws"])
+    if int(a.get("n_samples_original", 2)) == 1:
+        return DRAWS_POINT
+    return DRAWS_RESAMPLED if int(a.get("resampled", 0)) else DRAWS_INDEPENDENT
+
+
+def summary(idata: az.InferenceData, hdi_prob: float = 0.94) -> pd.DataFrame:
+    """Per joint limit: mean, sd, hdi (arviz.summary), and the MCMC columns where they mean something.
+
+    mcse / ess_bulk / ess_tail are kept for independent draws only: draws resampled from
+    weighted samples repeat a few samples, so those columns would report the number of
+    draws, not the effective sample size (``attrs["weights_ess"]``, Kish, is that). r_hat
+    needs more than one chain. Rows are named like ``limits[shoulder, lower]``; a ``truth``
+    column is added when the true limits are stored. Fixed (zero-variance) limits show sd 0.
     """
     _check_idata(idata)
     hdi_prob = _check_prob(hdi_prob)
     with _quiet_arviz():
         df = az.summary(idata, var_names=[VAR_NAME], hdi_prob=hdi_prob, kind="all")
+    drop = [c for c in _MCMC_COLUMNS if c in df and draws_kind(idata) != DRAWS_INDEPENDENT]
     if idata.posterior.sizes["chain"] < 2 and "r_hat" in df:
-        df = df.drop(columns="r_hat")
+        drop.append("r_hat")
+    df = df.drop(columns=sorted(set(drop)))
     truth = _truth(idata)
     if truth is not None:
         _, joints = _draws(idata)
@@ -482,18 +560,24 @@ def _select_joints(idata, joints) -> list[str]:
 
 def plot_posterior(idata: az.InferenceData, *, joints: Sequence[str] | None = None,
                    hdi_prob: float = 0.94, figsize=None) -> Figure:
-    """One panel per (joint, bound): arviz posterior density + HDI, truth as ``ref_val``.
+    """One panel per (joint, bound): arviz posterior density + HDI, the truth a black line.
 
-    Fixed (zero-variance) limits are drawn as a single vertical line with a note.
-    Returns a matplotlib Figure (not attached to pyplot; render with ``fig.savefig``).
+    The truth is drawn here (not as arviz's ``ref_val``, whose text collides with the mean
+    label) and named once in the figure legend. Fixed (zero-variance) limits are drawn as a
+    single vertical line with a note. The density is drawn in the method's colour
+    (`camo_sbi.diagnostics.style`). Returns a matplotlib Figure (not attached to pyplot).
     """
+    from camo_sbi.diagnostics.style import method_style
+
     _check_idata(idata)
     hdi_prob = _check_prob(hdi_prob)
     sel = _select_joints(idata, joints)
     draws, all_joints = _draws(idata)
     truth = _truth(idata)
     units = idata.posterior.attrs.get("units", "")
-    fig = Figure(figsize=figsize or (8.0, 2.2 * len(sel)), layout="constrained")
+    method = str(idata.posterior.attrs.get("method", "posterior"))
+    color = method_style(method).color
+    fig = Figure(figsize=figsize or (8.0, 2.0 * len(sel) + 0.6), layout="constrained")
     axes = np.atleast_2d(fig.subplots(len(sel), 2, squeeze=False))
     for r, j in enumerate(sel):
         ji = all_joints.index(j)
@@ -502,23 +586,26 @@ def plot_posterior(idata: az.InferenceData, *, joints: Sequence[str] | None = No
             x = draws[:, ji, c]
             tv = None if truth is None else float(truth[ji, c])
             if np.ptp(x) == 0:
-                ax.axvline(x[0], color="C0", lw=2)
+                ax.axvline(x[0], color=color, lw=2)
                 ax.set_title(f"{j}, {b} (fixed = {x[0]:.3g})", fontsize=9)
                 ax.set_yticks([])
                 pad = max(0.1, 0.05 * abs(float(x[0])))
                 ax.set_xlim(float(x[0]) - pad, float(x[0]) + pad)
                 ax.locator_params(axis="x", nbins=3)
-                if tv is not None:
-                    ax.axvline(tv, color="C1", ls="--", label=f"truth {tv:.3g}")
-                    ax.legend(fontsize=7)
-                continue
-            with _quiet_arviz():
-                az.plot_posterior(idata, var_names=[VAR_NAME], coords={"joint": [j], "bound": [b]},
-                                  hdi_prob=hdi_prob, ref_val=tv, ax=ax, textsize=8, show=False)
-            ax.set_title(f"{j}, {b}", fontsize=9)
+            else:
+                with _quiet_arviz():
+                    az.plot_posterior(idata, var_names=[VAR_NAME], coords={"joint": [j], "bound": [b]},
+                                      hdi_prob=hdi_prob, ax=ax, textsize=8, show=False, color=color)
+                ax.set_title(f"{j}, {b}", fontsize=9)
+            if tv is not None:
+                ax.axvline(tv, color="k", ls="--", lw=1.2, label="truth")
+                lo, hi = ax.get_xlim()
+                ax.set_xlim(min(lo, tv - 0.02 * (hi - lo)), max(hi, tv + 0.02 * (hi - lo)))
             ax.set_xlabel(units, fontsize=8)
-    fig.suptitle(f"{idata.posterior.attrs.get('method', 'posterior')}: joint limits"
-                 + (" (orange: truth)" if truth is not None else ""), fontsize=10)
+    fig.suptitle(f"{method}: joint limits, {hdi_prob:.0%} HDI", fontsize=10)
+    if truth is not None:
+        fig.legend(handles=[axes[0, 0].lines[-1]], labels=["truth"], loc="outside upper right", fontsize=8,
+                   frameon=False)
     return fig
 
 
@@ -564,8 +651,11 @@ def plot_forest(idatas: Sequence[az.InferenceData], model_names: Sequence[str], 
     """Forest plot of the limits across methods (one row per model per limit).
 
     With ``truth=True`` and true limits stored in the first InferenceData, the truth is
-    added as an extra model named "truth" (a point, zero-width interval).
+    added as an extra model named "truth" (a point, zero-width interval). Each model in its
+    method's colour (`camo_sbi.diagnostics.style`); the legend sits outside, to the right.
     """
+    from camo_sbi.diagnostics.style import method_style
+
     if isinstance(idatas, az.InferenceData) or not isinstance(idatas, Sequence) or not idatas:
         raise TypeError("idatas: expected a non-empty list of arviz.InferenceData")
     for i, d in enumerate(idatas):
@@ -591,8 +681,14 @@ def plot_forest(idatas: Sequence[az.InferenceData], model_names: Sequence[str], 
     ax = fig.subplots()
     with _quiet_arviz():
         az.plot_forest(data, model_names=labels, var_names=[VAR_NAME], coords={"joint": sel},
-                       combined=True, hdi_prob=hdi_prob, ax=ax, textsize=8, show=False)
+                       combined=True, hdi_prob=hdi_prob, ax=ax, textsize=8, show=False,
+                       colors=[method_style(m).color for m in labels])
     ax.set_title(f"joint limits, {hdi_prob:.0%} HDI per method", fontsize=10)
+    legend = ax.get_legend()
+    if legend is not None:  # arviz puts it over the first rows: move it outside, to the right
+        handles, texts = legend.legend_handles, [t.get_text() for t in legend.get_texts()]
+        legend.remove()
+        ax.legend(handles, texts, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     return fig
 
 

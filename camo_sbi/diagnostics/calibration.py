@@ -21,6 +21,7 @@ from matplotlib.figure import Figure
 from scipy import stats
 
 from camo_sbi._validation import check_positive_int, numpy_generator
+from camo_sbi.diagnostics.style import method_order, method_style
 from camo_sbi.inference.result import PosteriorResult
 
 __all__ = [
@@ -325,7 +326,7 @@ def _c2st_sklearn(a: np.ndarray, b: np.ndarray, seed: int, n_folds: int, classif
 
 
 def plot_coverage(df_by_method, *, coordinate: str = "overall", title: str | None = None,
-                  figsize=(5.0, 5.0)) -> Figure:
+                  figsize=(6.6, 4.8)) -> Figure:
     """Coverage vs credibility level α per method, with the diagonal (perfect calibration).
 
     Args:
@@ -359,15 +360,20 @@ def plot_coverage(df_by_method, *, coordinate: str = "overall", title: str | Non
     agg = df.groupby(["method", "alpha"], sort=True)["coverage"].agg(["mean", "min", "max"]).reset_index()
     fig = Figure(figsize=figsize, layout="constrained")
     ax = fig.subplots()
-    ax.plot([0, 1], [0, 1], ls="--", color="0.4", lw=1, label="calibrated")
-    for i, (m, g) in enumerate(agg.groupby("method", sort=True)):
-        ax.plot(g["alpha"], g["mean"], marker="o", ms=3, color=f"C{i}", label=str(m))
+    ax.plot([0, 1], [0, 1], ls="--", color="0.6", lw=1, label="calibrated (diagonal)")
+    spread = False
+    for m in method_order(agg["method"].astype(str)):
+        g = agg[agg["method"].astype(str) == m]
+        st = method_style(m)
+        ax.plot(g["alpha"], g["mean"], ms=3, lw=1.3, label=m, **st.line_kwargs())
         if (g["max"] > g["min"]).any():
-            ax.fill_between(g["alpha"], g["min"], g["max"], color=f"C{i}", alpha=0.15, lw=0)
+            spread = True
+            ax.fill_between(g["alpha"], g["min"], g["max"], color=st.color, alpha=0.15, lw=0)
     ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="credibility level α (central interval)",
            ylabel="empirical coverage", aspect="equal")
     ax.set_title(title or f"Coverage ({coordinate})", fontsize=10)
     ax.text(0.97, 0.03, "below diagonal: over-confident", ha="right", va="bottom",
             transform=ax.transAxes, fontsize=7, color="0.4")
-    ax.legend(fontsize=8, loc="upper left")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False,
+              title="band: min–max over tasks/budgets" if spread else None, title_fontsize=7)
     return fig

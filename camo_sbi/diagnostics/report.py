@@ -41,27 +41,36 @@ SECTIONS: tuple[tuple[str, str], ...] = (
     ("error-vs-tasks", "Error vs tasks"),
     ("error-vs-budget", "Error vs budget"),
     ("posteriors", "Posteriors"),
+    ("posterior-predictive", "Posterior-predictive reaches"),
     ("posterior-comparison", "Posterior comparison"),
     ("calibration", "Calibration"),
     ("diagnostics", "Diagnostics"),
 )
 RESULTS_COLUMNS = ("task", "subject", "method", "budget", "seed", "n_tasks", "metric", "value")
+"""Required columns of results.csv; an optional ``status`` column marks non-ok runs."""
 _MAX_TABLE_ROWS = 400
 _MAX_C2ST_PAIRS = 12  # each costs ~1 s (500 draws per side, 5-fold random forest)
 _MAX_METRIC_PANELS = 9
+_PPC_DRAWS = 50
+_CORNER_LIMITS = 4
+_DAGGER = "†"
 
 _CSS = """
 body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:0 auto;max-width:1200px;
-padding:1em 2em;color:#222;background:#fff}
+padding:1em 2em;color:#222;background:#fff;overflow-wrap:anywhere}
 h1{border-bottom:2px solid #446;padding-bottom:.2em}
 h2{border-bottom:1px solid #ccd;margin-top:2em}
-nav ul{columns:2;list-style:none;padding-left:0}
-table{border-collapse:collapse;font-size:12px;margin:.5em 0 1em}
+h3{margin:1.2em 0 .4em}
+nav ul{columns:3;list-style:none;padding-left:0}
+table{border-collapse:collapse;font-size:12px;margin:.3em 0 .6em}
 th,td{border:1px solid #ccd;padding:2px 6px;text-align:right}
 th{background:#eef}
 td:first-child,th:first-child{text-align:left}
+caption{caption-side:top;text-align:left;font-weight:600;font-size:12px;padding:.2em 0}
+.tables{display:flex;flex-wrap:wrap;gap:.4em 1.6em;align-items:flex-start}
+.wide{max-width:100%;overflow-x:auto}
 .note{background:#fff6e0;border-left:4px solid #e0a000;padding:.4em .8em}
-.meta{color:#666;font-size:12px}
+.meta{color:#555;font-size:12px}
 figure{margin:.5em 0 1.5em}
 figcaption{font-size:12px;color:#555}
 img{max-width:100%;height:auto;border:1px solid #eee}
@@ -99,6 +108,13 @@ def _table_html(df: pd.DataFrame, *, index: bool = True, float_format: str = "{:
         df = df.iloc[:_MAX_TABLE_ROWS]
     return note + df.to_html(index=index, escape=True, border=0, na_rep="–",
                              float_format=lambda v: float_format.format(v))
+
+
+def _captioned(df: pd.DataFrame, caption: str) -> str:
+    """``df`` as an HTML table (no index) with ``caption``."""
+    text = df.to_html(index=False, escape=True, border=0, na_rep="–")
+    end = text.index(">") + 1
+    return f"{text[:end]}<caption>{_esc(caption)}</caption>{text[end:]}"
 
 
 def _guard(build: Callable[[], str]) -> str:
@@ -141,6 +157,8 @@ def _load_results(run_dir: Path) -> tuple[pd.DataFrame | None, str]:
         return None, "results.csv has no rows with a finite value"
     for c in ("task", "subject", "method", "metric"):
         df[c] = df[c].astype(str)
+    if "status" in df:
+        df["status"] = df["status"].fillna("ok").astype(str)
     return df, ""
 
 
@@ -179,37 +197,94 @@ def _settings(run_dir: Path) -> str:
     return _table_html(pd.DataFrame(rows, columns=["setting", "value"]), index=False)
 
 
-def _fmt_cell(mean: float, std: float, n: int) -> str:
-    if n > 1 and np.isfinite(std):
-        return f"{mean:.4g} ± {std:.2g} (n={n})"
-    return f"{mean:.4g} (n={n})"
+def _ci_cell(values) -> str:
+    from camo_sbi.diagnostics.style import mean_ci, number
+
+    m, c = mean_ci(values)
+    if not np.isfinite(m):
+        return "–"
+    return f"{number(m)} ± {number(c, 2)}" if len(values) > 1 else number(m)
+
+
+def _budget_text(b) -> str:
+    return "any budget" if pd.isna(b) else f"{b:g}"
+
+
+def _metric_order(metrics) -> list[str]:
+    from camo_sbi.diagnostics.style import METRIC_LABELS
+
+    known = list(METRIC_LABELS)
+    return sorted(set(metrics), key=lambda m: (known.index(m) if m in known else len(known), m))
+
+
+def _status_marks(sub: pd.DataFrame) -> dict[str, list[str]]:
+    """{method: its distinct non-ok statuses} in ``sub`` (empty without a status column)."""
+    if "status" not in sub:
+        return {}
+    bad = sub[sub["status"].astype(str) != "ok"]
+    return {m: sorted(g["status"].astype(str).unique()) for m, g in bad.groupby("method")}
+
+
+def _metric_table(sub: pd.DataFrame, metric: str, marks: dict[str, list[str]]) -> str:
+    from camo_sbi.diagnostics.style import method_order, metric_label
+
+    m = sub[sub["metric"] == metric]
+    budgets = sorted(m["budget"].unique(), key=lambda b: (pd.isna(b), b))
+    rows = []
+    for method in method_order(m["method"]):
+        g = m[m["method"] == method]
+        row = {"method": method + (f" {_DAGGER}" if method in marks else "")}
+        for b in budgets:
+            vals = g[g["budget"].isna()] if pd.isna(b) else g[g["budget"] == b]
+            row[_budget_text(b)] = _ci_cell(vals["value"].to_numpy()) if len(vals) else "–"
+        rows.append(row)
+    return _captioned(pd.DataFrame(rows), metric_label(metric))
+
+
+def _joint_table(sub: pd.DataFrame, marks: dict[str, list[str]]) -> str:
+    from camo_sbi.diagnostics.style import method_order
+
+    m = sub[sub["metric"].str.startswith("limit_error_deg_")]
+    bmax = m["budget"].max()
+    m = m[(m["budget"] == bmax) | m["budget"].isna()]
+    joints = list(dict.fromkeys(x[len("limit_error_deg_"):] for x in m["metric"]))
+    rows = []
+    for method in method_order(m["method"]):
+        g = m[m["method"] == method]
+        rows.append({"method": method + (f" {_DAGGER}" if method in marks else ""),
+                     **{j: _ci_cell(g.loc[g["metric"] == f"limit_error_deg_{j}", "value"].to_numpy())
+                        for j in joints}})
+    cap = f"|limit error| per joint [deg], budget {_budget_text(bmax)}"
+    return '<div class="wide">' + _captioned(pd.DataFrame(rows), cap) + "</div>"
 
 
 def _comparison(res: pd.DataFrame | None, why: str) -> str:
     if res is None:
         return _note(why)
-    keys = ["task", "subject", "method", "budget", "n_tasks"]
-    g = res.groupby(keys + ["metric"], dropna=False)["value"].agg(["mean", "std", "count"]).reset_index()
-    g["cell"] = [_fmt_cell(m, s, int(n)) for m, s, n in zip(g["mean"], g["std"], g["count"], strict=True)]
-    wide = g.pivot_table(index=keys, columns="metric", values="cell", aggfunc="first", dropna=False)
-    wide = wide.dropna(how="all").reset_index()
-    wide.columns.name = None
-    for c in ("budget", "n_tasks"):
-        wide[c] = wide[c].map(lambda v: "–" if pd.isna(v) else f"{v:g}")
-    return ('<p class="meta">mean ± standard deviation over seeds (n = number of seeds) for each '
-            "task, subject, method, simulation budget and number of observed tasks.</p>"
-            + _table_html(wide, index=False))
-
-
-def _panel_grid(metrics: list[str]) -> tuple[Figure, np.ndarray]:
-    k = len(metrics)
-    ncol = min(3, k)
-    nrow = int(np.ceil(k / ncol))
-    fig = Figure(figsize=(4.2 * ncol, 3.2 * nrow), layout="constrained")
-    axes = np.asarray(fig.subplots(nrow, ncol, squeeze=False)).reshape(-1)
-    for ax in axes[k:]:
-        ax.set_visible(False)
-    return fig, axes
+    out = []
+    groups = list(res.groupby(["task", "subject"], sort=True))
+    for (task, subject), tdf in groups:
+        n_last = tdf["n_tasks"].max()
+        sub = tdf[(tdf["n_tasks"] == n_last) | tdf["n_tasks"].isna()]
+        seeds = sub.groupby(["method", "budget", "metric"], dropna=False)["value"].count()
+        n = sorted(set(int(v) for v in seeds))
+        n_text = str(n[0]) if len(n) == 1 else f"{n[0]}–{n[-1]}"
+        marks = _status_marks(sub)
+        metrics = _metric_order(m for m in sub["metric"].unique() if not m.startswith("limit_error_deg_"))
+        if len(groups) > 1:
+            out.append(f"<h3>task {_esc(task)}, subject {_esc(subject)}</h3>")
+        out.append(f'<p class="meta">After {n_last:g} observed tasks. Each cell: mean ± half-width of the '
+                   f"95% confidence interval of the mean over {n_text} seeds (Student t; the same statistic "
+                   "as the figures' bands); methods as rows, simulation budgets per observed task as "
+                   "columns.</p>")
+        out.append('<div class="tables">' + "".join(_metric_table(sub, m, marks) for m in metrics) + "</div>")
+        if sub["metric"].str.startswith("limit_error_deg_").any():
+            out.append(_joint_table(sub, marks))
+        if marks:
+            lines = "; ".join(f"{_esc(m)}: {_esc(', '.join(st))}" for m, st in marks.items())
+            out.append(f'<p class="meta">{_DAGGER} some runs of this method did not end with status "ok" '
+                       f"(their rows are still averaged): {lines}.</p>")
+    return "".join(out)
 
 
 def _largest(df: pd.DataFrame, by: str) -> pd.DataFrame:
@@ -222,40 +297,164 @@ def _largest(df: pd.DataFrame, by: str) -> pd.DataFrame:
 
 
 def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: str) -> str:
+    from camo_sbi.diagnostics.style import (
+        band_label,
+        figure_legend,
+        method_style,
+        metric_label,
+        new_figure,
+        plot_lines,
+        run_counts,
+    )
+
     if res is None:
         return _note(why)
     if res[x].nunique(dropna=True) < 2:
         vals = sorted(res[x].dropna().unique().tolist())
-        return _note(f"results.csv has fewer than two distinct {x} values ({vals})")
+        return _note(f"results.csv has fewer than two distinct {x} values ({vals}): no figure "
+                     "(the comparison tables hold the values)")
     parts = []
     for task, tdf in res.groupby("task"):
         sub = _largest(tdf, fixed)
-        metrics = sorted(sub["metric"].unique())
+        metrics = _metric_order(m for m in sub["metric"].unique() if not m.startswith("limit_error_deg_"))
         shown = metrics[:_MAX_METRIC_PANELS]
-        fig, axes = _panel_grid(shown)
-        xs_all = sub[x].dropna()
-        log = bool(len(xs_all) and xs_all.min() > 0 and xs_all.max() / xs_all.min() >= 10)
-        for ax, metric in zip(axes, shown, strict=False):
+        ncol = min(3, len(shown))
+        nrow = int(np.ceil(len(shown) / ncol))
+        fig, axes = new_figure(nrow, ncol, panel=(4.0, 3.0))
+        flat = axes.reshape(-1)
+        for ax in flat[len(shown):]:
+            ax.set_visible(False)
+        for ax, metric in zip(flat, shown, strict=False):
             mdf = sub[sub["metric"] == metric]
-            for i, (method, g) in enumerate(mdf.groupby("method")):
-                color = f"C{i % 10}"
-                agg = g.groupby(x)["value"].agg(["mean", "std"]).reset_index()
-                if len(agg) >= 2:
-                    ax.errorbar(agg[x], agg["mean"], yerr=agg["std"].fillna(0), marker="o", ms=4,
-                                capsize=3, color=color, label=method)
-                else:  # a single x (or none, e.g. a budget-free baseline): a reference line
-                    ax.axhline(g["value"].mean(), ls="--", color=color, label=f"{method} (constant)")
-            ax.set_title(metric, fontsize=10)
+            plot_lines(mdf[mdf[x].notna()], x=x, ax=ax, logx=x == "budget", ylabel="",
+                       title=metric_label(metric), legend=False)
+            for method, g in mdf[mdf[x].isna()].groupby("method"):  # budget-free: a constant line
+                ax.axhline(g["value"].mean(), label=method, **{**method_style(method).line_kwargs(), "marker": None})
             ax.set_xlabel(xlabel, fontsize=9)
-            if log:
-                ax.set_xscale("log")
-            ax.legend(fontsize=7)
-        cap = (f"task {task}: mean ± sd over seeds and subjects vs {xlabel}; each method at its largest "
-               f"{fixed.replace('_', ' ')}.")
+        figure_legend(fig, flat[: len(shown)], title=band_label(run_counts(sub, x)))
+        cap = (f"task {task}: each method at its largest {fixed.replace('_', ' ')}; line = mean, band = 95% "
+               f"confidence interval of the mean over seeds and subjects (Student t).")
         if len(metrics) > len(shown):
-            cap += f" Showing {len(shown)} of {len(metrics)} metrics."
+            cap += f" Showing {len(shown)} of {len(metrics)} metrics (all are in the tables)."
         parts.append(_fig_html(fig, cap, alt=f"{xlabel} figure for task {task}"))
     return "".join(parts)
+
+
+# --------------------------------------------------------------------------- posteriors
+
+
+def _attr(idata, key, default=None):
+    return idata.posterior.attrs.get(key, default)
+
+
+def _words(idata, *, method: bool = True) -> str:
+    """A posterior's cell in words: method, budget, seed (and subject)."""
+    parts = [str(_attr(idata, "method", "?"))] if method else []
+    if _attr(idata, "budget") is not None:
+        parts.append(f"budget {_attr(idata, 'budget')}")
+    if _attr(idata, "seed") is not None:
+        parts.append(f"seed {_attr(idata, 'seed')}")
+    if _attr(idata, "n_tasks") is not None:
+        parts.append(f"{_attr(idata, 'n_tasks')} tasks")
+    return ", ".join(parts)
+
+
+def _is_point(idata) -> bool:
+    from camo_sbi.diagnostics import arviz_io
+
+    return arviz_io.draws_kind(idata) == arviz_io.DRAWS_POINT or _attr(idata, "n_samples_original", 2) == 1
+
+
+def _cells(posts):
+    """{(task, subject): {(budget, seed): [(method, idata, path)]}} and the readable errors."""
+    groups: dict[tuple, dict[tuple, list]] = {}
+    errors = []
+    for path, idata, err in posts:
+        if idata is None:
+            errors.append(_note(f"{path.name} could not be read ({err})"))
+            continue
+        key = (str(_attr(idata, "task", "")), str(_attr(idata, "subject", "")))
+        cell = (_attr(idata, "budget"), _attr(idata, "seed"))
+        groups.setdefault(key, {}).setdefault(cell, []).append((str(_attr(idata, "method", path.stem)), idata, path))
+    return groups, errors
+
+
+def _chosen(cells: dict) -> tuple:
+    """The cell shown in full: the largest budget, then the smallest seed."""
+    def key(c):
+        b, s = c
+        return (-(float(b) if isinstance(b, (int, float, np.number)) else -np.inf),
+                float(s) if isinstance(s, (int, float, np.number)) else np.inf)
+    return sorted(cells, key=key)[0]
+
+
+def _cell_words(cell) -> str:
+    b, s = cell
+    parts = []
+    if b is not None:
+        parts.append(f"budget {b} simulations per observed task")
+    if s is not None:
+        parts.append(f"seed {s}")
+    return ", ".join(parts) or "the posteriors"
+
+
+def _group_words(task: str, subject: str) -> str:
+    return ", ".join(x for x in (f"task {task}" if task else "", f"subject {subject}" if subject else "") if x)
+
+
+def _limits_figure(members, caption_extra: str = "") -> str:
+    from camo_sbi.diagnostics import arviz_io
+    from camo_sbi.diagnostics.figures import plot_limits
+
+    draws, truth, units = {}, None, "rad"
+    for method, idata, _ in members:
+        d, joints = arviz_io.limit_draws(idata)
+        draws[method] = d
+        truth = arviz_io.true_limits(idata) if truth is None else truth
+        units = str(_attr(idata, "units", units))
+    fig = plot_limits(draws, joints, truth=truth, units=units)
+    return _fig_html(fig, "Every joint limit per method: 94% highest-density interval (thin line), quartiles "
+                          "(thick), median (dot); a marker alone is a baseline's point estimate; the black bar "
+                          "is the true limit." + caption_extra, alt="limits per method")
+
+
+def _corner_selection(members) -> tuple[list[tuple[int, int]], list[str]]:
+    """The (joint, bound) limits for the corner plot: the most informed free ones (smallest mean
+    relative HDI width over the posteriors), at most _CORNER_LIMITS."""
+    from camo_sbi.diagnostics import arviz_io
+
+    widths = []
+    for _, idata, _ in members:
+        with contextlib.suppress(ValueError):
+            widths.append(arviz_io.posterior_width(idata)["relative_width"].to_numpy())
+    _, joints = arviz_io.limit_draws(members[0][1])
+    if not widths:
+        return [], joints
+    stacked = np.stack(widths)
+    seen = np.isfinite(stacked).any(axis=0)  # fixed coordinates have no relative width
+    rel = np.full(stacked.shape[1], np.nan)
+    rel[seen] = np.nanmean(stacked[:, seen], axis=0)
+    order = [int(k) for k in np.argsort(rel) if np.isfinite(rel[k]) and rel[k] > 0]
+    return [(k // 2, k % 2) for k in order[:_CORNER_LIMITS]], joints
+
+
+def _corner_figure(posterior, points) -> str:
+    from camo_sbi.diagnostics import arviz_io
+    from camo_sbi.diagnostics.figures import plot_corner
+
+    sel, joints = _corner_selection(posterior)
+    if len(sel) < 2:
+        return _note("a corner plot needs at least two free limits with a posterior")
+    labels = [f"{joints[j]} {('lower', 'upper')[b]}" for j, b in sel]
+    draws = {m: arviz_io.limit_draws(d)[0][:, [j for j, _ in sel], [b for _, b in sel]] for m, d, _ in posterior}
+    pts = {m: arviz_io.limit_draws(d)[0][0, [j for j, _ in sel], [b for _, b in sel]] for m, d, _ in points}
+    t = arviz_io.true_limits(posterior[0][1])
+    truth = None if t is None else t[[j for j, _ in sel], [b for _, b in sel]]
+    fig = plot_corner(draws, labels, truth=truth, points=pts, units=str(_attr(posterior[0][1], "units", "rad")))
+    return _fig_html(fig, f"Corner plot of the {len(sel)} limits the posteriors narrow most (smallest 94% HDI "
+                          "width relative to the prior): histograms of the draws on the diagonal, pairs of draws "
+                          "below; black lines and crosses: the truth; markers: baselines' point estimates.",
+                     alt="corner plot")
 
 
 def _posteriors(posts, why: str) -> str:
@@ -264,36 +463,101 @@ def _posteriors(posts, why: str) -> str:
     from camo_sbi.diagnostics import arviz_io
 
     out = [f'<p class="meta">{_esc(why)}</p>'] if why else []
-    groups: dict[tuple, list[tuple[str, object]]] = {}
-    for path, idata, err in posts:
-        if idata is None:
-            out.append(_note(f"{path.name} could not be read ({err})"))
+    groups, errors = _cells(posts)
+    out += errors
+    for (task, subject), cells in groups.items():
+        chosen = _chosen(cells)
+        members = sorted(cells[chosen], key=lambda m: m[0])
+        label = _group_words(task, subject)
+        posterior = [m for m in members if not _is_point(m[1])]
+        points = [m for m in members if _is_point(m[1])]
+        out.append(f"<h3>{_esc(label + ': ' if label else '')}{_esc(_cell_words(chosen))}</h3>")
+        out.append(_guard(lambda members=members: _limits_figure(members)))
+        if posterior:
+            out.append(_guard(lambda p=posterior, q=points: _corner_figure(p, q)))
+            for method, idata, _ in posterior:
+                def marginals(idata=idata, method=method):
+                    fig = arviz_io.plot_posterior(idata)
+                    return _fig_html(fig, f"{method}: marginal posterior of every limit with its 94% HDI "
+                                          "(arviz); dashed black: the truth.")
+                out.append(f"<details><summary>Marginal posteriors: {_esc(_words(idata))}</summary>"
+                           f"{_guard(marginals)}</details>")
+        others = [c for c in cells if c != chosen]
+        for cell in sorted(others, key=lambda c: (str(c[0]), str(c[1]))):
+            ms = sorted(cells[cell], key=lambda m: m[0])
+            out.append(f"<details><summary>Limits per method, {_esc(_cell_words(cell))}</summary>"
+                       f"{_guard(lambda ms=ms: _limits_figure(ms))}</details>")
+    return "".join(out)
+
+
+def _simulator(task: str):
+    """The simulator a run's posteriors were computed with, rebuilt from its model name."""
+    from camo_sbi.simulators import human, panda
+
+    builders = {"panda": panda, "human": human}
+    if task not in builders:
+        raise ValueError(f"task: cannot rebuild the simulator of task {task!r} (known: {sorted(builders)})")
+    return builders[task]()
+
+
+def _observed(idata) -> dict[str, np.ndarray] | None:
+    if "observed_data" not in idata.groups():
+        return None
+    od = idata.observed_data
+    need = ("observed_ee", "observed_length", "observed_goal", "observed_start")
+    if not all(k in od for k in need):
+        return None
+    return {k: np.asarray(od[k].values) for k in need}
+
+
+def _predictive_paths(sim, draws: np.ndarray, obs: dict[str, np.ndarray], n_reaches: int) -> list[list[np.ndarray]]:
+    """For each observed reach, the end-effector paths of the draws (S, 2n) from its start to its goal."""
+    import torch
+
+    from camo_sbi.evaluation.evaluate import predictive_trajectories
+
+    goals = torch.as_tensor(obs["observed_goal"][:n_reaches], dtype=torch.float64)
+    starts = torch.as_tensor(obs["observed_start"][:n_reaches], dtype=torch.float64)
+    traj = predictive_trajectories(sim, draws, starts, goals)
+    S = draws.shape[0]
+    return [[traj.trimmed(s * n_reaches + i, "cartesian").numpy() for s in range(S)] for i in range(n_reaches)]
+
+
+def _predictive(posts, why: str) -> str:
+    if not posts:
+        return _note(why)
+    from camo_sbi.diagnostics import arviz_io
+    from camo_sbi.diagnostics.figures import plot_predictive
+
+    groups, _ = _cells(posts)
+    out = []
+    for (task, subject), cells in groups.items():
+        chosen = _chosen(cells)
+        members = [m for m in sorted(cells[chosen], key=lambda m: m[0]) if not _is_point(m[1])]
+        with_obs = [(m, d) for m, d, _ in members if _observed(d) is not None]
+        label = _group_words(task, subject)
+        if not with_obs:
+            out.append(_note(f"{label or 'these posteriors'}: the posterior files hold no observed reaches "
+                             "(written by an older camo-sbi compare)"))
             continue
-        a = idata.posterior.attrs
-        try:
-            fig = arviz_io.plot_posterior(idata)
-            out.append(f"<h3>{_esc(path.name)}</h3>" + _fig_html(
-                fig, f"{path.name}: method {a.get('method', '?')}, {a.get('n_simulations', '?')} simulations, "
-                     f"{a.get('n_tasks', '?')} tasks; density with 94% HDI, truth in orange when known."))
-        except Exception as exc:  # noqa: BLE001
-            out.append(_note(f"{path.name}: posterior plot failed ({type(exc).__name__}: {exc})"))
-        joints = tuple(str(j) for j in idata.posterior["joint"].values)
-        key = (str(a.get("task", "")), str(a.get("subject", "")), joints)
-        groups.setdefault(key, []).append((str(a.get("method", path.stem)), idata, path.stem))
-    for (task, subject, _), members in groups.items():
-        names = [m for m, _, _ in members]
-        if len(set(names)) < len(names):  # same method twice: disambiguate by budget / seed
-            names = [" ".join([m] + [f"{k}={d.posterior.attrs[k]}" for k in ("budget", "seed")
-                                     if k in d.posterior.attrs]) for m, d, _ in members]
-        if len(set(names)) < len(names):  # still ambiguous: by file
-            names = [f"{m} ({stem})" for m, _, stem in members]
-        label = ", ".join(x for x in (f"task {task}" if task else "", f"subject {subject}" if subject else "") if x)
-        try:
-            fig = arviz_io.plot_forest([d for _, d, _ in members], names)
-            out.append(f"<h3>Forest plot{': ' + _esc(label) if label else ''}</h3>" + _fig_html(
-                fig, f"94% HDI and quartiles of every limit across methods{' for ' + label if label else ''}."))
-        except Exception as exc:  # noqa: BLE001
-            out.append(_note(f"forest plot failed ({type(exc).__name__}: {exc})"))
+        sim = _simulator(task)
+        obs = _observed(with_obs[0][1])
+        n_reaches = min(4, int(obs["observed_length"].shape[0]))
+        observed = [obs["observed_ee"][i, : int(obs["observed_length"][i])] for i in range(n_reaches)]
+        for method, idata in with_obs:
+            d, _ = arviz_io.limit_draws(idata)
+            flat = d.reshape(d.shape[0], -1)
+            if str(_attr(idata, "units", "rad")) == "deg":
+                flat = np.radians(flat)
+            pick = flat[np.linspace(0, flat.shape[0] - 1, min(_PPC_DRAWS, flat.shape[0])).astype(int)]
+            paths = _predictive_paths(sim, pick, obs, n_reaches)
+            fig = plot_predictive(observed, {method: paths}, goals=obs["observed_goal"],
+                                  title=f"{method}: {_words(idata, method=False)}")
+            out.append(f"<h3>{_esc(_words(idata))}</h3>" + _fig_html(
+                fig, f"The observed reaches (black, the first {n_reaches}) against the end-effector paths "
+                     f"simulated with {len(pick)} posterior draws for the same starts and goals (thin "
+                     "lines): top view (x–y) and side view (x–z), metres. Draws that reproduce the "
+                     "observation lie on the black path.", alt=f"posterior-predictive reaches of {method}"))
     return "".join(out)
 
 
@@ -383,18 +647,34 @@ def _diagnostics(posts, why: str) -> str:
     if not posts:
         return _note(why)
     from camo_sbi.diagnostics import arviz_io
+    from camo_sbi.diagnostics.style import number
 
     meta_rows, out = [], []
-    keys = ("method", "budget", "n_simulations", "wall_time", "n_tasks", "units", "resampled",
-            "weights_ess", "n_samples_original", "task", "subject")
     for path, idata, err in posts:
         if idata is None:
             out.append(_note(f"{path.name} could not be read ({err})"))
             continue
         a = idata.posterior.attrs
-        meta_rows.append({"file": path.name, **{k: a.get(k, "–") for k in keys}})
-        body = ['<p class="meta">arviz summary (one chain of independent draws: no r_hat).</p>',
-                _table_html(arviz_io.summary(idata))]
+        kind = arviz_io.draws_kind(idata)
+        ess = a.get("weights_ess")
+        meta_rows.append({
+            "method": a.get("method", "–"), "budget": a.get("budget", "–"), "seed": a.get("seed", "–"),
+            "subject": a.get("subject", "–"), "tasks": a.get("n_tasks", "–"),
+            "simulations": a.get("n_simulations", "–"),
+            "wall time [s]": number(a["wall_time"]) if "wall_time" in a else "–",
+            "draws": kind,
+            "effective samples (Kish)": "–" if ess is None or kind == arviz_io.DRAWS_POINT
+            else f"{float(ess):.1f} of {a.get('n_samples_original', '?')}",
+            "status": a.get("status", "–")})
+        if kind == arviz_io.DRAWS_POINT:
+            continue
+        if kind == arviz_io.DRAWS_RESAMPLED:
+            head = (f"draws resampled from {a.get('n_samples_original', '?')} weighted samples whose weights imply "
+                    f"{float(ess):.1f} effective samples (Kish, (Σw)²/Σw²); MCMC columns (mcse, ess_bulk, "
+                    "ess_tail, r_hat) are left out: they would count the repeated draws.")
+        else:
+            head = "independent draws in one chain: ess as arviz computes it, no r_hat (needs several chains)."
+        body = [f'<p class="meta">arviz summary; {_esc(head)}</p>', _table_html(arviz_io.summary(idata))]
         with contextlib.suppress(ValueError):
             body.append('<p class="meta">Posterior 94% HDI width relative to the prior '
                         "(1: uninformed by the observations, 0: pinned down).</p>"
@@ -403,9 +683,13 @@ def _diagnostics(posts, why: str) -> str:
             body.append('<p class="meta">Position of the true limit in each marginal '
                         "(posterior quantile; near 0 or 1: the truth is in a tail).</p>"
                         + _table_html(arviz_io.truth_position(idata)))
-        is_open = " open" if len(posts) <= 4 else ""
-        out.append(f"<details{is_open}><summary>{_esc(path.name)}</summary>{''.join(body)}</details>")
-    head = _table_html(pd.DataFrame(meta_rows), index=False) if meta_rows else ""
+        body.insert(0, f'<p class="meta">file posteriors/{_esc(path.name)}</p>')
+        out.append(f"<details><summary>{_esc(_words(idata))}</summary>{''.join(body)}</details>")
+    head = ""
+    if meta_rows:
+        head = ('<p class="meta">One row per posterior file. Point estimates (baselines) have no posterior '
+                "diagnostics.</p>" + '<div class="wide">' + _table_html(pd.DataFrame(meta_rows), index=False)
+                + "</div>")
     return head + "".join(out)
 
 
@@ -423,7 +707,8 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
 
     Returns:
         The path written. Sections (ids): settings, comparison-table, error-vs-tasks,
-        error-vs-budget, posteriors, posterior-comparison, calibration, diagnostics.
+        error-vs-budget, posteriors, posterior-predictive, posterior-comparison, calibration,
+        diagnostics.
     """
     if not isinstance(run_dir, (str, os.PathLike)):
         raise TypeError(f"run_dir: expected str or PathLike, got {type(run_dir).__name__}")
@@ -450,8 +735,10 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
         "settings": _guard(lambda: _settings(run_dir)),
         "comparison-table": _guard(lambda: _comparison(res, res_why)),
         "error-vs-tasks": _guard(lambda: _xy_figures(res, res_why, "n_tasks", "budget", "number of observed tasks")),
-        "error-vs-budget": _guard(lambda: _xy_figures(res, res_why, "budget", "n_tasks", "simulation budget")),
+        "error-vs-budget": _guard(lambda: _xy_figures(res, res_why, "budget", "n_tasks",
+                                                      "simulations per observed task")),
         "posteriors": _guard(lambda: _posteriors(posts, post_why)),
+        "posterior-predictive": _guard(lambda: _predictive(posts, post_why)),
         "posterior-comparison": _guard(lambda: _posterior_comparison(posts, post_why)),
         "calibration": _guard(lambda: _calibration(run_dir)),
         "diagnostics": _guard(lambda: _diagnostics(posts, post_why)),

@@ -15,7 +15,8 @@ from camo_sbi.inference.result import PosteriorResult
 from camo_sbi.simulators.base import Trajectories
 from camo_sbi.task import Task, contain, predict
 
-__all__ = ["PPC_DRAWS", "evaluate_result", "posterior_predictive", "true_test_trajectories"]
+__all__ = ["PPC_DRAWS", "evaluate_result", "posterior_predictive", "predictive_trajectories",
+           "true_test_trajectories"]
 
 PPC_DRAWS = 64
 """Posterior draws for the posterior-predictive metrics (systematic resampling: deterministic)."""
@@ -27,6 +28,20 @@ def true_test_trajectories(task: Task) -> Trajectories:
     if task.test_goals is None:
         raise ValueError("task.test_goals: the task has no held-out goals to evaluate on")
     return predict(task.simulator, truth, task.test_starts, task.test_goals)
+
+
+def predictive_trajectories(simulator, draws, starts, goals) -> Trajectories:
+    """Every draw (S, 2n) on every reach (M goals (M, 3) from starts (M, n)): S * M trajectories,
+    draw-major (row ``s * M + i`` is draw s on reach i), each draw widened to contain its start."""
+    theta = torch.as_tensor(draws, dtype=torch.float64)
+    goals = torch.as_tensor(goals, dtype=torch.float64)
+    starts = torch.as_tensor(starts, dtype=torch.float64)
+    if theta.dim() != 2 or goals.dim() != 2 or starts.shape[0] != goals.shape[0]:
+        raise ValueError(f"draws: expected (S, 2n) draws, (M, 3) goals and (M, n) starts, got "
+                         f"{tuple(theta.shape)}, {tuple(goals.shape)}, {tuple(starts.shape)}")
+    s, m = theta.shape[0], goals.shape[0]
+    reps = starts.repeat(s, 1)
+    return simulator.simulate(contain(theta.repeat_interleave(m, 0), reps), goals.repeat(s, 1), reps)
 
 
 def posterior_predictive(task: Task, result: PosteriorResult, true_test: Trajectories,
@@ -41,10 +56,7 @@ def posterior_predictive(task: Task, result: PosteriorResult, true_test: Traject
     """
     draws = result.systematic(n_draws)
     m = task.test_goals.shape[0]
-    sim = task.simulator
-    theta = torch.as_tensor(draws, dtype=torch.float64)
-    starts = task.test_starts.repeat(n_draws, 1)
-    pred = sim.simulate(contain(theta.repeat_interleave(m, 0), starts), task.test_goals.repeat(n_draws, 1), starts)
+    pred = predictive_trajectories(task.simulator, draws, task.test_starts, task.test_goals)
     ref = Trajectories(true_test.q.repeat(n_draws, 1, 1), true_test.ee.repeat(n_draws, 1, 1),
                        true_test.length.repeat(n_draws), true_test.reached.repeat(n_draws))
     ppc = float(cartesian_error_mm(ref, pred).mean())

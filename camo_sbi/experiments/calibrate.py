@@ -412,7 +412,8 @@ def main(args) -> int:
     n_subj = args.subjects
     fig = plot_coverage(labelled, coordinate="overall",
                         title=f"Coverage of central intervals, {model}: {n_subj} prior subjects, "
-                              f"{args.tasks} tasks, budget {args.budget}", figsize=(6.0, 6.0))
+                              f"{args.tasks} task{'s' if args.tasks != 1 else ''}, budget {args.budget}",
+                        figsize=(8.0, 5.6))
     save_figure(fig, out / "coverage.png")
     redrawn = int((ranks.drop_duplicates(["method", "subject"]).groupby("subject")["attempt"].first() > 0).sum())
     cell_time = float(df.loc[(df["record"] == "meta") & (df["name"] == "wall_time"), "value"].sum())

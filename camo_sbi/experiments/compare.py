@@ -29,7 +29,6 @@ from camo_sbi.experiments.models import (
     subject_list,
     true_limits,
 )
-from camo_sbi.experiments.plots import plot_lines, save_figure
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
 
 __all__ = ["add_arguments", "main", "run_cell", "run_cells_on", "cell_specs"]
@@ -141,41 +140,61 @@ def run_cell(spec: dict, out: str) -> str:
 
 
 def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
-    from camo_sbi.diagnostics.arviz_io import save_netcdf, to_inference_data
+    from camo_sbi.diagnostics.arviz_io import observed_arrays, save_netcdf, to_inference_data
 
+    observed, dims = observed_arrays(task)
     idata = to_inference_data(res, sim.joint_names, prior=task.prior, true_theta=task.true_theta,
-                              seed=derive_seed(spec["base_seed"], spec["seed"], 13))
+                              seed=derive_seed(spec["base_seed"], spec["seed"], 13), observed=observed,
+                              observed_dims=dims, attrs={"task": spec["task"], "status": res.status})
     idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"]})
     (out / "posteriors").mkdir(parents=True, exist_ok=True)
     save_netcdf(idata, out / "posteriors" / f"{spec['key']}.nc")
 
 
 def make_figures(df, out: Path) -> list[Path]:
-    """Error vs budget (log x), error vs observed tasks, wall time per method."""
-    import matplotlib.pyplot as plt
+    """Error vs observed tasks at the largest budget; with at least two budgets, error vs
+    budget (log x) and wall time vs budget; with one budget no error-vs-budget figure (its
+    points are the last ones of error vs tasks) and the wall time as bars per method."""
+    from camo_sbi.diagnostics.style import (
+        band_label,
+        figure_legend,
+        metric_label,
+        new_figure,
+        plot_bars,
+        plot_lines,
+        run_counts,
+        save_figure,
+    )
 
     paths = []
     last = df[df.n_tasks == df.n_tasks.max()]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    plot_lines(last[last.metric == "cartesian_error_mm"], x="budget", ax=axes[0], logx=True,
-               ylabel="Cartesian error per point [mm]", title="Test error vs budget")
-    plot_lines(last[last.metric == "limit_error_deg"], x="budget", ax=axes[1], logx=True,
-               ylabel="mean |limit error| [deg]", title="Joint-limit error vs budget")
-    paths.append(out / "error_vs_budget.png")
-    save_figure(fig, paths[-1])
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    n_last = int(df.n_tasks.max())
+    metrics = ("cartesian_error_mm", "limit_error_deg")
+
+    def pair(sub, x, title, name, **kw):
+        fig, axes = new_figure(1, 2)
+        for ax, metric in zip(axes[0], metrics, strict=True):
+            m = sub[sub.metric == metric]
+            plot_lines(m, x=x, ax=ax, ylabel=metric_label(metric), title=title(metric), legend=False, **kw)
+        figure_legend(fig, axes, title=band_label(run_counts(sub[sub.metric == metrics[0]], x)))
+        paths.append(out / name)
+        save_figure(fig, paths[-1])
+
+    if last.budget.nunique() >= 2:
+        pair(last, "budget", lambda m: f"{'Test' if m.startswith('cart') else 'Joint-limit'} error vs budget "
+                                       f"({n_last} tasks)", "error_vs_budget.png", logx=True)
     bmax = df.budget.max()
-    sel = df[df.budget == bmax]
-    plot_lines(sel[sel.metric == "cartesian_error_mm"], ax=axes[0], ylabel="Cartesian error per point [mm]",
-               title=f"Test error vs tasks (budget {bmax})")
-    plot_lines(sel[sel.metric == "limit_error_deg"], ax=axes[1], ylabel="mean |limit error| [deg]",
-               title=f"Joint-limit error vs tasks (budget {bmax})")
-    paths.append(out / "error_vs_tasks.png")
-    save_figure(fig, paths[-1])
-    fig, ax = plt.subplots(figsize=(6, 4))
+    pair(df[df.budget == bmax], "n_tasks",
+         lambda m: f"{'Test' if m.startswith('cart') else 'Joint-limit'} error vs tasks (budget {bmax:g})",
+         "error_vs_tasks.png")
     wt = last[last.metric == "wall_time"]
-    plot_lines(wt, x="budget", ax=ax, logx=True, logy=True, ylabel="wall time [s]",
-               title="Wall time per run (all tasks)")
+    fig, axes = new_figure(1, 1)
+    if wt.budget.nunique() >= 2:
+        plot_lines(wt, x="budget", ax=axes[0, 0], logx=True, logy=True, ylabel=metric_label("wall_time"),
+                   title=f"Wall time per run ({n_last} tasks)")
+    else:
+        plot_bars(wt, ax=axes[0, 0], ylabel=metric_label("wall_time"),
+                  title=f"Wall time per run ({n_last} tasks, budget {bmax:g})")
     paths.append(out / "wall_time.png")
     save_figure(fig, paths[-1])
     return paths

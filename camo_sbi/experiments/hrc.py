@@ -266,21 +266,28 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
 
 def make_figure(df, out: Path) -> Path:
     """Paper Fig. 5: precision / recall / F1 vs observed tasks, one row of panels per prior."""
-    import matplotlib.pyplot as plt
-
-    from camo_sbi.experiments.plots import plot_lines, save_figure
+    from camo_sbi.diagnostics.style import (
+        band_label,
+        figure_legend,
+        metric_label,
+        new_figure,
+        plot_lines,
+        run_counts,
+        save_figure,
+    )
 
     priors = [p for p in PRIORS if p in set(df["prior"])]
     metrics = ("precision", "recall", "f1")
-    fig, axes = plt.subplots(len(priors), len(metrics), figsize=(4.2 * len(metrics), 3.3 * len(priors)),
-                             squeeze=False, sharey=True)
+    fig, axes = new_figure(len(priors), len(metrics), panel=(4.0, 3.1), sharey=True)
     for r, kind in enumerate(priors):
         for c, metric in enumerate(metrics):
             sub = df[(df["prior"] == kind) & (df["metric"] == metric)]
             plot_lines(sub, ax=axes[r, c], ylabel=f"{kind} prior" if c == 0 else "",
-                       title=f"{metric} ({kind} prior)")
+                       title=f"{metric_label(metric)} ({kind} prior)", robust=False, legend=False)
             axes[r, c].set_ylim(-0.05, 1.05)
-    fig.suptitle("Block allocation to the person (mean, 95% CI over runs)")
+    sel = df[df["metric"].isin(metrics)]
+    figure_legend(fig, axes, title=band_label(run_counts(sel, "n_tasks", by=("prior",))))
+    fig.suptitle("Block allocation to the person: blocks the person takes are positives")
     path = out / "fig5_allocation.png"
     save_figure(fig, path)
     return path

@@ -160,37 +160,43 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
 def make_figures(df, out: Path) -> list[Path]:
     """Fig. 2 (error on unseen goals vs observed tasks), Fig. 3 (errors after all tasks) and the
     limit error (binding and free bounds) vs observed tasks."""
-    import matplotlib.pyplot as plt
+    from camo_sbi.diagnostics.style import (
+        band_label,
+        figure_legend,
+        metric_label,
+        new_figure,
+        plot_bars,
+        plot_lines,
+        save_figure,
+    )
 
-    from camo_sbi.experiments.plots import plot_bars, plot_lines, save_figure
-
-    n_runs = df.run.nunique()
-    ci = f"mean and 95% CI of the mean over {n_runs} runs"
+    band = band_label(df.run.nunique())
+    k = int(df.n_tasks.max())
+    last = df[df.n_tasks == k]
     paths = []
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    plot_lines(df[df.metric == "cartesian_error_mm"], ax=axes[0], ylabel="Cartesian error per point [mm]",
-               title=f"Unseen goals vs observed tasks ({ci})")
-    plot_lines(df[df.metric == "reference_cartesian"], ax=axes[1],
-               ylabel="sum over test goals of sum over axes of L2 over time [m]",
-               title="The authors' Fig. 2 metric")
+    fig, axes = new_figure(1, 2)
+    for ax, metric, title in zip(axes[0], ("cartesian_error_mm", "reference_cartesian"),
+                                 ("Error on unseen goals vs observed tasks",
+                                  "The authors' Fig. 2 metric (sum over the test goals)"), strict=True):
+        plot_lines(df[df.metric == metric], ax=ax, ylabel=metric_label(metric), title=title, legend=False)
+    figure_legend(fig, axes, title=band)
     paths.append(out / "fig2_cartesian_error_vs_tasks.png")
     save_figure(fig, paths[-1])
-    last = df[df.n_tasks == df.n_tasks.max()]
-    k = int(df.n_tasks.max())
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    plot_bars(last[last.metric == "joint_error_deg"], ax=axes[0], ylabel="joint error per joint and point [deg]",
-              title=f"Joint space after {k} tasks ({ci})")
-    plot_bars(last[last.metric == "reference_joint"], ax=axes[1], ylabel="the authors' joint metric [rad]",
-              title=f"The authors' Fig. 3 metric after {k} tasks")
+    fig, axes = new_figure(1, 2)
+    for ax, metric, title in zip(axes[0], ("joint_error_deg", "reference_joint"),
+                                 (f"Joint space after {k} tasks", f"The authors' Fig. 3 metric after {k} tasks"),
+                                 strict=True):
+        plot_bars(last[last.metric == metric], ax=ax, ylabel=metric_label(metric), title=title)
     paths.append(out / "fig3_final_error.png")
     save_figure(fig, paths[-1])
     groups = [m for m in ("limit_error_binding_deg", "limit_error_free_deg") if (df.metric == m).any()]
     if groups:
-        fig, axes = plt.subplots(1, len(groups), figsize=(5.5 * len(groups), 4), squeeze=False)
+        fig, axes = new_figure(1, len(groups))
         for ax, metric in zip(axes[0], groups, strict=True):
-            which = "binding" if "binding" in metric else "free (not binding)"
-            plot_lines(df[df.metric == metric], ax=ax, ylabel="mean |limit error| [deg]",
-                       title=f"{which} bounds ({ci})")
+            which = "binding bounds (the test reaches identify them)" if "binding" in metric else \
+                "free bounds (the test reaches cannot identify them)"
+            plot_lines(df[df.metric == metric], ax=ax, ylabel=metric_label(metric), title=which, legend=False)
+        figure_legend(fig, axes, title=band)
         paths.append(out / "limit_error_vs_tasks.png")
         save_figure(fig, paths[-1])
     return paths

@@ -1,0 +1,491 @@
+"""One look for every figure camo_sbi draws: the run figures, the report and the notebooks.
+
+What it fixes, so a reader can compare figures with each other:
+
+* **a colour, marker and line style per method** (`method_style`), the same in every
+  figure: the inference methods in fixed colours, the baselines (naive, nominal, oracle,
+  the HRC majority class and truth, and any method registered with
+  ``Capabilities.baseline``) in greys/black with their own markers and dashes, any other
+  name a deterministic fallback (a hash of the name, never its position in a legend);
+* **what a band is**, said in the legend title (`band_label`): the mean and the 95%
+  confidence interval of the mean over N runs (Student t), the statistic `mean_ci` computes
+  for the figures and the report's tables alike;
+* **axes that fit the data**: integer ticks for task counts (`integer_ticks`), a log
+  x axis only with at least two distinct positive x values (`plot_lines(logx=True)`), and
+  a robust y scale (`robust_ylim`) when one series dwarfs the methods: the axis is clipped
+  to the methods' range and the off-scale series are annotated with their largest value;
+* **legends outside the data** (`figure_legend`: one legend to the right of the panels);
+* **no pyplot state**: figures are `matplotlib.figure.Figure` objects (`new_figure`),
+  written atomically as PNG (`save_figure`).
+
+Plot primitives on tidy tables (columns ``method``, an x column and ``value``):
+`plot_lines` (mean and CI band against x per method) and `plot_bars` (mean and CI per
+method).
+"""
+
+from __future__ import annotations
+
+import io
+import zlib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.ticker import FixedLocator, MaxNLocator, NullLocator, ScalarFormatter
+from scipy import stats
+
+from camo_sbi._io import atomic_write_bytes
+
+__all__ = [
+    "BASELINE_NAMES",
+    "DWARF_FACTOR",
+    "METRIC_LABELS",
+    "MethodStyle",
+    "Series",
+    "band_label",
+    "figure_legend",
+    "figure_png",
+    "integer_ticks",
+    "mean_ci",
+    "method_order",
+    "method_style",
+    "metric_label",
+    "new_figure",
+    "number",
+    "plot_bars",
+    "plot_lines",
+    "robust_ylim",
+    "run_counts",
+    "save_figure",
+    "summarize",
+]
+
+CONFIDENCE = 0.95
+DWARF_FACTOR = 4.0
+"""A series whose top exceeds this many times the methods' top is drawn off scale (`robust_ylim`)."""
+
+
+@dataclass(frozen=True)
+class MethodStyle:
+    """How one method is drawn: ``color``, ``marker``, ``linestyle``; ``baseline`` for the greys."""
+
+    color: str
+    marker: str
+    linestyle: str = "-"
+    baseline: bool = False
+
+    def line_kwargs(self) -> dict:
+        return {"color": self.color, "marker": self.marker, "linestyle": self.linestyle}
+
+
+# the inference methods: colour-blind-friendly (Okabe-Ito / tab10), never grey
+_METHODS: dict[str, MethodStyle] = {
+    "camo": MethodStyle("#0072B2", "o"),          # blue
+    "camo-js": MethodStyle("#56B4E9", "o"),       # sky blue
+    "camo-cs": MethodStyle("#CC79A7", "v"),       # reddish purple
+    "camo-hull": MethodStyle("#009E73", "D"),     # bluish green
+    "camo-seq": MethodStyle("#8c564b", "P"),      # brown
+    "abc-smc": MethodStyle("#E69F00", "s"),       # orange
+    "npe": MethodStyle("#D55E00", "^"),           # vermillion
+    "npe-amortized": MethodStyle("#F0E442", "<"),  # yellow
+}
+# the baselines: greys and black, each with its own marker and dashes
+_BASELINES: dict[str, MethodStyle] = {
+    "naive": MethodStyle("#555555", "s", "--", True),
+    "nominal": MethodStyle("#999999", "^", ":", True),
+    "oracle": MethodStyle("#000000", "D", "-.", True),
+    "majority": MethodStyle("#777777", "x", (0, (5, 2, 1, 2)), True),
+    "truth": MethodStyle("#000000", "*", (0, (1, 1)), True),
+}
+BASELINE_NAMES = tuple(_BASELINES)
+# deterministic fallbacks for names outside the tables (a hash picks one): no grey, none of the above
+_FALLBACK_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#e377c2", "#bcbd22", "#17becf",
+                    "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd")
+_FALLBACK_MARKERS = ("o", "s", "^", "v", "D", "P", "X", "<", ">", "h")
+_FALLBACK_GREYS = ("#333333", "#666666", "#888888", "#aaaaaa")
+
+
+def _base_name(name: str) -> str:
+    """``"naive (point estimate)"`` -> ``"naive"``: a label's method name."""
+    return str(name).split(" (", 1)[0].strip()
+
+
+def _registered_baseline(name: str) -> bool:
+    from camo_sbi.inference.registry import get_method
+
+    try:
+        return bool(get_method(name).capabilities.baseline)
+    except ValueError:
+        return False
+
+
+def method_style(name: str) -> MethodStyle:
+    """The style of method ``name`` (a label like ``"naive (point estimate)"`` uses its method's).
+
+    Registered methods in the fixed table keep their colours; a registered baseline outside
+    it gets a grey; any other name a colour and marker chosen by a hash of the name.
+    """
+    if not isinstance(name, str):
+        raise TypeError(f"name: expected a str, got {type(name).__name__}")
+    base = _base_name(name)
+    if base in _METHODS:
+        return _METHODS[base]
+    if base in _BASELINES:
+        return _BASELINES[base]
+    h = zlib.crc32(base.encode("utf-8"))
+    marker = _FALLBACK_MARKERS[(h // 7) % len(_FALLBACK_MARKERS)]
+    if _registered_baseline(base):
+        return MethodStyle(_FALLBACK_GREYS[h % len(_FALLBACK_GREYS)], marker, "--", True)
+    return MethodStyle(_FALLBACK_COLORS[h % len(_FALLBACK_COLORS)], marker)
+
+
+def method_order(names: Iterable[str]) -> list[str]:
+    """Unique names in legend order: the inference methods (table order, then the rest
+    alphabetically), then the baselines (naive, nominal, oracle, majority, truth, others)."""
+    uniq = list(dict.fromkeys(str(n) for n in names))
+    known = list(_METHODS) + list(_BASELINES)
+
+    def key(n: str):
+        b = _base_name(n)
+        return (method_style(n).baseline, known.index(b) if b in known else len(known), n)
+
+    return sorted(uniq, key=key)
+
+
+# --------------------------------------------------------------------------- words
+
+METRIC_LABELS: dict[str, str] = {
+    "cartesian_error_mm": "Cartesian error per point [mm]",
+    "joint_error_deg": "joint error per joint and point [deg]",
+    "eq2_cartesian": "paper's Eq. 2, Cartesian, sum over test goals [m]",
+    "eq2_joint": "paper's Eq. 2, joint, sum over test goals [rad]",
+    "reference_cartesian": "authors' metric, Cartesian, sum over test goals [m]",
+    "reference_joint": "authors' metric, joint, sum over test goals [rad]",
+    "limit_error_deg": "mean |limit error|, free limits [deg]",
+    "limit_error_binding_deg": "mean |limit error|, binding limits [deg]",
+    "limit_error_free_deg": "mean |limit error|, non-binding limits [deg]",
+    "ppc_cartesian_error_mm": "posterior-predictive Cartesian error [mm]",
+    "pp_mean_cartesian_error_mm": "error of the posterior-predictive mean path [mm]",
+    "n_simulations": "simulations used",
+    "wall_time": "wall time [s]",
+    "precision": "precision", "recall": "recall", "f1": "F1", "accuracy": "accuracy",
+    "limit_error": "mean |limit error| [rad]",
+    "person_fraction": "share of blocks the person can do",
+}
+
+
+def metric_label(metric: str) -> str:
+    """A metric's name in words with its unit (``limit_error_deg_<joint>`` included)."""
+    metric = str(metric)
+    if metric in METRIC_LABELS:
+        return METRIC_LABELS[metric]
+    if metric.startswith("limit_error_deg_"):
+        return f"|limit error| of {metric[len('limit_error_deg_'):]} [deg]"
+    return metric.replace("_", " ")
+
+
+def band_label(n_runs, confidence: float = CONFIDENCE, *, geometric: bool = False) -> str:
+    """What a band is, for a legend title or caption: ``n_runs`` an int or the counts seen;
+    ``geometric`` for a log axis (`plot_lines(logy=True)` averages log10 values)."""
+    counts = sorted({int(n) for n in np.atleast_1d(n_runs)})
+    if not counts:
+        raise ValueError("n_runs: no counts given")
+    n = str(counts[0]) if len(counts) == 1 else f"{counts[0]}–{counts[-1]}"
+    if counts[-1] < 2:
+        return f"mean of {n} run (no interval)"
+    if geometric:
+        return f"geometric mean and {confidence:.0%} CI\nover {n} runs (Student t on log10)"
+    return f"mean and {confidence:.0%} CI of the mean\nover {n} runs (Student t)"
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+def mean_ci(values, confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """Mean and half-width of the Student-t confidence interval of the mean (0 for one value)."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return float("nan"), float("nan")
+    if v.size == 1:
+        return float(v[0]), 0.0
+    half = stats.t.ppf(0.5 + confidence / 2, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size)
+    return float(v.mean()), float(half)
+
+
+def summarize(df: pd.DataFrame, x: str | None, hue: str = "method", value: str = "value") -> pd.DataFrame:
+    """Columns hue, [x,] mean, ci (95% half-width, `mean_ci`), n per group of a tidy table."""
+    keys = [hue] if x is None else [hue, x]
+    missing = [c for c in keys + [value] if c not in df.columns]
+    if missing:
+        raise ValueError(f"df: missing columns {missing}")
+    rows = []
+    for k, g in df.groupby(keys, sort=True, dropna=False):
+        m, c = mean_ci(g[value])
+        k = k if isinstance(k, tuple) else (k,)
+        rows.append({**dict(zip(keys, k, strict=True)), "mean": m, "ci": c, "n": int(g[value].notna().sum())})
+    return pd.DataFrame(rows, columns=keys + ["mean", "ci", "n"])
+
+
+def run_counts(df: pd.DataFrame, x: str | None = None, hue: str = "method", by: Sequence[str] = ()) -> np.ndarray:
+    """How many runs (finite values) each plotted point of ``df`` averages, for `band_label`
+    (per hue, x, the columns ``by`` (e.g. the panel's prior) and, when the table has one, metric)."""
+    keys = ([hue] if x is None else [hue, x]) + list(by) + (["metric"] if "metric" in df.columns else [])
+    return df.groupby(keys, dropna=False)["value"].count().to_numpy()
+
+
+# --------------------------------------------------------------------------- figures and axes
+
+
+def new_figure(nrows: int = 1, ncols: int = 1, *, panel: tuple[float, float] = (4.6, 3.4),
+               figsize: tuple[float, float] | None = None, **subplot_kw) -> tuple[Figure, np.ndarray]:
+    """A pyplot-free Figure (constrained layout) and its (nrows, ncols) array of axes."""
+    fig = Figure(figsize=figsize or (panel[0] * ncols + 1.6, panel[1] * nrows), layout="constrained")
+    axes = np.asarray(fig.subplots(nrows, ncols, squeeze=False, **subplot_kw))
+    return fig, axes
+
+
+def figure_png(fig: Figure, dpi: int = 150) -> bytes:
+    """The figure as PNG bytes."""
+    buf = io.BytesIO()
+    if fig.get_layout_engine() is None:  # keep a figure's own (e.g. constrained) layout
+        fig.tight_layout()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
+
+
+def save_figure(fig: Figure, path, dpi: int = 150):
+    """Write ``fig`` to ``path`` as PNG atomically; a pyplot-managed figure is closed."""
+    data = figure_png(fig, dpi)
+    manager = getattr(fig.canvas, "manager", None)
+    if manager is not None:  # made by pyplot: release it from pyplot's registry
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
+    return atomic_write_bytes(path, data)
+
+
+def integer_ticks(ax: Axes, values=None, axis: str = "x") -> None:
+    """Integer ticks only: at ``values`` when there are at most 12, else a MaxNLocator(integer)."""
+    target = ax.xaxis if axis == "x" else ax.yaxis
+    vals = None if values is None else sorted({int(v) for v in np.asarray(values, dtype=float)
+                                               if np.isfinite(v)})
+    if vals and len(vals) <= 12:
+        target.set_major_locator(FixedLocator(vals))
+    else:
+        target.set_major_locator(MaxNLocator(integer=True))
+    target.set_minor_locator(NullLocator())
+
+
+def _log_x(ax: Axes, values) -> bool:
+    """Log x axis with ticks at the x values, when there are >= 2 distinct positive ones."""
+    vals = np.unique(np.asarray(values, dtype=float))
+    vals = vals[np.isfinite(vals)]
+    if vals.size < 2 or vals.min() <= 0:
+        return False
+    ax.set_xscale("log")
+    if vals.size <= 12:
+        ax.xaxis.set_major_locator(FixedLocator(vals))
+        fmt = ScalarFormatter()
+        fmt.set_scientific(False)
+        ax.xaxis.set_major_formatter(fmt)
+        ax.xaxis.set_minor_locator(NullLocator())
+    return True
+
+
+def number(v: float, digits: int = 3) -> str:
+    """``v`` with ``digits`` significant digits and no exponent (1234.5 -> "1,235", 0.000123 -> "0.000123")."""
+    v = float(v)
+    if not np.isfinite(v):
+        return "–"
+    if abs(v) >= 10 ** (digits - 1):
+        return f"{v:,.0f}"
+    return np.format_float_positional(v, precision=digits, unique=False, fractional=False, trim="-")
+
+
+_fmt = number
+
+
+@dataclass(frozen=True)
+class Series:
+    """One drawn series for `robust_ylim`: x, mean and the band's lower/upper edges (arrays)."""
+
+    x: np.ndarray
+    mean: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+
+
+def robust_ylim(ax: Axes, series: Mapping[str, Series], *, factor: float = DWARF_FACTOR,
+                band_cap: float = 2.5) -> list[str]:
+    """Fit the y axis to the methods when a series dwarfs them; returns the off-scale names.
+
+    A series is off scale when its largest mean exceeds ``factor`` times the largest mean of
+    the non-baseline series (of all series, by the median, when all are baselines). When
+    any is, or when a kept band reaches past ``band_cap`` times the largest kept mean (few
+    runs make wide Student-t intervals), the axis spans the kept series' means and bands up
+    to ``band_cap`` times their largest mean; the off-scale series are named with their
+    largest mean in a free strip at the top, their points above the axis get a triangle on
+    the top edge, and clipped bands are said to be clipped. Otherwise nothing changes.
+    """
+    if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not factor > 1:
+        raise ValueError(f"factor: expected a number > 1, got {factor!r}")
+    peaks = {k: float(np.nanmax(v.mean)) for k, v in series.items() if len(v.mean) and np.isfinite(v.mean).any()}
+    if len(peaks) < 2:
+        return []
+    methods = [v for k, v in peaks.items() if not method_style(k).baseline]
+    ref = max(methods) if methods else float(np.median(list(peaks.values())))
+    if not ref > 0:
+        return []
+    off = method_order([k for k, v in peaks.items() if v > factor * ref])
+    kept = [k for k in peaks if k not in off]
+    kept_mean = max(peaks[k] for k in kept)
+    band_top = max(float(np.nanmax(series[k].high)) for k in kept)
+    clipped_bands = band_top > band_cap * kept_mean
+    if not off and not clipped_bands:
+        return []
+    low = min(float(np.nanmin(series[k].low)) for k in kept)
+    high = min(band_top, band_cap * kept_mean)
+    bottom = low - 0.04 * (high - low)
+    top = bottom + 1.22 * (high - bottom)  # the strip above `high` holds the note
+    ax.set_ylim(bottom, top)
+    lines = []
+    for name in off:
+        lines.append(f"↑ {name} off scale (mean up to {_fmt(peaks[name])})")
+        v = series[name]
+        above = np.asarray(v.mean) > top
+        if above.any():
+            ax.plot(np.asarray(v.x)[above], np.full(int(above.sum()), top), linestyle="none", marker="^", ms=7,
+                    color=method_style(name).color, clip_on=False, zorder=5)
+    if clipped_bands:
+        lines.append("bands clipped at the top")
+    ax.text(0.99, 0.985, "\n".join(lines), transform=ax.transAxes, ha="right", va="top", fontsize=7,
+            color="0.25", bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": "0.8", "alpha": 0.9})
+    return off
+
+
+def figure_legend(fig: Figure, axes: Sequence[Axes] | np.ndarray | Axes, *, title: str | None = None,
+                  loc: str = "outside right upper", fontsize: float = 8):
+    """One legend for the figure, outside the panels (default: to their right), built from
+    the labelled artists of ``axes`` (first occurrence of each label, in method order)."""
+    axs = [axes] if isinstance(axes, Axes) else list(np.asarray(axes, dtype=object).reshape(-1))
+    handles: dict[str, object] = {}
+    for ax in axs:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            if not lab.startswith("_"):
+                handles.setdefault(lab, h)
+    if not handles:
+        return None
+    order = method_order(handles)
+    return fig.legend([handles[k] for k in order], order, loc=loc, fontsize=fontsize, title=title,
+                      title_fontsize=fontsize, frameon=False, alignment="left")
+
+
+def _legend_handle(name: str) -> Line2D:
+    st = method_style(name)
+    return Line2D([], [], label=name, markersize=5, **st.line_kwargs())
+
+
+def plot_lines(df: pd.DataFrame, *, x: str = "n_tasks", hue: str = "method", ax: Axes | None = None,
+               ylabel: str = "", title: str = "", logx: bool = False, logy: bool = False,
+               robust: bool = True, legend: bool = True, factor: float = DWARF_FACTOR) -> Axes:
+    """Mean of ``value`` against ``x`` per ``hue``, with a band for the 95% CI of the mean.
+
+    Each method in its `method_style`. ``x`` columns of integers (task counts) get integer
+    ticks; ``logx`` is honoured only with at least two distinct positive x values (a single
+    budget stays linear). A non-negative metric's band is not drawn below 0. ``robust``:
+    `robust_ylim` clips a dwarfing series (not with ``logy``). ``legend``: draw a legend
+    with the band's meaning as its title: outside the axes, to the right, when they are the
+    figure's only axes, else inside in the emptiest corner; False for none (a figure of
+    several panels gets one `figure_legend` instead). Returns the axes (a new Figure's when
+    ``ax`` is None).
+    """
+    if not isinstance(df, pd.DataFrame):
+        raise TypeError(f"df: expected a DataFrame, got {type(df).__name__}")
+    if ax is None:
+        _, axes = new_figure()
+        ax = axes[0, 0]
+    geometric = bool(logy)
+    data = df
+    if geometric:  # a log axis: the geometric mean and the CI of the mean of log10 values
+        data = df[df["value"] > 0].assign(value=lambda d: np.log10(d["value"]))
+    s = summarize(data, x, hue)
+    nonneg = bool(len(df) and (df["value"] >= 0).all()) and not geometric
+    series = {}
+    for h in method_order(s[hue].astype(str)):
+        g = s[s[hue].astype(str) == h].sort_values(x)
+        st = method_style(h)
+        xs, mean, ci = g[x].to_numpy(dtype=float), g["mean"].to_numpy(), g["ci"].fillna(0).to_numpy()
+        lower = np.clip(mean - ci, 0, None) if nonneg else mean - ci
+        upper = mean + ci
+        if geometric:
+            mean, lower, upper = 10.0**mean, 10.0**lower, 10.0**upper
+        z = 2.0 if st.baseline else 3.0  # the methods above the baselines' reference lines
+        ax.plot(xs, mean, ms=4, lw=1.4, label=h, zorder=z, **st.line_kwargs())
+        if (ci > 0).any():
+            ax.fill_between(xs, lower, upper, color=st.color, alpha=0.15 if not st.baseline else 0.1, lw=0,
+                            zorder=z - 1)
+        series[h] = Series(xs, mean, lower, upper)
+    xvals = df[x].dropna()
+    integral = pd.api.types.is_integer_dtype(df[x]) or x in ("n_tasks", "budget", "run", "seed")
+    if not (logx and _log_x(ax, xvals)) and len(xvals) and integral:
+        integer_ticks(ax, xvals)
+    if logy:
+        ax.set_yscale("log")
+    ax.set_xlabel({"n_tasks": "observed tasks", "budget": "simulations per observed task"}.get(x, x.replace("_", " ")))
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3)
+    if robust and not logy:
+        robust_ylim(ax, series, factor=factor)
+    if legend:
+        alone = len(ax.figure.axes) == 1  # outside to the right; beside other panels: inside, best corner
+        where = {"loc": "upper left", "bbox_to_anchor": (1.02, 1.0)} if alone else {"loc": "best"}
+        if len(s):
+            ax.legend(fontsize=8 if alone else 7, frameon=not alone, framealpha=0.85, title_fontsize=7,
+                      title=band_label(s["n"], geometric=geometric), alignment="left", **where)
+    return ax
+
+
+def plot_bars(df: pd.DataFrame, *, hue: str = "method", ax: Axes | None = None, ylabel: str = "",
+              title: str = "", robust: bool = True, factor: float = DWARF_FACTOR) -> Axes:
+    """One bar per ``hue``: the mean ``value`` with its 95% CI as an error bar, in method
+    colours (baselines grey and hatched). A dwarfing bar is clipped (`robust_ylim`) and its
+    value written on it. The band's meaning is in the x-axis label. Returns the axes."""
+    if not isinstance(df, pd.DataFrame):
+        raise TypeError(f"df: expected a DataFrame, got {type(df).__name__}")
+    if ax is None:
+        _, axes = new_figure()
+        ax = axes[0, 0]
+    s = summarize(df, None, hue)
+    order = method_order(s[hue].astype(str))
+    s = s.set_index(s[hue].astype(str)).loc[order]
+    xs = np.arange(len(order))
+    for i, name in enumerate(order):
+        st = method_style(name)
+        ax.bar(i, s.loc[name, "mean"], yerr=s.loc[name, "ci"], capsize=4, color=st.color,
+               alpha=0.55 if st.baseline else 0.85, hatch="//" if st.baseline else None,
+               edgecolor="0.2", lw=0.6, label=name)
+    ax.set_xticks(xs, order, rotation=30 if len(order) > 4 else 0, ha="right" if len(order) > 4 else "center")
+    ax.set_ylabel(ylabel)
+    ax.set_xlabel(f"bars: {band_label(s['n'])}".replace("\n", " "), fontsize=7)
+    if title:
+        ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3, axis="y")
+    if robust:
+        series = {}
+        for i, n in enumerate(order):
+            m, c = float(s.loc[n, "mean"]), float(np.nan_to_num(s.loc[n, "ci"]))
+            series[n] = Series(np.array([i]), np.array([m]), np.array([min(0.0, m - c)]), np.array([m + c]))
+        off = robust_ylim(ax, series, factor=factor)
+        top = ax.get_ylim()[1]
+        for name in off:
+            i = order.index(name)
+            ax.text(i, 0.5 * top, f"{_fmt(s.loc[name, 'mean'])}\n↑", ha="center", va="center", fontsize=7,
+                    bbox={"fc": "white", "ec": "none", "alpha": 0.8})
+    return ax
