@@ -4,6 +4,9 @@
 * The kernel cache: a directory that is a symlink, foreign-owned or group/other-writable is
   never read (a planted pickle does not run); kernels are then compiled in memory with the
   same numbers. A corrupt numba index/data file or generated module is deleted and rebuilt.
+* Cells: a truncated, emptied, garbage or unrecorded cell is reported by name, never read,
+  and recomputed; the final table equals a clean run's (0 rows lost, 0 duplicated) and keeps
+  its integer dtypes.
 """
 
 from __future__ import annotations
@@ -16,10 +19,48 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
+from camo_sbi.experiments.cli import main as cli_main
+from camo_sbi.experiments.store import CorruptCellWarning, ResultStore
 from tests.conftest import TINY_URDF
+
+COMPARE = ["compare", "--methods", "naive,camo", "--budgets", "50", "--seeds", "2", "--tasks", "2",
+           "--test-goals", "2", "--no-report"]
+KEY = ["task", "subject", "method", "budget", "seed", "n_tasks", "metric"]
+INT_COLUMNS = ("budget", "seed", "n_tasks")
+
+
+@pytest.fixture(scope="module")
+def clean_run(tmp_path_factory):
+    """A finished tiny comparison: (its directory, its results.csv)."""
+    out = tmp_path_factory.mktemp("faults") / "clean"
+    assert cli_main([*COMPARE, "--out", str(out)]) == 0
+    return out, pd.read_csv(out / "results.csv")
+
+
+def _copy_run(clean_run, dest: Path) -> Path:
+    shutil.copytree(clean_run[0], dest)
+    return dest
+
+
+def lost_and_duplicated(df: pd.DataFrame, ref: pd.DataFrame) -> tuple[int, int]:
+    """Rows of ``ref`` whose key is missing from ``df``; rows of ``df`` whose key repeats."""
+    want = set(map(tuple, ref[KEY].astype(str).to_numpy()))
+    got = set(map(tuple, df[KEY].astype(str).to_numpy()))
+    return len(want - got), int(df.duplicated(KEY).sum())
+
+
+def _same_table(df: pd.DataFrame, ref: pd.DataFrame) -> None:
+    """Equal to a clean run's table: values bit for bit (wall_time aside), dtypes, no loss, no duplicate."""
+    assert lost_and_duplicated(df, ref) == (0, 0)
+    assert df.dtypes.to_dict() == ref.dtypes.to_dict()
+    assert all(str(df[c].dtype) == "int64" for c in INT_COLUMNS)
+    a = df[df.metric != "wall_time"].sort_values(KEY).reset_index(drop=True)
+    b = ref[ref.metric != "wall_time"].sort_values(KEY).reset_index(drop=True)
+    pd.testing.assert_frame_equal(a, b, check_exact=True)
 
 # ------------------------------------------------------------------------------ URDF numbers
 
@@ -293,3 +334,108 @@ def test_cache_failing_twice_falls_back_to_memory(primed, kernel_env, tmp_path, 
     assert mod.__file__.startswith("<camo_sbi kernel")
     (msg,) = _kernel_warnings(recwarn)
     assert str(d) in msg and "could not be loaded or rebuilt (EOFError: Ran out of input)" in msg
+
+
+# ------------------------------------------------------------------------------ damaged cells
+
+
+def _rows():
+    return [{"method": "camo", "budget": 50, "n_tasks": k, "code": "007", "ok": k % 2 == 0, "value": k / 3}
+            for k in (1, 2, 3)]
+
+
+def _cut_mid_row(p: Path) -> None:
+    data = p.read_bytes()
+    p.write_bytes(data[: int(len(data) * 0.6)])
+
+
+def _same_size_garbage(p: Path) -> None:
+    p.write_bytes(bytes((b * 7 + 13) % 256 for b in p.read_bytes()))  # not UTF-8, same length
+
+
+CELL_DAMAGE = {
+    "truncated": _cut_mid_row,
+    "emptied": _empty,
+    "garbage": _same_size_garbage,
+    "appended": lambda p: p.write_bytes(p.read_bytes() + b"camo,50,9,007,True,0.5\n"),
+}
+
+
+def test_store_keeps_dtypes(tmp_path):
+    st = ResultStore(tmp_path)
+    st.put("a", _rows())
+    df = st.table()
+    assert {c: str(t) for c, t in df.dtypes.items()} == {"method": "str", "budget": "int64", "n_tasks": "int64",
+                                                         "code": "str", "ok": "bool", "value": "float64"}
+    assert df.code.tolist() == ["007"] * 3  # a string column is not re-parsed as numbers
+    rec = (tmp_path / "integrity" / "a.json").read_text()
+    assert '"rows": 3' in rec and '"sha256"' in rec
+
+
+@pytest.mark.parametrize("damage", list(CELL_DAMAGE))
+def test_store_damaged_cell_is_reported_and_never_read(damage, tmp_path):
+    st = ResultStore(tmp_path)
+    st.put("good", _rows())
+    st.put("bad", _rows())
+    CELL_DAMAGE[damage](tmp_path / "cells" / "bad.csv")
+    with pytest.warns(CorruptCellWarning, match=r"cell .*/cells/bad\.csv: .*recomputed") as rec:
+        assert not st.done("bad")
+    assert len(rec) == 1
+    assert st.done("good") and st.finished_keys() == {"good"}
+    fresh = ResultStore(tmp_path)  # another process looking at the same directory
+    with pytest.warns(CorruptCellWarning, match=r"bad\.csv: .*left out of the table"):
+        df = fresh.table()
+    assert len(df) == 3 and str(df.n_tasks.dtype) == "int64"
+    st.put("bad", _rows())  # recomputed
+    assert st.done("bad") and len(ResultStore(tmp_path).table()) == 6
+
+
+@pytest.mark.parametrize("record", ["missing", "garbage"])
+def test_store_cell_without_a_valid_record_is_not_trusted(record, tmp_path):
+    st = ResultStore(tmp_path)
+    st.put("a", _rows())
+    p = tmp_path / "integrity" / "a.json"
+    p.unlink() if record == "missing" else p.write_text("{not json")
+    with pytest.warns(CorruptCellWarning, match="integrity record"):
+        assert not st.done("a")
+
+
+def test_store_record_is_written_after_the_cell(tmp_path, monkeypatch):
+    """A crash between the two writes leaves a cell without a record: recomputed, not trusted."""
+    import camo_sbi.experiments.store as store
+
+    st = ResultStore(tmp_path)
+    real = store.atomic_write_text
+
+    def crash(path, text):
+        if Path(path).parent.name == "integrity":
+            raise OSError("killed")
+        return real(path, text)
+
+    monkeypatch.setattr(store, "atomic_write_text", crash)
+    with pytest.raises(OSError, match="killed"):
+        st.put("a", _rows())
+    monkeypatch.undo()
+    assert (tmp_path / "cells" / "a.csv").exists()
+    with pytest.warns(CorruptCellWarning, match="no integrity record"):
+        assert not st.done("a")
+
+
+@pytest.mark.parametrize("damage", ["truncated", "emptied", "garbage", "no-record"])
+def test_compare_recomputes_a_damaged_cell(damage, clean_run, tmp_path, capsys):
+    out = _copy_run(clean_run, tmp_path / "run")
+    cells = sorted((out / "cells").glob("*.csv"))
+    victim = cells[["truncated", "emptied", "garbage", "no-record"].index(damage) % len(cells)]
+    if damage == "no-record":
+        (out / "integrity" / f"{victim.stem}.json").unlink()
+    else:
+        CELL_DAMAGE[damage](victim)
+    untouched = {p.name: p.stat().st_mtime_ns for p in cells if p != victim}
+    capsys.readouterr()
+    assert cli_main([*COMPARE, "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert f"camo-sbi: warning: cell {victim}: " in captured.err, captured.err
+    assert "4 cells, 3 already finished" in captured.out
+    _same_table(pd.read_csv(out / "results.csv"), clean_run[1])
+    assert ResultStore(out).done(victim.stem)
+    assert {p.name: p.stat().st_mtime_ns for p in cells if p != victim} == untouched  # only the victim rerun

@@ -3,10 +3,30 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
+import warnings
 
 __all__ = ["main"]
+
+
+@contextlib.contextmanager
+def _one_line_warnings():
+    """camo_sbi's own warnings (a damaged cell, an unusable kernel cache) as ``camo-sbi: warning: ...``."""
+    original = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if category.__module__.startswith("camo_sbi"):
+            print(f"camo-sbi: warning: {message}", file=sys.stderr if file is None else file, flush=True)
+        else:
+            original(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = original
 
 
 def _demo(args) -> int:
@@ -76,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        with _one_line_warnings():
+            return int(args.func(args) or 0)
     except ValueError as exc:
         parser.exit(2, f"camo-sbi: error: {exc}\n")
     except KeyboardInterrupt:
