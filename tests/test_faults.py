@@ -7,14 +7,22 @@
 * Cells: a truncated, emptied, garbage or unrecorded cell is reported by name, never read,
   and recomputed; the final table equals a clean run's (0 rows lost, 0 duplicated) and keeps
   its integer dtypes.
+* The run manifest: a re-run into the same --out with other settings (any of the four
+  experiment commands) stops with exit 2 naming the flags that differ; runtime options
+  (--workers, --wait, ...) do not count.
+* The lock: a second run on a held --out stops with exit 2 naming the holder's pid; --wait waits.
 """
 
 from __future__ import annotations
 
+import fcntl
+import json
 import os
 import pickle
 import shutil
 import stat
+import threading
+import time
 import warnings
 from pathlib import Path
 
@@ -439,3 +447,182 @@ def test_compare_recomputes_a_damaged_cell(damage, clean_run, tmp_path, capsys):
     _same_table(pd.read_csv(out / "results.csv"), clean_run[1])
     assert ResultStore(out).done(victim.stem)
     assert {p.name: p.stat().st_mtime_ns for p in cells if p != victim} == untouched  # only the victim rerun
+
+
+# ------------------------------------------------------------------------------ run manifest
+
+
+def _refused(argv, capsys) -> str:
+    """Run the CLI expecting exit 2; returns its one-line error message (after ``camo-sbi: error: ``)."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli_main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("camo-sbi: error: --out "), err
+    return err[-1].removeprefix("camo-sbi: error: ")
+
+
+def _snapshot(out: Path) -> dict:
+    """Every file's bytes (but the lock file's pid)."""
+    return {str(p.relative_to(out)): p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != "run.lock"}
+
+
+def test_compare_with_other_settings_is_refused(clean_run, tmp_path, capsys):
+    out = _copy_run(clean_run, tmp_path / "run")
+    before = _snapshot(out)
+    msg = _refused([*COMPARE, "--tasks", "3", "--seed", "1", "--out", str(out)], capsys)
+    assert msg == (f"--out {out}: holds a run with other settings: --tasks 2 (here 3), --seed 0 (here 1); "
+                   "use a new --out")
+    msg = _refused([*COMPARE, "--methods", "camo", "--budgets", "50,100", "--out", str(out)], capsys)
+    assert "--methods naive,camo (here camo), --budgets 50 (here 50,100)" in msg
+    assert _snapshot(out) == before  # nothing written: no mixed rows, config.json kept
+    # a new --out starts clean
+    assert cli_main([*COMPARE, "--tasks", "1", "--seeds", "1", "--out", str(tmp_path / "new")]) == 0
+
+
+def test_compare_runtime_options_and_equivalent_spellings_do_not_count(clean_run, tmp_path, capsys):
+    out = _copy_run(clean_run, tmp_path / "run")
+    manifest = (out / "manifest.json").read_text()
+    assert cli_main([*COMPARE, "--workers", "2", "--wait", "--subjects", "shoulder_restricted",
+                     "--budgets", " 50 ", "--out", str(out)]) == 0
+    assert "4 cells, 4 already finished" in capsys.readouterr().out
+    pd.testing.assert_frame_equal(pd.read_csv(out / "results.csv"), clean_run[1])  # wall_time too: nothing rerun
+    assert (out / "manifest.json").read_text() == manifest
+
+
+def test_manifest_and_config_record_the_resolved_settings(clean_run):
+    import camo_sbi
+
+    m = json.loads((clean_run[0] / "manifest.json").read_text())
+    assert m["experiment"] == "compare" and m["camo_sbi_version"] == camo_sbi.__version__
+    assert m["settings"] == {"model": "panda", "methods": ["naive", "camo"], "budgets": [50], "seeds": 2,
+                             "tasks": 2, "test_goals": 2, "subjects": ["shoulder_restricted"], "space": "joint",
+                             "seed": 0}
+    config = json.loads((clean_run[0] / "config.json").read_text())  # what the report's Settings show
+    assert config == {"experiment": "compare", "camo_sbi_version": camo_sbi.__version__, **m["settings"]}
+
+
+REPRO = ["reproduce", "panda", "--runs", "1", "--tasks", "1", "--test-goals", "2", "--samples", "50",
+         "--methods", "naive,camo-js"]
+CALIB = ["calibrate", "--methods", "naive", "--subjects", "2", "--tasks", "1", "--budget", "40", "--sbc-draws", "10"]
+HRC = ["reproduce", "hrc", "--runs", "1", "--tasks", "1", "--test-trials", "1", "--samples", "50", "--keep-best",
+       "10", "--priors", "strong", "--no-hull"]
+
+
+@pytest.mark.parametrize(
+    "argv, same, other, diff",
+    [
+        (REPRO, ["--wait", "--subjects", "shoulder_restricted,elbow_restricted,wrist_restricted,mixed_restricted"],
+         ["--samples", "60", "--subjects", "elbow_restricted"],
+         "--samples 50 (here 60), --subjects shoulder_restricted,elbow_restricted,wrist_restricted,mixed_restricted "
+         "(here elbow_restricted)"),
+        (CALIB, ["--workers", "2", "--config", "naive={}"], ["--budget", "41"], "--budget 40 (here 41)"),
+        pytest.param(HRC, ["--scene-png", "--wait"], ["--tasks", "2", "--priors", "weak"],
+                     "--tasks 1 (here 2), --priors strong (here weak)", marks=pytest.mark.slow),
+    ],
+    ids=["reproduce-panda", "calibrate", "reproduce-hrc"],
+)
+def test_every_experiment_refuses_other_settings(argv, same, other, diff, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert cli_main([*argv, "--out", str(out)]) == 0
+    table = max(out.glob("*.csv"), key=lambda p: p.stat().st_mtime).read_bytes()
+    assert cli_main([*argv, *same, "--out", str(out)]) == 0  # runtime options: resumed, nothing recomputed
+    assert "already finished" in capsys.readouterr().out or argv[0] == "reproduce"
+    msg = _refused([*argv, *other, "--out", str(out)], capsys)
+    assert msg == f"--out {out}: holds a run with other settings: {diff}; use a new --out"
+    assert max(out.glob("*.csv"), key=lambda p: p.stat().st_mtime).read_bytes() == table
+
+
+def test_reproduce_hrc_refuses_other_settings(tmp_path, capsys):
+    """The fast hrc check: a manifest with hrc's resolved settings, then a run with another --tasks."""
+    import argparse
+
+    from camo_sbi.experiments import hrc
+    from camo_sbi.experiments.rundir import RunDirectory, run_settings
+
+    p = argparse.ArgumentParser()
+    hrc.add_arguments(p)
+    args = p.parse_args(HRC[2:])
+    args.priors = hrc._parse_priors(args.priors)
+    out = tmp_path / "run"
+    with RunDirectory(out, "reproduce hrc", run_settings(args, ignore=("scene_png",))):
+        pass
+    msg = _refused([*HRC, "--tasks", "2", "--seed", "4", "--out", str(out)], capsys)
+    assert msg == f"--out {out}: holds a run with other settings: --tasks 1 (here 2), --seed 0 (here 4); use a new --out"
+
+
+def test_other_experiment_version_or_foreign_directory_is_refused(clean_run, tmp_path, capsys):
+    out = _copy_run(clean_run, tmp_path / "run")
+    assert _refused([*REPRO, "--out", str(out)], capsys) == (
+        f"--out {out}: holds a 'compare' run, not 'reproduce panda'; use a new --out")
+    m = json.loads((out / "manifest.json").read_text())
+    (out / "manifest.json").write_text(json.dumps({**m, "camo_sbi_version": "0.0.9"}))
+    assert _refused([*COMPARE, "--out", str(out)], capsys).endswith("holds a run with other settings: "
+                                                                   "camo_sbi 0.0.9 (here 0.1.0); use a new --out")
+    (out / "manifest.json").write_text("{garbage")
+    assert "manifest.json is unreadable" in _refused([*COMPARE, "--out", str(out)], capsys)
+    (out / "manifest.json").unlink()  # results of an older camo-sbi (no manifest)
+    assert _refused([*COMPARE, "--out", str(out)], capsys) == (
+        f"--out {out}: holds results (results.csv, cells/) without a run manifest (an older camo-sbi?); "
+        "use a new --out")
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    assert _refused([*COMPARE, "--out", str(afile)], capsys) == f"--out {afile}: exists and is not a directory"
+
+
+def test_run_directory_api(tmp_path):
+    from camo_sbi.experiments.rundir import MANIFEST, RunDirectory, run_settings
+
+    settings = run_settings({"out": Path("x"), "workers": 4, "wait": True, "a": (1, 2), "p": Path("d"),
+                             "flag": False, "eps": None}, ignore=("a",), extra={"k": 1})
+    assert settings == {"p": "d", "flag": False, "eps": None, "extra": {"k": 1}}
+    with RunDirectory(tmp_path / "r", "exp", settings) as run:
+        assert run.created and run.store.cells.is_dir() and (tmp_path / "r" / MANIFEST).is_file()
+        assert (tmp_path / "r" / "run.lock").read_text() == f"{os.getpid()}\n"
+    with RunDirectory(tmp_path / "r", "exp", settings) as run:
+        assert not run.created and run.manifest["settings"] == settings
+        assert run.differences({**run.manifest, "settings": {**settings, "flag": True, "eps": 0.5, "new": [1, 2]}}) == [
+            "--flag on (here off)", "--eps 0.5 (here none)", "--new 1,2 (here unset)"]
+    assert (tmp_path / "r" / "run.lock").read_text() == ""  # released
+
+
+# ------------------------------------------------------------------------------ lock
+
+
+def _hold(out: Path) -> int:
+    """Take --out's lock the way another camo-sbi run would (this process's pid in the file)."""
+    fd = os.open(out / "run.lock", os.O_RDWR | os.O_CREAT)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
+
+
+def test_second_run_on_a_held_directory_is_refused(clean_run, tmp_path, capsys):
+    out = _copy_run(clean_run, tmp_path / "run")
+    before = _snapshot(out)
+    fd = _hold(out)
+    try:
+        msg = _refused([*COMPARE, "--out", str(out)], capsys)
+    finally:
+        os.close(fd)
+    assert msg == f"--out {out}: another camo-sbi run holds it (pid {os.getpid()}); wait for it or pass --wait"
+    assert _snapshot(out) == before
+
+
+def test_wait_waits_for_the_holder(clean_run, tmp_path, capsys):
+    out = _copy_run(clean_run, tmp_path / "run")
+    fd = _hold(out)
+    released = []
+    timer = threading.Timer(1.5, lambda: (released.append(time.monotonic()), os.close(fd)))
+    timer.start()
+    try:
+        capsys.readouterr()
+        assert cli_main([*COMPARE, "--wait", "--out", str(out)]) == 0
+        done = time.monotonic()
+    finally:
+        timer.join()
+    err = capsys.readouterr().err
+    assert f"--out {out}: waiting for the camo-sbi run holding it (pid {os.getpid()})" in err
+    assert released and done >= released[0]
+    pd.testing.assert_frame_equal(pd.read_csv(out / "results.csv"), clean_run[1])

@@ -10,7 +10,6 @@ interrupted comparison resumes without losing or duplicating a row.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -24,7 +23,8 @@ from tqdm import tqdm
 from camo_sbi.distributed import DEFAULT_RETRIES, dask_client, map_unordered, parse_scheduler
 from camo_sbi.experiments.manipulator import derive_seed, evaluate_estimate
 from camo_sbi.experiments.plots import plot_lines, save_figure
-from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
+from camo_sbi.experiments.rundir import RunDirectory, run_settings
+from camo_sbi.experiments.store import ResultStore, cell_key
 from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
 
 __all__ = ["add_arguments", "main", "run_cell", "run_cells_on", "cell_specs"]
@@ -227,6 +227,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "a scheduler address 'tcp://host:8786'; default: in-process / --workers")
     p.add_argument("--seed", type=int, default=0, help="base seed")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--out", type=Path, default=Path("runs/compare"))
 
 
@@ -241,39 +242,41 @@ def main(args) -> int:
     except ValueError as exc:
         raise ValueError(f"--{exc}") from exc
     out = Path(args.out)
-    store = ResultStore(out)
-    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
-    atomic_write_text(out / "config.json", json.dumps({"experiment": "compare", **settings}, indent=2))
-    todo = [s for s in specs if not store.done(s["key"])]
-    print(f"{len(specs)} cells, {len(specs) - len(todo)} already finished")
-    bar = tqdm(total=len(todo), desc="compare", unit="cell")
-    if parse_scheduler(scheduler) is not None:
-        with dask_client(scheduler) as client:
-            run_cells_on(client, todo, out, on_done=lambda _key: bar.update())
-    elif args.workers == 1:
-        for spec in todo:
-            bar.set_postfix_str(f"{spec['method']} b={spec['budget']} s={spec['seed']}")
-            run_cell(spec, str(out))
-            bar.update()
-    else:
-        run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
-    bar.close()
-    df = store.write_table()
-    keys = {s["key"] for s in specs}
-    missing = keys - store.finished_keys()
-    if missing:
-        raise RuntimeError(f"{len(missing)} cells did not finish")
-    figs = make_figures(df, out)
-    last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(["cartesian_error", "limit_error", "wall_time", "n_simulations"])]
-    summary = last.groupby(["method", "budget", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
-    print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
-    print(f"table: {out / 'results.csv'} ({len(df)} rows)  figures: {', '.join(str(f.name) for f in figs)}")
-    if not args.no_report:
-        try:
-            from camo_sbi.diagnostics.report import write_report
-        except ImportError:
-            pass
+    settings = run_settings(args, methods=_parse_list(args.methods, "methods"),
+                            budgets=_parse_list(args.budgets, "budgets", int),
+                            subjects=list(dict.fromkeys(s["subject"] for s in specs)))
+    with RunDirectory(out, "compare", settings, wait=getattr(args, "wait", False)) as run:
+        store = run.store
+        todo = [s for s in specs if not store.done(s["key"])]
+        print(f"{len(specs)} cells, {len(specs) - len(todo)} already finished")
+        bar = tqdm(total=len(todo), desc="compare", unit="cell")
+        if parse_scheduler(scheduler) is not None:
+            with dask_client(scheduler) as client:
+                run_cells_on(client, todo, out, on_done=lambda _key: bar.update())
+        elif args.workers == 1:
+            for spec in todo:
+                bar.set_postfix_str(f"{spec['method']} b={spec['budget']} s={spec['seed']}")
+                run_cell(spec, str(out))
+                bar.update()
         else:
-            print(f"report: {write_report(out, out / 'report.html')}")
+            run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
+        bar.close()
+        df = store.write_table()
+        keys = {s["key"] for s in specs}
+        missing = keys - store.finished_keys()
+        if missing:
+            raise RuntimeError(f"{len(missing)} cells did not finish")
+        figs = make_figures(df, out)
+        last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(["cartesian_error", "limit_error", "wall_time", "n_simulations"])]
+        summary = last.groupby(["method", "budget", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
+        print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
+        print(f"table: {out / 'results.csv'} ({len(df)} rows)  figures: {', '.join(str(f.name) for f in figs)}")
+        if not args.no_report:
+            try:
+                from camo_sbi.diagnostics.report import write_report
+            except ImportError:
+                pass
+            else:
+                print(f"report: {write_report(out, out / 'report.html')}")
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
     return 0

@@ -46,7 +46,6 @@ final strong-prior allocation of camo-hull (camo with ``--no-hull``).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -313,6 +312,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene-png", action="store_true",
                    help="save a scene picture for every run (the first run's is always saved)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--out", type=Path, default=Path("runs/reproduce_hrc"))
 
 
@@ -348,7 +348,8 @@ def _render_run(scene, extras, path: Path) -> None:
 
 
 def main(args) -> int:
-    from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
+    from camo_sbi.experiments.rundir import RunDirectory, run_settings
+    from camo_sbi.experiments.store import cell_key
     from camo_sbi.scenarios.block_stacking import BlockStackingScene
     from camo_sbi.simulators import human
 
@@ -360,22 +361,24 @@ def main(args) -> int:
     t0 = time.perf_counter()
     sim = human()
     out = Path(args.out)
-    store = ResultStore(out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
-    atomic_write_text(out / "config.json", json.dumps({"experiment": "reproduce hrc", **settings}, indent=2))
-    with BlockStackingScene(sim, seed=args.seed) as scene:
-        for run in tqdm(range(args.runs), desc=f"reproduce hrc ({args.subject})", unit="run"):
-            key = cell_key({"run": run, **{k: settings[k] for k in _CELL_SETTINGS}})
-            png = out / f"scene_run{run:02d}.png"
-            want_png = args.scene_png or run == 0  # the first run's scene is always drawn
-            if store.done(key) and (not want_png or png.exists()):
-                continue
-            rows, extras = run_one(scene, sim, args.subject, run, args)
-            store.put(key, rows)  # deterministic: a recomputed run rewrites identical rows
-            if want_png:
-                _render_run(scene, extras, png)
-    df = store.write_table()
-    fig = make_figure(df, out)
+    # --scene-png only adds pictures: not a setting of the results
+    with RunDirectory(out, "reproduce hrc", run_settings(args, ignore=("scene_png",)),
+                      wait=getattr(args, "wait", False)) as rundir:
+        store = rundir.store
+        with BlockStackingScene(sim, seed=args.seed) as scene:
+            for run in tqdm(range(args.runs), desc=f"reproduce hrc ({args.subject})", unit="run"):
+                key = cell_key({"run": run, **{k: settings[k] for k in _CELL_SETTINGS}})
+                png = out / f"scene_run{run:02d}.png"
+                want_png = args.scene_png or run == 0  # the first run's scene is always drawn
+                if store.done(key) and (not want_png or png.exists()):
+                    continue
+                rows, extras = run_one(scene, sim, args.subject, run, args)
+                store.put(key, rows)  # deterministic: a recomputed run rewrites identical rows
+                if want_png:
+                    _render_run(scene, extras, png)
+        df = store.write_table()
+        fig = make_figure(df, out)
     wall = time.perf_counter() - t0
     last = df[(df["n_tasks"] == df["n_tasks"].max())
               & df["metric"].isin(["precision", "recall", "f1", "limit_error"])]

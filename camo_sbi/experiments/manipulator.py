@@ -11,7 +11,6 @@ task; each estimate predicts the held-out trajectories. Rows: run, subject, meth
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -21,7 +20,8 @@ from tqdm import tqdm
 
 from camo_sbi.distributed import dask_client, parse_scheduler
 from camo_sbi.experiments.plots import plot_bars, plot_lines, save_figure
-from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
+from camo_sbi.experiments.rundir import RunDirectory, run_settings
+from camo_sbi.experiments.store import cell_key
 from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
 
 __all__ = ["add_arguments", "main", "run_one", "evaluate_estimate"]
@@ -136,6 +136,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", default=None,
                    help="run CAMO's candidate chunks on Dask: 'local:N' or 'tcp://host:8786' "
                         "(same numbers as in-process)")
+    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--out", type=Path, default=Path("runs/reproduce_panda"))
 
 
@@ -157,18 +158,19 @@ def main(args) -> int:
     for s in subjects:
         subject_theta(sim, args.model, s)  # validates names before any work
     out = Path(args.out)
-    store = ResultStore(out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
-    atomic_write_text(out / "config.json", json.dumps({"experiment": "reproduce panda", **settings}, indent=2))
-    with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
-        for run in tqdm(range(args.runs), desc=f"reproduce {args.model}", unit="run"):
-            subject = subjects[run % len(subjects)]
-            key = cell_key({"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}})
-            if store.done(key):
-                continue
-            store.put(key, run_one(sim, args.model, subject, run, args))
-    df = store.write_table()
-    figs = make_figures(df, out)
+    with RunDirectory(out, "reproduce panda", run_settings(args, subjects=subjects),
+                      wait=getattr(args, "wait", False)) as rundir:
+        store = rundir.store
+        with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
+            for run in tqdm(range(args.runs), desc=f"reproduce {args.model}", unit="run"):
+                subject = subjects[run % len(subjects)]
+                key = cell_key({"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}})
+                if store.done(key):
+                    continue
+                store.put(key, run_one(sim, args.model, subject, run, args))
+        df = store.write_table()
+        figs = make_figures(df, out)
     wall = time.perf_counter() - t0
     last = df[(df.n_tasks == df.n_tasks.max()) & (df.metric.isin(["cartesian_error", "joint_error", "limit_error"]))]
     summary = last.groupby(["method", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
