@@ -11,16 +11,22 @@
   experiment commands) stops with exit 2 naming the flags that differ; runtime options
   (--workers, --wait, ...) do not count.
 * The lock: a second run on a held --out stops with exit 2 naming the holder's pid; --wait waits.
+* Workers die with their parent: SIGKILL of the parent (prctl death signal, or the watchdog
+  alone), SIGTERM of the parent or of its whole group (exit 143), Ctrl-C (exit 130), a failing cell.
 """
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
 import pickle
 import shutil
+import signal
 import stat
+import subprocess
+import sys
 import threading
 import time
 import warnings
@@ -28,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import psutil
 import pytest
 import torch
 
@@ -626,3 +633,214 @@ def test_wait_waits_for_the_holder(clean_run, tmp_path, capsys):
     assert f"--out {out}: waiting for the camo-sbi run holding it (pid {os.getpid()})" in err
     assert released and done >= released[0]
     pd.testing.assert_frame_equal(pd.read_csv(out / "results.csv"), clean_run[1])
+
+
+# ------------------------------------------------------------------------------ worker processes
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _wait_for(predicate, what: str, proc=None, timeout: float = 300):
+    """Poll ``predicate`` (a hang guard, not a timing assertion)."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if proc is not None and proc.poll() is not None:
+            pytest.fail(f"the process exited ({proc.returncode}) before {what}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"no {what} within {timeout} s")
+        time.sleep(0.05)
+
+
+@contextlib.contextmanager
+def _reaped(proc):
+    """Kill and reap ``proc`` if it is still running when the block ends (a failing test leaves nothing)."""
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _alive(procs) -> list:
+    out = []
+    for p in procs:
+        try:
+            if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
+                out.append(p)
+        except psutil.NoSuchProcess:
+            pass
+    return out
+
+
+def _assert_gone(procs, within: float = 10.0) -> None:
+    deadline = time.monotonic() + within
+    while _alive(procs) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = _alive(procs)
+    for p in alive:  # do not leave them behind for the next test
+        p.kill()
+    assert not alive, f"{len(alive)} worker(s) outlived their parent by {within} s: {[p.pid for p in alive]}"
+
+
+def _new_workers(before: set) -> list:
+    """This process's pool workers started since ``before`` (its resource tracker lives on, by design)."""
+    return [c for c in psutil.Process().children(recursive=True)
+            if c.pid not in before and "resource_tracker" not in " ".join(c.cmdline())]
+
+
+def _workers(pid: int) -> list:
+    return [c for c in psutil.Process(pid).children(recursive=True)]
+
+
+@pytest.mark.parametrize("initializer", ["", "without_death_signal"], ids=["prctl", "watchdog-only"])
+def test_workers_die_when_the_parent_is_killed(initializer, tmp_path):
+    from tests._sleepy import PARENT
+
+    proc = subprocess.Popen([sys.executable, "-c", PARENT, str(tmp_path), initializer], cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    with _reaped(proc):
+        _wait_for(lambda: len(list(tmp_path.glob("started-*"))) == 2, "two busy workers", proc)
+        workers = _workers(proc.pid)
+        busy = {int(p.name.rsplit("-", 1)[1]) for p in tmp_path.glob("started-*")}
+        assert busy <= {w.pid for w in workers}
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    _assert_gone(workers)
+    assert not list(tmp_path.glob("finished-*"))
+
+
+def test_failing_cell_stops_the_run_and_leaves_no_worker(tmp_path):
+    from camo_sbi.experiments.processes import run_in_processes
+    from tests._sleepy import sleepy_cell
+
+    before = {c.pid for c in psutil.Process().children(recursive=True)}
+    specs = [{"name": "a", "seconds": 600}, {"name": "b", "fail": True}, *({"name": n} for n in "cdefgh")]
+    t0 = time.monotonic()
+    with pytest.raises(ValueError, match="cell b failed"):
+        run_in_processes(sleepy_cell, specs, tmp_path, 2, on_done=lambda: None)
+    assert time.monotonic() - t0 < 120  # did not wait for the 600 s cells
+    left = _new_workers(before)
+    _assert_gone(left, within=5)
+    assert not list(tmp_path.glob("finished-*"))
+
+
+def test_interrupt_in_the_parent_kills_the_workers_at_once(tmp_path):
+    from camo_sbi.experiments.processes import run_in_processes
+    from tests._sleepy import sleepy_cell
+
+    before = {c.pid for c in psutil.Process().children(recursive=True)}
+    specs = [{"name": "a", "seconds": 0}, {"name": "b", "seconds": 600}, {"name": "c", "seconds": 600}]
+
+    def interrupt():
+        _wait_for(lambda: len(list(tmp_path.glob("started-*"))) == 3, "the sleeping cells")
+        raise KeyboardInterrupt  # what the CLI's SIGINT / SIGTERM handler raises in the main thread
+
+    t0 = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        run_in_processes(sleepy_cell, specs, tmp_path, 2, on_done=interrupt)
+    assert time.monotonic() - t0 < 120  # did not wait for the 600 s cells
+    left = _new_workers(before)
+    _assert_gone(left, within=5)
+
+
+COMPARE_BUSY = ["compare", "--methods", "naive,camo", "--budgets", "50", "--seeds", "8", "--tasks", "2",
+                "--test-goals", "2", "--no-report"]
+
+
+def _start_compare(out: Path, tmp_path: Path, *extra, new_session: bool = False, computing: bool = True):
+    """``camo-sbi compare --workers 2`` as a subprocess, returned once both workers are spawned
+    (``computing``: and have finished a cell, so they are busy with the next ones)."""
+    err = open(tmp_path / "stderr.txt", "wb")  # noqa: SIM115 - closed by _finish
+    cmd = [sys.executable, "-m", "camo_sbi.experiments.cli", *COMPARE_BUSY, "--workers", "2", *extra,
+           "--out", str(out)]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=err,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=new_session)
+    proc.err_file = err
+
+    def ready():
+        spawned = [c for c in _workers(proc.pid) if "multiprocessing.spawn" in " ".join(c.cmdline())]
+        return len(spawned) == 2 and (not computing or any((out / "cells").glob("*.csv")))
+
+    _wait_for(ready, "two workers" + (" computing cells" if computing else ""), proc)
+    return proc, _workers(proc.pid)
+
+
+def _finish(proc) -> tuple[int, str]:
+    try:
+        with _reaped(proc):
+            rc = proc.wait(timeout=120)
+    finally:
+        proc.err_file.close()
+    return rc, Path(proc.err_file.name).read_text()
+
+
+def _resumed_table(out: Path, capsys) -> pd.DataFrame:
+    capsys.readouterr()
+    assert cli_main([*COMPARE_BUSY, "--out", str(out)]) == 0
+    return pd.read_csv(out / "results.csv")
+
+
+def test_sigterm_exits_143_and_leaves_no_worker(tmp_path):
+    out = tmp_path / "run"
+    proc, workers = _start_compare(out, tmp_path, computing=False)
+    proc.send_signal(signal.SIGTERM)
+    rc, err = _finish(proc)
+    assert rc == 143, err[-2000:]
+    assert "terminated: finished cells are saved; re-run the same command to resume" in err
+    _assert_gone(workers)
+    with _rundir_of(out):  # the lock was released
+        pass
+
+
+def _rundir_of(out: Path):
+    from camo_sbi.experiments.rundir import RunDirectory, run_settings
+
+    m = json.loads((out / "manifest.json").read_text())
+    return RunDirectory(out, m["experiment"], run_settings(m["settings"]))
+
+
+def test_sigint_still_exits_130(tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "camo_sbi.experiments.cli", *COMPARE_BUSY, "--out", str(out)]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    with proc.stderr, _reaped(proc):
+        _wait_for(lambda: (out / "cells").is_dir() and any((out / "cells").glob("*.csv")), "a cell", proc)
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=120)
+        err = proc.stderr.read().decode()
+    assert rc == 130 and "interrupted: finished cells are saved" in err, err[-2000:]
+
+
+@pytest.fixture(scope="module")
+def busy_reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("busy") / "ref"
+    assert cli_main([*COMPARE_BUSY, "--out", str(out)]) == 0
+    return pd.read_csv(out / "results.csv")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["SIGKILL parent", "SIGTERM group"])
+def test_killed_compare_leaves_no_worker_and_resumes_exactly(how, busy_reference, tmp_path, capsys):
+    """kill -9 of the parent, or SIGTERM to its process group as timeout/SLURM send it."""
+    out = tmp_path / "run"
+    proc, workers = _start_compare(out, tmp_path, new_session=how.endswith("group"))
+    if how == "SIGKILL parent":
+        proc.send_signal(signal.SIGKILL)
+    else:
+        os.killpg(proc.pid, signal.SIGTERM)
+    rc, err = _finish(proc)
+    assert rc == (-signal.SIGKILL if how == "SIGKILL parent" else 143), err[-2000:]
+    _assert_gone(workers)
+    n_cells = len(list((out / "cells").glob("*.csv")))
+    time.sleep(2)  # a surviving worker would still be writing
+    assert len(list((out / "cells").glob("*.csv"))) == n_cells
+    store = ResultStore(out)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CorruptCellWarning)
+        problems = {store.problem(p.stem) for p in (out / "cells").glob("*.csv")} - {None}
+    # a worker killed between a cell and its record leaves it unrecorded: recomputed below, never corrupt
+    assert all(p.startswith("no integrity record") for p in problems), problems
+    df = _resumed_table(out, capsys)
+    assert lost_and_duplicated(df, busy_reference) == (0, 0) and len(df) == len(busy_reference)
+    _same_table(df, busy_reference)

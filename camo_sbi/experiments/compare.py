@@ -12,8 +12,6 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +21,7 @@ from tqdm import tqdm
 from camo_sbi.distributed import DEFAULT_RETRIES, dask_client, map_unordered, parse_scheduler
 from camo_sbi.experiments.manipulator import derive_seed, evaluate_estimate
 from camo_sbi.experiments.plots import plot_lines, save_figure
+from camo_sbi.experiments.processes import run_in_processes as _run_in_processes
 from camo_sbi.experiments.rundir import RunDirectory, run_settings
 from camo_sbi.experiments.store import ResultStore, cell_key
 from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
@@ -204,12 +203,11 @@ def run_in_processes(cell_fn, specs: list[dict], out, workers: int, *, on_done) 
     """Run ``cell_fn(spec, str(out))`` for every spec in ``workers`` spawned processes.
 
     Each cell writes its own rows atomically; ``on_done()`` is called as cells finish and the
-    first failing cell's exception is re-raised. ``cell_fn`` must be a module-level function.
+    first failing cell's exception is re-raised (its workers killed, cells in flight lost).
+    ``cell_fn`` must be a module-level function. Workers die with the parent
+    (`camo_sbi.experiments.processes`).
     """
-    with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker) as ex:
-        for f in as_completed([ex.submit(cell_fn, spec, str(out)) for spec in specs]):
-            f.result()
-            on_done()
+    _run_in_processes(cell_fn, specs, out, workers, on_done=on_done, initializer=_init_worker)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
