@@ -844,3 +844,33 @@ def test_killed_compare_leaves_no_worker_and_resumes_exactly(how, busy_reference
     df = _resumed_table(out, capsys)
     assert lost_and_duplicated(df, busy_reference) == (0, 0) and len(df) == len(busy_reference)
     _same_table(df, busy_reference)
+
+
+@pytest.mark.slow
+def test_two_identical_runs_at_once(busy_reference, tmp_path):
+    """A second run started while the first holds --out stops (exit 2); with --wait it waits, then resumes."""
+    out = tmp_path / "run"
+    grid = [*COMPARE_BUSY[:COMPARE_BUSY.index("--seeds")], "--seeds", "40",
+            *COMPARE_BUSY[COMPARE_BUSY.index("--seeds") + 2:]]  # long enough to be running when B starts
+    err = open(tmp_path / "a.txt", "w")  # noqa: SIM115
+    a = subprocess.Popen([sys.executable, "-m", "camo_sbi.experiments.cli", *grid, "--workers", "2", "--out",
+                          str(out)], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=err)
+    with err, _reaped(a):
+        _wait_for(lambda: (out / "run.lock").is_file() and (out / "run.lock").read_text().strip() == str(a.pid),
+                  "the first run's lock", a)
+        cmd = [sys.executable, "-m", "camo_sbi.experiments.cli", *grid, "--out", str(out)]
+        b = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+        waiter = subprocess.Popen([*cmd, "--wait"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                  text=True)
+        with waiter.stderr, _reaped(waiter):
+            rc_a = a.wait(timeout=900)
+            rc_w = waiter.wait(timeout=600)
+            err_w = waiter.stderr.read()
+    assert b.returncode == 2, b.stderr[-2000:]
+    assert b.stderr.strip().endswith(f"--out {out}: another camo-sbi run holds it (pid {a.pid}); "
+                                     "wait for it or pass --wait")
+    assert rc_a == 0, (tmp_path / "a.txt").read_text()[-2000:]
+    assert rc_w == 0 and f"waiting for the camo-sbi run holding it (pid {a.pid})" in err_w, err_w[-2000:]
+    df = pd.read_csv(out / "results.csv")
+    metrics = set(busy_reference.metric)
+    assert len(df) == 2 * 40 * 2 * len(metrics) and not df.duplicated(KEY).any()
