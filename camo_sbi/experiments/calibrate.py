@@ -72,6 +72,7 @@ from camo_sbi.diagnostics.calibration import (
 from camo_sbi.experiments.compare import run_in_processes
 from camo_sbi.experiments.models import add_model_arguments, model_from_args
 from camo_sbi.experiments.plots import save_figure
+from camo_sbi.experiments.rundir import RunDirectory, run_settings
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
 
 __all__ = [
@@ -366,6 +367,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='per-method config overrides, e.g. --config \'npe={"max_epochs": 50}\' (repeatable)')
     p.add_argument("--seed", type=int, default=0, help="base seed (subjects and method seeds derive from it)")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--out", type=Path, default=Path("runs/calibrate"))
 
 
@@ -373,54 +375,54 @@ def main(args) -> int:
     t0 = time.perf_counter()
     specs = cell_specs(args)
     out = Path(args.out)
-    store = ResultStore(out)
-    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
-    settings["method_configs"] = {s["method"]: json.loads(s["config"]) for s in specs}
-    settings["model"] = specs[0]["model"]
-    atomic_write_text(out / "config.json", json.dumps({"experiment": "calibrate", **settings}, indent=2))
-    todo = [s for s in specs if not store.done(s["key"])]
-    print(f"{len(specs)} cells ({args.subjects} subjects x {len(specs) // args.subjects} methods), "
-          f"{len(specs) - len(todo)} already finished")
+    # the resolved per-method configs replace the raw --config entries
     model = specs[0]["model"]
-    bar = tqdm(total=len(todo), desc=f"calibrate {model}", unit="cell")
-    if args.workers == 1:
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
-            for spec in todo:
-                bar.set_postfix_str(f"{spec['method']} subject {spec['subject']}")
-                run_cell(spec, str(out))
-                bar.update()
-        finally:
-            torch.set_num_threads(threads)
-    else:
-        run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
-    bar.close()
-    keys = {s["key"] for s in specs}
-    missing = keys - store.finished_keys()
-    if missing:
-        raise RuntimeError(f"{len(missing)} cells did not finish")
-    df = store.table()
-    df = df[df["cell"].isin(keys)]
-    coverage, ranks = aggregate(df, args.sbc_draws)
-    atomic_write_text(out / "coverage.csv", coverage.to_csv(index=False))
-    atomic_write_text(out / "sbc.csv", ranks.to_csv(index=False))
-    summary = summarize(coverage, ranks, df, args.sbc_draws)
-    atomic_write_text(out / "sbc_uniformity.csv", _uniformity_table(ranks, args.sbc_draws).to_csv(index=False))
-    labelled = coverage.assign(method=[m + _POINT_LABEL if p else m
-                                       for m, p in zip(coverage["method"], coverage["point_estimate"], strict=True)])
-    n_subj = args.subjects
-    fig = plot_coverage(labelled, coordinate="overall",
-                        title=f"Coverage of central intervals, {model}: {n_subj} prior subjects, "
-                              f"{args.tasks} task{'s' if args.tasks != 1 else ''}, budget {args.budget}",
-                        figsize=(8.0, 5.6))
-    save_figure(fig, out / "coverage.png")
-    redrawn = int((ranks.drop_duplicates(["method", "subject"]).groupby("subject")["attempt"].first() > 0).sum())
-    cell_time = float(df.loc[(df["record"] == "meta") & (df["name"] == "wall_time"), "value"].sum())
-    text = _format_summary(summary, args, model, redrawn, time.perf_counter() - t0, cell_time)
-    print(text)
-    atomic_write_text(out / "summary.txt", text + "\n")
-    print(f"tables: {out / 'coverage.csv'}, {out / 'sbc.csv'}  figure: {out / 'coverage.png'}")
+    settings = run_settings(args, methods=_parse_methods(args.methods), model=model,
+                            config={s["method"]: json.loads(s["config"]) for s in specs})
+    with RunDirectory(out, "calibrate", settings, wait=getattr(args, "wait", False)) as run:
+        store = run.store
+        todo = [s for s in specs if not store.done(s["key"])]
+        print(f"{len(specs)} cells ({args.subjects} subjects x {len(specs) // args.subjects} methods), "
+              f"{len(specs) - len(todo)} already finished")
+        bar = tqdm(total=len(todo), desc=f"calibrate {model}", unit="cell")
+        if args.workers == 1:
+            threads = torch.get_num_threads()
+            torch.set_num_threads(1)
+            try:
+                for spec in todo:
+                    bar.set_postfix_str(f"{spec['method']} subject {spec['subject']}")
+                    run_cell(spec, str(out))
+                    bar.update()
+            finally:
+                torch.set_num_threads(threads)
+        else:
+            run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
+        bar.close()
+        keys = {s["key"] for s in specs}
+        missing = keys - store.finished_keys()
+        if missing:
+            raise RuntimeError(f"{len(missing)} cells did not finish")
+        df = store.table()
+        df = df[df["cell"].isin(keys)]
+        coverage, ranks = aggregate(df, args.sbc_draws)
+        atomic_write_text(out / "coverage.csv", coverage.to_csv(index=False))
+        atomic_write_text(out / "sbc.csv", ranks.to_csv(index=False))
+        summary = summarize(coverage, ranks, df, args.sbc_draws)
+        atomic_write_text(out / "sbc_uniformity.csv", _uniformity_table(ranks, args.sbc_draws).to_csv(index=False))
+        labelled = coverage.assign(method=[m + _POINT_LABEL if p else m
+                                           for m, p in zip(coverage["method"], coverage["point_estimate"], strict=True)])
+        n_subj = args.subjects
+        fig = plot_coverage(labelled, coordinate="overall",
+                            title=f"Coverage of central intervals, {model}: {n_subj} prior subjects, "
+                                  f"{args.tasks} task{'s' if args.tasks != 1 else ''}, budget {args.budget}",
+                            figsize=(8.0, 5.6))
+        save_figure(fig, out / "coverage.png")
+        redrawn = int((ranks.drop_duplicates(["method", "subject"]).groupby("subject")["attempt"].first() > 0).sum())
+        cell_time = float(df.loc[(df["record"] == "meta") & (df["name"] == "wall_time"), "value"].sum())
+        text = _format_summary(summary, args, model, redrawn, time.perf_counter() - t0, cell_time)
+        print(text)
+        atomic_write_text(out / "summary.txt", text + "\n")
+        print(f"tables: {out / 'coverage.csv'}, {out / 'sbc.csv'}  figure: {out / 'coverage.png'}")
     return 0
 
 

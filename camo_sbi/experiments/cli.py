@@ -3,10 +3,58 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import warnings
 
-__all__ = ["main"]
+__all__ = ["Terminated", "main"]
+
+_RESUME = "finished cells are saved; re-run the same command to resume"
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, SLURM), raised in the main thread and handled like Ctrl-C."""
+
+
+@contextlib.contextmanager
+def _sigterm_as_exception():
+    """SIGTERM raises `Terminated` once (later ones are ignored while cleaning up); yields the state."""
+    state = {"terminated": False}
+
+    def handler(signum, frame):
+        if not state["terminated"]:
+            state["terminated"] = True
+            raise Terminated()
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread: leave SIGTERM alone
+        yield state
+        return
+    try:
+        yield state
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def _one_line_warnings():
+    """camo_sbi's own warnings (a damaged cell, an unusable kernel cache) as ``camo-sbi: warning: ...``."""
+    original = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if category.__module__.startswith("camo_sbi"):
+            print(f"camo-sbi: warning: {message}", file=sys.stderr if file is None else file, flush=True)
+        else:
+            original(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = original
 
 
 def _demo(args) -> int:
@@ -80,13 +128,23 @@ def main(argv: list[str] | None = None) -> int:
         matplotlib.use("Agg")  # figures go to files; a library import never switches backends
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except ValueError as exc:
-        parser.exit(2, f"camo-sbi: error: {exc}\n")
-    except KeyboardInterrupt:
-        print("interrupted: finished cells are saved; re-run the same command to resume", file=sys.stderr)
-        return 130
+    with _sigterm_as_exception() as state:
+        try:
+            with _one_line_warnings():
+                return int(args.func(args) or 0)
+        except ValueError as exc:
+            parser.exit(2, f"camo-sbi: error: {exc}\n")
+        except KeyboardInterrupt as exc:
+            terminated = isinstance(exc, Terminated) or state["terminated"]
+            print(f"{'terminated' if terminated else 'interrupted'}: {_RESUME}", file=sys.stderr)
+            return 143 if terminated else 130
+        except Exception:
+            if not state["terminated"]:
+                raise
+            # SIGTERM sent to the whole process group (timeout, SLURM) can break the worker pool
+            # before the parent's own handler runs: still a termination, not a crash
+            print(f"terminated: {_RESUME}", file=sys.stderr)
+            return 143
 
 
 if __name__ == "__main__":

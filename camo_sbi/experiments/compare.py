@@ -13,8 +13,6 @@ import argparse
 import json
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +27,9 @@ from camo_sbi.experiments.models import (
     subject_list,
     true_limits,
 )
-from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
+from camo_sbi.experiments.processes import run_in_processes as _run_in_processes
+from camo_sbi.experiments.rundir import RunDirectory, run_settings
+from camo_sbi.experiments.store import ResultStore, cell_key
 
 __all__ = ["add_arguments", "main", "run_cell", "run_cells_on", "cell_specs"]
 
@@ -100,6 +100,11 @@ def method_config(method: str, space: str, workdir: Path) -> dict:
     if spec.capabilities.workdir:
         cfg["workdir"] = str(workdir)
     return cfg
+
+
+def _model_setting(model) -> str:
+    """How a run's model is recorded: its name for a built-in model with its defaults, else its key."""
+    return model.name if model.is_default else json.dumps(model.key(), sort_keys=True)
 
 
 def run_cell(spec: dict, out: str) -> str:
@@ -224,12 +229,11 @@ def run_in_processes(cell_fn, specs: list[dict], out, workers: int, *, on_done) 
     """Run ``cell_fn(spec, str(out))`` for every spec in ``workers`` spawned processes.
 
     Each cell writes its own rows atomically; ``on_done()`` is called as cells finish and the
-    first failing cell's exception is re-raised. ``cell_fn`` must be a module-level function.
+    first failing cell's exception is re-raised (its workers killed, cells in flight lost).
+    ``cell_fn`` must be a module-level function. Workers die with the parent
+    (`camo_sbi.experiments.processes`).
     """
-    with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker) as ex:
-        for f in as_completed([ex.submit(cell_fn, spec, str(out)) for spec in specs]):
-            f.result()
-            on_done()
+    _run_in_processes(cell_fn, specs, out, workers, on_done=on_done, initializer=_init_worker)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -248,6 +252,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "a scheduler address 'tcp://host:8786'; default: in-process / --workers")
     p.add_argument("--seed", type=int, default=0, help="base seed")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--out", type=Path, default=Path("runs/compare"))
 
 
@@ -262,38 +267,40 @@ def main(args) -> int:
     except ValueError as exc:
         raise ValueError(f"--{exc}") from exc
     out = Path(args.out)
-    store = ResultStore(out)
-    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
-    settings["model"] = specs[0]["model"].name if specs else args.model
-    atomic_write_text(out / "config.json", json.dumps({"experiment": "compare", **settings}, indent=2))
-    todo = [s for s in specs if not store.done(s["key"])]
-    print(f"{len(specs)} cells, {len(specs) - len(todo)} already finished")
-    bar = tqdm(total=len(todo), desc="compare", unit="cell")
-    if parse_scheduler(scheduler) is not None:
-        with dask_client(scheduler) as client:
-            run_cells_on(client, todo, out, on_done=lambda _key: bar.update())
-    elif args.workers == 1:
-        for spec in todo:
-            bar.set_postfix_str(f"{spec['method']} b={spec['budget']} s={spec['seed']}")
-            run_cell(spec, str(out))
-            bar.update()
-    else:
-        run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
-    bar.close()
-    df = store.write_table()
-    keys = {s["key"] for s in specs}
-    missing = keys - store.finished_keys()
-    if missing:
-        raise RuntimeError(f"{len(missing)} cells did not finish")
-    figs = make_figures(df, out)
-    last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(["cartesian_error_mm", "limit_error_deg",
-                                                                              "wall_time", "n_simulations"])]
-    summary = last.groupby(["method", "budget", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
-    print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
-    print(f"table: {out / 'results.csv'} ({len(df)} rows)  figures: {', '.join(str(f.name) for f in figs)}")
-    if not args.no_report:
-        from camo_sbi.diagnostics.report import write_report
+    settings = run_settings(args, methods=_parse_list(args.methods, "methods"),
+                            budgets=_parse_list(args.budgets, "budgets", int),
+                            subjects=list(dict.fromkeys(s["subject"] for s in specs)),
+                            model=_model_setting(specs[0]["model"]) if specs else None)
+    with RunDirectory(out, "compare", settings, wait=getattr(args, "wait", False)) as run:
+        store = run.store
+        todo = [s for s in specs if not store.done(s["key"])]
+        print(f"{len(specs)} cells, {len(specs) - len(todo)} already finished")
+        bar = tqdm(total=len(todo), desc="compare", unit="cell")
+        if parse_scheduler(scheduler) is not None:
+            with dask_client(scheduler) as client:
+                run_cells_on(client, todo, out, on_done=lambda _key: bar.update())
+        elif args.workers == 1:
+            for spec in todo:
+                bar.set_postfix_str(f"{spec['method']} b={spec['budget']} s={spec['seed']}")
+                run_cell(spec, str(out))
+                bar.update()
+        else:
+            run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
+        bar.close()
+        df = store.write_table()
+        keys = {s["key"] for s in specs}
+        missing = keys - store.finished_keys()
+        if missing:
+            raise RuntimeError(f"{len(missing)} cells did not finish")
+        figs = make_figures(df, out)
+        last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(["cartesian_error_mm", "limit_error_deg",
+                                                                                  "wall_time", "n_simulations"])]
+        summary = last.groupby(["method", "budget", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
+        print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
+        print(f"table: {out / 'results.csv'} ({len(df)} rows)  figures: {', '.join(str(f.name) for f in figs)}")
+        if not args.no_report:
+            from camo_sbi.diagnostics.report import write_report
 
-        print(f"report: {write_report(out, out / 'report.html')}")
+            print(f"report: {write_report(out, out / 'report.html')}")
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
     return 0

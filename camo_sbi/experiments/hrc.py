@@ -53,7 +53,6 @@ final strong-prior allocation of camo-hull (camo-js with ``--no-hull``).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -61,6 +60,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from camo_sbi._io import atomic_write_text
 from camo_sbi._validation import derive_seed
 from camo_sbi.inference.camo import CamoConfig
 from camo_sbi.scenarios.block_stacking import OBSERVED_MOTIONS
@@ -332,6 +332,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene-png", action="store_true",
                    help="save a scene picture for every run (the first run's is always saved)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--out", type=Path, default=Path("runs/reproduce_hrc"))
 
 
@@ -367,7 +368,8 @@ def _render_run(scene, extras, path: Path) -> None:
 
 
 def main(args) -> int:
-    from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
+    from camo_sbi.experiments.rundir import RunDirectory, run_settings
+    from camo_sbi.experiments.store import cell_key
     from camo_sbi.scenarios.block_stacking import BlockStackingScene
     from camo_sbi.simulators import human
 
@@ -379,26 +381,28 @@ def main(args) -> int:
     t0 = time.perf_counter()
     sim = human()
     out = Path(args.out)
-    store = ResultStore(out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
-    atomic_write_text(out / "config.json", json.dumps({"experiment": "reproduce hrc", **settings}, indent=2))
-    with BlockStackingScene(sim, seed=args.seed) as scene:
-        for run in tqdm(range(args.runs), desc=f"reproduce hrc ({args.subject})", unit="run"):
-            key = cell_key({"run": run, **{k: settings[k] for k in _CELL_SETTINGS}})
-            png = out / f"scene_run{run:02d}.png"
-            want_png = args.scene_png or run == 0  # the first run's scene is always drawn
-            if store.done(key) and (not want_png or png.exists()):
-                continue
-            rows, extras = run_one(scene, sim, args.subject, run, args)
-            store.put(key, rows)  # deterministic: a recomputed run rewrites identical rows
-            if want_png:
-                _render_run(scene, extras, png)
-    df = store.write_table()
-    fig = make_figure(df, out)
-    from camo_sbi.evaluation.claims import hrc_claims
+    # --scene-png only adds pictures: not a setting of the results
+    with RunDirectory(out, "reproduce hrc", run_settings(args, ignore=("scene_png",)),
+                      wait=getattr(args, "wait", False)) as rundir:
+        store = rundir.store
+        with BlockStackingScene(sim, seed=args.seed) as scene:
+            for run in tqdm(range(args.runs), desc=f"reproduce hrc ({args.subject})", unit="run"):
+                key = cell_key({"run": run, **{k: settings[k] for k in _CELL_SETTINGS}})
+                png = out / f"scene_run{run:02d}.png"
+                want_png = args.scene_png or run == 0  # the first run's scene is always drawn
+                if store.done(key) and (not want_png or png.exists()):
+                    continue
+                rows, extras = run_one(scene, sim, args.subject, run, args)
+                store.put(key, rows)  # deterministic: a recomputed run rewrites identical rows
+                if want_png:
+                    _render_run(scene, extras, png)
+        df = store.write_table()
+        fig = make_figure(df, out)
+        from camo_sbi.evaluation.claims import hrc_claims
 
-    claims = hrc_claims(df, setting=f"hrc ({args.subject}, observe {getattr(args, 'observe', 'reach')})")
-    atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
+        claims = hrc_claims(df, setting=f"hrc ({args.subject}, observe {getattr(args, 'observe', 'reach')})")
+        atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     wall = time.perf_counter() - t0
     last = df[(df["n_tasks"] == df["n_tasks"].max())
               & df["metric"].isin(["precision", "recall", "f1", "limit_error_deg"])]

@@ -33,6 +33,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from camo_sbi._io import atomic_write_text
 from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import dask_client, parse_scheduler
 from camo_sbi.experiments.models import (
@@ -41,7 +42,8 @@ from camo_sbi.experiments.models import (
     subject_list,
     true_limits,
 )
-from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
+from camo_sbi.experiments.rundir import RunDirectory, run_settings
+from camo_sbi.experiments.store import cell_key
 from camo_sbi.experiments.subjects import ONE_JOINT
 
 __all__ = ["SETTINGS", "Setting", "add_arguments", "main", "make_figures", "method_config", "run_one"]
@@ -224,6 +226,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", default=None,
                    help="run CAMO's candidate chunks on Dask: 'local:N' or 'tcp://host:8786' "
                         "(same numbers as in-process)")
+    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--out", type=Path, default=Path("runs/reproduce_panda"))
 
 
@@ -269,22 +272,23 @@ def main(args) -> int:
     for s in subjects:
         true_limits(model, sim, s)  # validates names before any work
     out = Path(args.out)
-    store = ResultStore(out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
     # a built-in model with its defaults keeps the cell keys it always had
     settings["model"] = model.name if model.is_default else json.dumps(model.key(), sort_keys=True)
-    atomic_write_text(out / "config.json", json.dumps({"experiment": "reproduce panda", **settings}, indent=2))
-    with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
-        for run in tqdm(range(args.runs), desc=f"reproduce {model.name} ({args.setting})", unit="run"):
-            subject = subjects[run % len(subjects)]
-            key = cell_key({"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}})
-            if store.done(key):
-                continue
-            store.put(key, run_one(sim, model, subject, run, args))
-    df = store.write_table()
-    figs = make_figures(df, out)
-    claims = manipulator_claims(df, setting=args.setting)
-    atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
+    with RunDirectory(out, "reproduce panda", run_settings(args, subjects=subjects, model=settings["model"]),
+                      wait=getattr(args, "wait", False)) as rundir:
+        store = rundir.store
+        with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
+            for run in tqdm(range(args.runs), desc=f"reproduce {model.name} ({args.setting})", unit="run"):
+                subject = subjects[run % len(subjects)]
+                key = cell_key({"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}})
+                if store.done(key):
+                    continue
+                store.put(key, run_one(sim, model, subject, run, args))
+        df = store.write_table()
+        figs = make_figures(df, out)
+        claims = manipulator_claims(df, setting=args.setting)
+        atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     wall = time.perf_counter() - t0
     metrics = ["cartesian_error_mm", "joint_error_deg", "reference_cartesian", "limit_error_binding_deg",
                "limit_error_free_deg"]

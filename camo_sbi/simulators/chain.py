@@ -103,6 +103,33 @@ def _snap(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def _check_finite(values, what: str) -> None:
+    """ValueError ``urdf: <what> contains nan`` (or inf) unless every number in ``values`` is finite."""
+    if values is None:
+        return
+    a = np.asarray(values, dtype=np.float64)
+    if not np.isfinite(a).all():
+        bad = "nan" if np.isnan(a).any() else "inf"
+        raise ValueError(f"urdf: {what} contains {bad}")
+
+
+def _check_urdf_numbers(robot) -> None:
+    """Every origin xyz/rpy, axis and limit in the URDF must be finite (checked before any kernel code)."""
+    for j in robot.joints:
+        if j.origin is not None:
+            _check_finite(j.origin.xyz, f"joint {j.name!r} origin xyz")
+            _check_finite(j.origin.rpy, f"joint {j.name!r} origin rpy")
+        _check_finite(j.axis, f"joint {j.name!r} axis")
+        if j.limit is not None:
+            for side in ("lower", "upper"):
+                _check_finite(getattr(j.limit, side, None), f"joint {j.name!r} limit {side}")
+    for link in robot.links:
+        origin = getattr(link, "origin", None)
+        if origin is not None:
+            _check_finite(origin.xyz, f"link {link.name!r} origin xyz")
+            _check_finite(origin.rpy, f"link {link.name!r} origin rpy")
+
+
 def _pose(origin) -> np.ndarray:
     """URDF <origin xyz rpy> -> exact float64 4x4 (R = Rz(yaw) Ry(pitch) Rx(roll))."""
     T = np.eye(4)
@@ -212,6 +239,7 @@ def load_chain(urdf, end_effector: str, joints=None, *, base_link: str | None = 
         root = robot.get_root()
     except Exception as exc:  # the parser raises assorted types on malformed XML
         raise ValueError(f"urdf: cannot parse URDF ({exc})") from exc
+    _check_urdf_numbers(robot)
     if not isinstance(end_effector, str) or end_effector not in robot.link_map:
         raise ValueError(f"end_effector: no link named {end_effector!r} in the URDF")
     base = root if base_link is None else base_link

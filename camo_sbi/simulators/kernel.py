@@ -11,6 +11,11 @@ The source is written once to a cache directory (``$CAMO_SBI_KERNEL_CACHE``, els
 ``$XDG_CACHE_HOME/camo_sbi/kernels``, else ``~/.cache/camo_sbi/kernels``) under a name
 keyed by the sha256 of the chain constants, the dtype and the generator version, then
 imported, so ``@njit(cache=True)`` reuses the compiled machine code across processes.
+numba unpickles what it finds there, so the directory must be private: created with mode
+0700, a real directory owned by this user that no one else can write (`check_cache_dir`).
+If it is not, or a cache file stays unloadable after being deleted and rebuilt once, the
+kernel is compiled in memory without caching (`KernelCacheWarning`); never from a shared
+temporary directory.
 The batch is split over threads with ``prange``; each sample is computed independently
 and sequentially, so results do not depend on ``NUMBA_NUM_THREADS``.
 """
@@ -19,17 +24,23 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import linecache
 import os
+import pickle
+import stat
 import sys
-import tempfile
 import threading
+import types
+import warnings
 from pathlib import Path
 
 import numpy as np
 
+from camo_sbi._io import atomic_write_bytes
 from camo_sbi.simulators.chain import ChainSpec
 
-__all__ = ["generate_source", "kernel_fk", "kernel_simulate", "load_kernel", "cache_dir"]
+__all__ = ["KernelCacheWarning", "cache_dir", "check_cache_dir", "generate_source", "kernel_fk",
+           "kernel_simulate", "load_kernel"]
 
 GENERATOR_VERSION = "5"
 _DTYPES = {np.dtype(np.float32): "float32", np.dtype(np.float64): "float64"}
@@ -142,9 +153,13 @@ def _fk(w: _Writer, spec: ChainSpec, name_x=("x0", "x1", "x2")):
     return pe, joints
 
 
-def generate_source(spec: ChainSpec, dtype) -> str:
-    """Python source of the numba module for ``spec`` in ``dtype`` (np.float32 / np.float64)."""
+def generate_source(spec: ChainSpec, dtype, *, cache: bool = True) -> str:
+    """Python source of the numba module for ``spec`` in ``dtype`` (np.float32 / np.float64).
+
+    ``cache``: the value of ``@njit(cache=...)`` (False for modules compiled in memory).
+    """
     dt = _DTYPES[np.dtype(dtype)]
+    jit = f"@njit(cache={bool(cache)}, parallel=True, nogil=True, error_model=\"numpy\")"
     n = spec.n_joints
     J = range(n)
     head = [
@@ -165,7 +180,7 @@ def generate_source(spec: ChainSpec, dtype) -> str:
     fkw = _Writer(" " * 8)
     _fk(fkw, spec)
     fk_src = [
-        "@njit(cache=True, parallel=True, nogil=True, error_model=\"numpy\")",
+        jit,
         "def fk(q, out):",
         "    for b in prange(q.shape[0]):",
         *[f"        q{k} = q[b, {k}]" for k in J],
@@ -217,7 +232,7 @@ def generate_source(spec: ChainSpec, dtype) -> str:
     i4 = " " * 16
     i5 = " " * 20
     sim_src = [
-        "@njit(cache=True, parallel=True, nogil=True, error_model=\"numpy\")",
+        jit,
         "def simulate(theta, goal, start, n_steps, tol, gain, lam2, max_cart, max_joint, null_gain,",
         "             kd, early_stop, q_out, x_out, length, reached):",
         "    for b in prange(theta.shape[0]):",
@@ -278,10 +293,23 @@ def generate_source(spec: ChainSpec, dtype) -> str:
 # --------------------------------------------------------------------------- cache + import
 _lock = threading.Lock()
 _loaded: dict[str, object] = {}
+_warned: set[str] = set()
+# what numba (pickle, the import system, the file system) raises on a corrupt or unreadable
+# cache file; a numba TypingError/LoweringError (a bug in the generated code) is not among them
+_CACHE_ERRORS = (pickle.UnpicklingError, EOFError, ValueError, TypeError, KeyError, IndexError,
+                 AttributeError, ImportError, OSError)
+
+
+class KernelCacheWarning(RuntimeWarning):
+    """The kernel cache could not be used: the kernel was compiled in memory, without caching."""
 
 
 def cache_dir() -> Path:
-    """Directory holding generated kernel modules (created on demand)."""
+    """Directory holding generated kernel modules and numba's cache of them (not created here).
+
+    ``$CAMO_SBI_KERNEL_CACHE``, else ``$XDG_CACHE_HOME/camo_sbi/kernels``, else
+    ``~/.cache/camo_sbi/kernels``. There is no fallback: see `check_cache_dir`.
+    """
     env = os.environ.get("CAMO_SBI_KERNEL_CACHE")
     if env:
         return Path(env)
@@ -289,18 +317,151 @@ def cache_dir() -> Path:
     return Path(base) / "camo_sbi" / "kernels"
 
 
+def _current_uid() -> int:
+    return os.getuid()
+
+
+def check_cache_dir(path: str | os.PathLike) -> str | None:
+    """Why ``path`` must not hold kernel code, or None when it is a private directory of this user.
+
+    numba unpickles what it finds in the cache, so the directory (and its ``__pycache__``) must
+    be a real directory (not a symbolic link), owned by the current user and writable by no one
+    else (group/other write bits clear).
+    """
+    for d in (Path(path), Path(path) / "__pycache__"):
+        try:
+            st = os.lstat(d)
+        except FileNotFoundError:
+            if d == Path(path):
+                return "does not exist"
+            continue  # numba creates __pycache__ inside the checked directory
+        except OSError as exc:
+            return f"cannot be inspected ({exc.strerror or exc})"
+        where = "" if d == Path(path) else " (its __pycache__)"
+        if stat.S_ISLNK(st.st_mode):
+            return f"is a symbolic link{where}"
+        if not stat.S_ISDIR(st.st_mode):
+            return f"is not a directory{where}"
+        if st.st_uid != _current_uid():
+            return f"is owned by uid {st.st_uid}, not by this user (uid {_current_uid()}){where}"
+        if st.st_mode & 0o022:
+            return f"is writable by group or others (mode {stat.S_IMODE(st.st_mode):o}){where}"
+    return None
+
+
+def _private_cache_dir() -> tuple[Path, str | None]:
+    """The cache directory, created with mode 0700 if missing, and why it is unusable (or None)."""
+    d = cache_dir()
+    if not os.path.lexists(d):
+        try:
+            d.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            return d, f"cannot be created ({exc.strerror or exc})"
+        try:
+            os.mkdir(d, 0o700)
+        except FileExistsError:
+            pass  # another process created it meanwhile: checked below like any existing directory
+        except OSError as exc:
+            return d, f"cannot be created ({exc.strerror or exc})"
+        else:
+            if stat.S_IMODE(os.lstat(d).st_mode) & 0o077:
+                return d, f"was created with mode {stat.S_IMODE(os.lstat(d).st_mode):o}, not 700"
+    return d, check_cache_dir(d)
+
+
+def _warn_once(message: str) -> None:
+    if message not in _warned:
+        _warned.add(message)
+        warnings.warn(message, KernelCacheWarning, stacklevel=4)
+
+
 def _write_once(path: Path, src: str) -> None:
-    if path.exists() and path.read_text() == src:
+    data = src.encode()
+    if path.is_file() and path.read_bytes() == data:
         return  # unchanged: keep the mtime so numba's on-disk cache stays valid
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(src)
-    os.replace(tmp, path)
+    atomic_write_bytes(path, data)
+
+
+def _signatures(dtype) -> dict[str, tuple]:
+    """The argument types `kernel_fk` / `kernel_simulate` call ``fk`` / ``simulate`` with."""
+    from numba import types
+
+    F = types.float32 if np.dtype(dtype) == np.float32 else types.float64
+    a1 = lambda t: types.Array(t, 1, "C")  # noqa: E731
+    a2, a3 = types.Array(F, 2, "C"), types.Array(F, 3, "C")
+    return {"fk": (a2, a2),
+            "simulate": (a2, a2, a2, types.int64, F, F, F, F, F, F, F, types.boolean, a3, a3, a1(types.int64),
+                         a1(types.boolean))}
+
+
+def _import_file(name: str, path: Path, dtype):
+    """Import the generated module at ``path`` and compile its kernels now (from numba's cache if valid).
+
+    Compiling here rather than at the first call makes a corrupt cache file fail inside
+    `load_kernel`, where it is rebuilt, instead of inside every later simulation.
+    """
+    mspec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(mspec)
+    sys.modules[name] = mod
+    try:
+        mspec.loader.exec_module(mod)
+        for fn, sig in _signatures(dtype).items():
+            getattr(mod, fn).compile(sig)
+    except BaseException:
+        sys.modules.pop(name, None)
+        raise
+    return mod
+
+
+def _remove_cached(d: Path, name: str) -> None:
+    """Delete module ``name``'s generated source and numba's index/data files for it."""
+    for p in [d / f"{name}.py", *(d / "__pycache__").glob(f"{name}.*")]:
+        try:
+            p.unlink()
+        except FileNotFoundError:
+            pass
+
+
+def _load_cached(spec: ChainSpec, dtype, name: str):
+    """The module from the private on-disk cache, or None (with a warning) when that is impossible."""
+    d, reason = _private_cache_dir()
+    if reason is not None:
+        _warn_once(f"kernel cache {d} {reason}; compiling kernels in memory without caching "
+                   "(set CAMO_SBI_KERNEL_CACHE to a private directory)")
+        return None
+    src = generate_source(spec, dtype)
+    path = d / f"{name}.py"
+    errors = []
+    for _ in range(2):  # a corrupt cache file is deleted and the module rebuilt once
+        try:
+            _write_once(path, src)
+            return _import_file(name, path, dtype)
+        except _CACHE_ERRORS as exc:
+            errors.append(f"{type(exc).__name__}: {exc}")
+            _remove_cached(d, name)
+    _warn_once(f"kernel cache {d}: {name} could not be loaded or rebuilt ({errors[-1]}); "
+               "compiling it in memory without caching")
+    return None
+
+
+def _compile_in_memory(spec: ChainSpec, dtype, name: str):
+    """The module compiled from a string (``cache=False``): nothing is read from or written to disk."""
+    src = generate_source(spec, dtype, cache=False)
+    filename = f"<camo_sbi kernel {name}>"
+    linecache.cache[filename] = (len(src), None, src.splitlines(True), filename)  # readable tracebacks
+    mod = types.ModuleType(name)
+    mod.__file__ = filename
+    exec(compile(src, filename, "exec"), mod.__dict__)  # noqa: S102 - our own generated source
+    return mod
 
 
 def load_kernel(spec: ChainSpec, dtype):
-    """The imported generated module for (``spec``, ``dtype``): attributes ``fk`` and ``simulate``."""
+    """The imported generated module for (``spec``, ``dtype``): attributes ``fk`` and ``simulate``.
+
+    Cached on disk in `cache_dir` when that is a private directory of this user
+    (`check_cache_dir`); otherwise, or when its cache files cannot be loaded even after being
+    rebuilt, compiled in memory with a `KernelCacheWarning`. Same machine code either way.
+    """
     dt = _DTYPES[np.dtype(dtype)]
     key = hashlib.sha256(f"{GENERATOR_VERSION}|{spec.digest}|{dt}".encode()).hexdigest()[:24]
     with _lock:
@@ -308,21 +469,9 @@ def load_kernel(spec: ChainSpec, dtype):
         if mod is not None:
             return mod
         name = f"camo_sbi_kernel_{key}"
-        src = generate_source(spec, dtype)
-        path = None
-        for d in (cache_dir(), Path(tempfile.gettempdir()) / f"camo_sbi_kernels_{os.getuid()}"):
-            try:
-                _write_once(d / f"{name}.py", src)
-                path = d / f"{name}.py"
-                break
-            except OSError:
-                continue
-        if path is None:
-            raise OSError("cannot write the generated kernel to any cache directory")
-        mspec = importlib.util.spec_from_file_location(name, path)
-        mod = importlib.util.module_from_spec(mspec)
-        sys.modules[name] = mod
-        mspec.loader.exec_module(mod)
+        mod = _load_cached(spec, dtype, name)
+        if mod is None:
+            mod = _compile_in_memory(spec, dtype, name)
         _loaded[key] = mod
         return mod
 
