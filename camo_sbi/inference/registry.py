@@ -287,7 +287,8 @@ def _oracle() -> Implementation:
 def _abc_smc() -> Implementation:
     from camo_sbi.inference import abc_smc
 
-    return Implementation(abc_smc.run, abc_smc.AbcSmcConfig)
+    # abc_smc.run warns on a non-ok status itself; run_method warns here instead (once)
+    return Implementation(abc_smc.run_unwarned, abc_smc.AbcSmcConfig)
 
 
 def _npe() -> Implementation:
