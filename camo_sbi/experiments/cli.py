@@ -16,7 +16,7 @@ def _demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from camo_sbi.experiments import calibrate, compare, hrc, manipulator
+    from camo_sbi.experiments import amortize, calibrate, compare, hrc, manipulator
 
     parser = argparse.ArgumentParser(prog="camo-sbi", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -35,6 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
         ("compare", "compare inference methods on a grid (resumable)", compare.add_arguments, compare.main),
         ("calibrate", "coverage and SBC of each method over synthetic subjects", calibrate.add_arguments,
          calibrate.main),
+        ("amortize", "train an amortized estimator (npe-amortized) once per body model", amortize.add_arguments,
+         amortize.main),
         ("report", "write a self-contained HTML report of a run directory", _report_arguments, _report),
         ("demo", "simulate a batch of reaches and plot them", _demo_arguments, _demo),
     )
