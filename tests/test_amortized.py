@@ -25,10 +25,19 @@ RUN = {"n_posterior_samples": 300, "is_rounds": 1, "min_ess": 0.0}
 
 
 @pytest.fixture(scope="module")
-def est_path(tmp_path_factory):
-    path = tmp_path_factory.mktemp("amortized") / "toy.pt"
-    train(ToySimulator(), model="toy", config=TINY, seed=0).save(path)
-    return path
+def paths(tmp_path_factory):
+    """One tiny toy estimator per form (the default form is "per-reach")."""
+    d = tmp_path_factory.mktemp("amortized")
+    out = {}
+    for form in amortized.FORMS:
+        out[form] = d / f"toy-{form}.pt"
+        train(ToySimulator(), model="toy", config=dataclasses.replace(TINY, form=form), seed=0).save(out[form])
+    return out
+
+
+@pytest.fixture(scope="module")
+def est_path(paths):
+    return paths["per-reach"]
 
 
 @pytest.fixture(scope="module")
@@ -60,8 +69,11 @@ def test_training_is_deterministic_and_leaves_the_global_rng_alone():
     assert not torch.equal(next(iter(a.flows["joint"].parameters())), next(iter(c.flows["joint"].parameters())))
 
 
-def test_save_load_round_trip_gives_identical_samples(est_path, task, tmp_path):
+@pytest.mark.parametrize("form", amortized.FORMS)
+def test_save_load_round_trip_gives_identical_samples(form, paths, task, tmp_path):
+    est_path = paths[form]
     est = load_estimator(est_path)
+    assert est.form == form
     assert est.training_simulations == TINY.simulations and est.training_time > 0
     assert est.spaces == ("joint", "cartesian")
     # the file is a state dict + JSON metadata: it loads with weights_only=True
@@ -98,11 +110,13 @@ class _NoSimulation:
         return getattr(self._sim, name)
 
 
-def test_inference_simulates_nothing(est_path, task):
+@pytest.mark.parametrize("form", amortized.FORMS)
+def test_inference_simulates_nothing(form, paths, task):
+    est_path = paths[form]
     res = _run(task, est_path)
     assert res.n_simulations == 0  # counted by the registry's budget wrapper
     assert res.status == "ok" and res.n_tasks == 3
-    assert res.extras["training_simulations"] == TINY.simulations
+    assert res.extras["training_simulations"] == TINY.simulations and res.extras["form"] == form
     guarded = task.with_simulator(CountingSimulator(_NoSimulation(task.simulator), 1))
     res2 = _run(guarded, est_path)
     np.testing.assert_array_equal(res.samples, res2.samples)
@@ -148,6 +162,33 @@ def test_refuses_what_it_was_not_trained_for(est_path, task, tmp_path):
         _run(task, joint_only, space="cartesian")
 
 
+def test_set_form_refuses_more_reaches_than_it_was_trained_on(paths):
+    est_path = paths["set"]
+    sim = ToySimulator()
+    many = make_reaching_task(sim, TRUE, n_train=TINY.max_set + 1, n_test=1, seed=0)
+    with pytest.raises(ValueError, match="^observations: .*at most max_set"):
+        _run(many, est_path)
+    ok = run_method("npe-amortized", many, many.observations[: TINY.max_set], budget=1, seed=0,
+                    config={**RUN, "estimator": str(est_path)})
+    assert ok.n_tasks == TINY.max_set and ok.weights is None
+
+
+def test_set_training_data_are_sets_of_one_limit_vector():
+    sim = ToySimulator()
+    prior = BoxPrior(sim.bounds, sim.start)
+    cfg = dataclasses.replace(TINY, spaces=("joint",), max_set=4, form="set")
+    data = amortized.simulate_training_set(sim, prior, cfg, 0, n=400)
+    assert data["theta"].shape == (100, 4) and data["x"]["joint"].shape[:2] == (100, 4)
+    # the 4 reaches of a set share their limits but not their goals
+    goals = data["x"]["joint"][:, :, :2]
+    assert bool((goals[:, 0] != goals[:, 1]).any(dim=-1).all())
+    ref = sim.simulate(data["theta"][:1].expand(4, -1), torch.cat([goals[0], torch.zeros(4, 1, dtype=goals.dtype)], 1))
+    from camo_sbi.inference.npe import summarize
+
+    np.testing.assert_allclose(data["x"]["joint"][0, :, 3:].numpy(),
+                               summarize(ref.q, ref.length, n_points=cfg.n_points).numpy(), atol=1e-5)
+
+
 def test_config_and_train_arguments_are_checked():
     with pytest.raises(TypeError, match="^estimator:"):
         AmortizedConfig(estimator=3)
@@ -159,6 +200,10 @@ def test_config_and_train_arguments_are_checked():
         TrainConfig(spaces=("elbow",))
     with pytest.raises(ValueError, match="^simulations:"):
         TrainConfig(simulations=1)
+    with pytest.raises(ValueError, match="^simulations: the set form"):
+        TrainConfig(simulations=50, form="set")
+    with pytest.raises(ValueError, match="^form:"):
+        TrainConfig(form="pairs")
     with pytest.raises(TypeError, match="^noise:"):
         TrainConfig(noise=0.1)
     with pytest.raises(ValueError, match="^model:"):
@@ -167,16 +212,18 @@ def test_config_and_train_arguments_are_checked():
         train(ToySimulator(), model="toy", config={"simulations": 10}, seed=0)
 
 
-def test_degenerate_importance_weights_set_a_fallback_status(est_path, task):
+def test_degenerate_importance_weights_set_a_fallback_status(paths, task):
+    """The per-reach form combines by importance sampling; a too-small ESS is a fallback, warned."""
     with pytest.warns(RuntimeWarning, match="fallback: degenerate importance weights"):
-        res = _run(task, est_path, min_ess=1e9)
+        res = _run(task, paths["per-reach"], min_ess=1e9)
     assert res.status.startswith("fallback: degenerate importance weights")
 
 
 def test_goal_design_is_independent_of_the_training_limits():
     sim = ToySimulator()
     prior = BoxPrior(sim.bounds, sim.start)
-    data = amortized.simulate_training_set(sim, prior, dataclasses.replace(TINY, spaces=("joint",)), 0, n=4000)
+    data = amortized.simulate_training_set(sim, prior, dataclasses.replace(TINY, spaces=("joint",), form="per-reach"),
+                                           0, n=4000)
     theta, goal = data["theta"], data["x"]["joint"][:, :2]
     # the goals are the design's (FK of configurations inside independent prior draws) ...
     np.testing.assert_array_equal(goal.numpy(), amortized.design_goals(sim, prior, 4000, 0)[:, :2].numpy())
@@ -228,9 +275,10 @@ def _reference(task, sim) -> dict:
     return out
 
 
-def _check_toy(sims: int, epochs: int, tmp_path, mean_tol_sd: float, sd_ratio: tuple[float, float]):
+def _check_toy(sims: int, epochs: int, tmp_path, mean_tol_sd: float, sd_ratio: tuple[float, float],
+               form: str = "per-reach"):
     task, sim, noise = _toy_problem()
-    cfg = TrainConfig(simulations=sims, noise=noise, max_epochs=epochs, hidden_features=32, num_transforms=3,
+    cfg = TrainConfig(simulations=sims, form=form, noise=noise, max_epochs=epochs, hidden_features=32, num_transforms=3,
                       training_batch_size=256, stop_after_epochs=5)
     path = train(sim, model="toy1", config=cfg, seed=0).save(tmp_path / "toy1.pt")
     res = run_method("npe-amortized", task, budget=1, seed=0, config={"estimator": str(path)})

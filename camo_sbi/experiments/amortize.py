@@ -20,7 +20,8 @@ from pathlib import Path
 from camo_sbi.experiments.store import atomic_write_text
 from camo_sbi.experiments.subjects import build_model
 
-__all__ = ["add_arguments", "ensure_estimator", "main", "parse_spaces", "train_config"]
+__all__ = ["add_arguments", "cost_table", "ensure_estimator", "estimator_for_run", "main", "parse_spaces",
+           "train_config", "write_cost_table"]
 
 
 def parse_spaces(text: str) -> tuple[str, ...]:
@@ -70,6 +71,28 @@ def ensure_estimator(path: Path, *, model: str, config, seed: int, progress: boo
     est = train(build_model(model), model=model, config=config, seed=seed, progress=progress)
     est.save(path)
     return load_estimator(path), True
+
+
+def estimator_for_run(methods, *, model: str, path, out, simulations: int, space: str, seed: int) -> Path | None:
+    """The estimator file a run of ``methods`` uses: None without an amortized method; ``path``
+    (``--amortized``, must exist) if given; otherwise one trained here, ONCE, in the calling
+    (parent) process before any cell runs, at OUT/work/amortized/<model>-<space>-n<N>-seed<S>.pt,
+    and reused by every cell and by a resumed run (its cost is recorded once, in the file)."""
+    from camo_sbi.inference.registry import capabilities
+
+    if not any(capabilities(m).amortized for m in methods):
+        return None
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"--amortized: no such file {str(path)!r}")
+        return path
+    cfg = train_config(simulations=simulations, spaces=(space,))
+    path = Path(out) / "work" / "amortized" / f"{model}-{space}-n{simulations}-seed{seed}.pt"
+    print(f"amortized estimator: {path}")
+    _, trained = ensure_estimator(path, model=model, config=cfg, seed=seed)
+    print(("trained " if trained else "reused ") + str(path))
+    return path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

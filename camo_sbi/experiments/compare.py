@@ -229,29 +229,13 @@ def run_in_processes(cell_fn, specs: list[dict], out, workers: int, *, on_done) 
 
 
 def _with_estimator(args):
-    """``args`` with ``amortized`` set to a trained estimator when the grid has an amortized method.
+    """``args`` with ``amortized`` set to the estimator file amortized methods use (see
+    `camo_sbi.experiments.amortize.estimator_for_run`: trained once here, in the parent, before
+    any cell runs, also with --workers / --scheduler, when --amortized is not given)."""
+    from camo_sbi.experiments.amortize import estimator_for_run
 
-    Without ``--amortized``, one estimator is trained here, in the parent, before any cell runs
-    (also with --workers / --scheduler), saved under OUT/work/amortized and reused by every cell
-    and by a resumed run; its training cost is recorded once, in the file's metadata.
-    """
-    from camo_sbi.inference.registry import capabilities
-
-    methods = grid_methods(args.methods)
-    if not any(capabilities(m).amortized for m in methods):
-        return args
-    if getattr(args, "amortized", None) is not None:
-        path = Path(args.amortized)
-        if not path.is_file():
-            raise ValueError(f"--amortized: no such file {str(path)!r}")
-        return args
-    from camo_sbi.experiments.amortize import ensure_estimator, train_config
-
-    cfg = train_config(simulations=args.amortize_simulations, spaces=(args.space,))
-    path = Path(args.out) / "work" / "amortized" / f"{args.model}-{args.space}-n{args.amortize_simulations}-seed{args.seed}.pt"
-    print(f"training the amortized estimator once: {path}")
-    _, trained = ensure_estimator(path, model=args.model, config=cfg, seed=args.seed)
-    print(("trained" if trained else "reused") + f" {path}")
+    path = estimator_for_run(grid_methods(args.methods), model=args.model, path=getattr(args, "amortized", None),
+                             out=args.out, simulations=args.amortize_simulations, space=args.space, seed=args.seed)
     return argparse.Namespace(**{**vars(args), "amortized": path})
 
 

@@ -88,6 +88,7 @@ __all__ = [
 
 FORMAT = "camo_sbi.amortized/1"
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
+FORMS = ("set", "per-reach")
 _START_TOL = 1e-6  # radians: an observed start this close to the estimator's counts as the same
 _BOX_TOL = 1e-9
 
@@ -100,7 +101,13 @@ class TrainConfig:
     """How an amortized estimator is trained (all of it is stored in the file's metadata).
 
     Attributes:
-        simulations: simulated (theta, goal) pairs, one trajectory each.
+        simulations: simulated reaches (one trajectory each).
+        form: "per-reach" (one flow q(theta | one reach), combined by the i.i.d. rule; the
+            measured default) or "set" (EXPERIMENTAL: one flow q(theta | set of 1..max_set
+            reaches) behind a DeepSet embedding; the simulations are max_set reaches of each of
+            simulations // max_set limit vectors. On the Panda at 200k simulations its training
+            loss stalled at ~28.3 nats (per-reach: 17.2), not yet understood).
+        max_set: the largest set of reaches the "set" form is trained on (and accepts).
         spaces: observation spaces to train a flow for ("joint", "cartesian" or both; the
             same simulations serve every space).
         noise: observation-noise model applied to the simulated trajectories (seeded).
@@ -109,7 +116,8 @@ class TrainConfig:
         embedding_dim, embedding_hidden: None, or an MLP embedding of the condition (3 layers of
             ``embedding_hidden`` units, ``embedding_dim`` outputs) trained with the flow.
         training_batch_size, learning_rate, validation_fraction, stop_after_epochs,
-        max_epochs: maximum-likelihood training with early stopping.
+        max_epochs: maximum-likelihood training with early stopping (a batch holds
+            ``training_batch_size`` reaches: for the set form that many // max_set sets).
         max_train_seconds: per space, stop after the epoch that crosses it (None: no limit).
         simulation_batch_size: trajectories per ``simulate`` call.
         sim_dtype: "float32" or "float64" for the simulations.
@@ -117,6 +125,8 @@ class TrainConfig:
     """
 
     simulations: int = 200_000
+    form: str = "per-reach"
+    max_set: int = 10
     spaces: tuple[str, ...] = ("joint",)
     noise: NoiseModel = field(default_factory=NoiseModel)
     n_points: int = 20
@@ -138,6 +148,11 @@ class TrainConfig:
 
     def __post_init__(self):
         check_positive_int(self.simulations, "simulations", minimum=10)
+        check_choice(self.form, FORMS, "form")
+        check_positive_int(self.max_set, "max_set", minimum=2)
+        if self.form == "set" and self.simulations < 10 * self.max_set:
+            raise ValueError(f"simulations: the set form needs at least {10 * self.max_set} (10 sets of "
+                             f"max_set={self.max_set} reaches), got {self.simulations}")
         spaces = (self.spaces,) if isinstance(self.spaces, str) else tuple(self.spaces)
         if not spaces or len(set(spaces)) != len(spaces):
             raise ValueError(f"spaces: expected one or more distinct spaces of {SPACES}, got {self.spaces!r}")
@@ -294,12 +309,79 @@ class _Flow(nn.Module):
         return self.net.sample(torch.Size(sample_shape), self._x(condition)) * self.z_std + self.z_mean
 
 
-def _new_flow(settings: TrainConfig, n_inputs: int, n_conditions: int, seed: int) -> _Flow:
-    net = sbi_adapter.build_flow(settings.density_estimator, n_inputs, n_conditions,
+class _SetFlow(nn.Module):
+    """q(z | {x_1..x_k}): a DeepSet embedding (per-reach MLP phi, masked mean, the set size, MLP
+    rho) feeding an sbi flow; trained jointly.
+
+    Conditions are packed as (B, K * (F + 1)): K = max_set reaches of F raw features, each
+    followed by a validity flag (1: a reach of the set, 0: padding). In training mode ``loss``
+    redraws every example's subset (size uniform on 1..K among its valid reaches) from the global
+    torch RNG, which `sbi_adapter.fit_density_estimator` seeds inside ``fork_rng``: each epoch sees
+    new sets. In eval mode (validation, inference) the stored flags are used.
+    """
+
+    def __init__(self, net: nn.Module, n_inputs: int, n_features: int, max_set: int, hidden: int = 128,
+                 embed: int = 64):
+        super().__init__()
+        self.net, self.n_features, self.max_set = net, n_features, max_set
+        self.phi = nn.Sequential(nn.Linear(n_features, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                                 nn.Linear(hidden, embed))
+        self.rho = nn.Sequential(nn.Linear(embed + 1, hidden), nn.ReLU(), nn.Linear(hidden, embed))
+        self.register_buffer("z_mean", torch.zeros(n_inputs))
+        self.register_buffer("z_std", torch.ones(n_inputs))
+        self.register_buffer("x_mean", torch.zeros(n_features))
+        self.register_buffer("x_std", torch.ones(n_features))
+
+    set_statistics = _Flow.set_statistics
+
+    @staticmethod
+    def pack(sets: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """(B, K, F) reaches and (B, K) bool validity -> (B, K * (F + 1)) float32 conditions."""
+        return torch.cat([sets.to(torch.float32), valid.to(torch.float32).unsqueeze(-1)], -1).flatten(1)
+
+    def _unpack(self, condition):
+        c = condition.to(torch.float32).reshape(condition.shape[0], self.max_set, self.n_features + 1)
+        return c[..., :-1], c[..., -1] > 0.5
+
+    def embed(self, condition) -> torch.Tensor:
+        sets, valid = self._unpack(condition)
+        if self.training:  # a new random subset of each example's valid reaches
+            k = torch.randint(1, self.max_set + 1, (sets.shape[0], 1))
+            k = torch.minimum(k, valid.sum(1, keepdim=True))
+            rank = torch.argsort(torch.argsort(torch.rand(valid.shape) + (~valid).float(), dim=1), dim=1)
+            valid = rank < k
+        h = self.phi((sets - self.x_mean) / self.x_std)
+        w = valid.to(torch.float32).unsqueeze(-1)
+        n = w.sum(1)
+        return self.rho(torch.cat([(h * w).sum(1) / n.clamp_min(1.0), n / self.max_set], -1))
+
+    def log_prob(self, input, condition):  # noqa: A002
+        zs = (input.to(torch.float32) - self.z_mean) / self.z_std
+        return self.net.log_prob(zs, self.embed(condition)) - torch.log(self.z_std).sum()
+
+    def loss(self, input, condition):  # noqa: A002
+        return -self.log_prob(input, condition)
+
+    def sample(self, sample_shape, condition):
+        return self.net.sample(torch.Size(sample_shape), self.embed(condition)) * self.z_std + self.z_mean
+
+
+_SET_EMBED = 64
+
+
+def _new_flow(settings: TrainConfig, n_inputs: int, n_conditions: int, seed: int) -> nn.Module:
+    """The untrained flow of ``settings.form``; ``n_conditions``: features per reach."""
+    is_set = settings.form == "set"
+    net = sbi_adapter.build_flow(settings.density_estimator, n_inputs, _SET_EMBED if is_set else n_conditions,
                                  hidden_features=settings.hidden_features,
-                                 num_transforms=settings.num_transforms, embedding_dim=settings.embedding_dim,
+                                 num_transforms=settings.num_transforms,
+                                 embedding_dim=None if is_set else settings.embedding_dim,
                                  embedding_hidden=settings.embedding_hidden, seed=seed)
-    return _Flow(net, n_inputs, n_conditions)
+    if not is_set:
+        return _Flow(net, n_inputs, n_conditions)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed + 1)
+        return _SetFlow(net, n_inputs, n_conditions, settings.max_set, settings.embedding_hidden, _SET_EMBED)
 
 
 # ----------------------------------------------------------------------------------- summaries
@@ -333,14 +415,20 @@ def simulate_training_set(simulator, prior: BoxPrior, settings: TrainConfig, see
 
     Returns {"theta": (n, 2n) float64, "x": {space: (n, D) float64 conditions},
     "time_simulate": seconds (FK of the goals + simulation + summaries)}. Seeded by ``seed``:
-    limits, goals and noise come from independent streams.
+    limits, goals and noise come from independent streams. The "set" form simulates
+    ``max_set`` reaches (independent goals) of each of n // max_set limit vectors: "theta" is
+    (n // max_set, 2n) and "x" (n // max_set, max_set, D).
     """
     from tqdm import tqdm
 
     sim = unwrap_simulator(simulator)
     n = settings.simulations if n is None else check_positive_int(n, "n")
+    r = settings.max_set if settings.form == "set" else 1
+    m = n // r
+    n = m * r
     t0 = time.perf_counter()
-    theta = prior.sample(n, np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,))))
+    theta_m = prior.sample(m, np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,))))
+    theta = theta_m.repeat_interleave(r, dim=0)
     goals = design_goals(sim, prior, n, seed)
     start = torch.as_tensor(sim.start, dtype=torch.float64)
     noise_gen = torch.Generator().manual_seed(_seed(seed, 2))
@@ -353,8 +441,10 @@ def simulate_training_set(simulator, prior: BoxPrior, settings: TrainConfig, see
             traj = out.q if space == "joint" else out.ee
             traj = settings.noise.perturb(traj.to(torch.float64), space, noise_gen)
             parts[space].append(_conditions(traj, out.length, goals[s : s + b], settings))
-    return {"theta": theta, "x": {k: torch.cat(v) for k, v in parts.items()},
-            "time_simulate": time.perf_counter() - t0}
+    x = {k: torch.cat(v) for k, v in parts.items()}
+    if r > 1:
+        x = {k: v.reshape(m, r, -1) for k, v in x.items()}
+    return {"theta": theta_m, "x": x, "time_simulate": time.perf_counter() - t0}
 
 
 # ----------------------------------------------------------------------------------- the estimator
@@ -429,6 +519,39 @@ class AmortizedEstimator:
             rows.append(_conditions(traj, torch.tensor([traj.shape[0]]), o.goal, self.settings)[0, keep])
         return torch.stack(rows).float()
 
+    @property
+    def form(self) -> str:
+        return self.settings.form
+
+    def set_condition(self, observations, space: str) -> torch.Tensor:
+        """(1, K * (F + 1)) the packed set condition of 1..max_set observed reaches (set form)."""
+        x = self.conditions(observations, space)
+        k = self.settings.max_set
+        if x.shape[0] > k:
+            raise ValueError(f"observations: {x.shape[0]} reaches, but the set estimator {self.path or ''} was "
+                             f"trained on sets of at most max_set={k}; pass at most {k} or retrain")
+        sets = torch.zeros(1, k, x.shape[1])
+        sets[0, : x.shape[0]] = x
+        valid = torch.arange(k)[None] < x.shape[0]
+        return _SetFlow.pack(sets, valid)
+
+    @torch.no_grad()
+    def sample_set(self, observations, space: str, n: int, seed: int, *, n_threads: int | None = 1):
+        """(n, 2n) float64 draws of q(theta | the set of reaches) and their log densities (theta coordinates)."""
+        cond = self.set_condition(observations, space)
+        flow = self.flows[space]
+        lo, w = self.low[self.free_mask], (self.high - self.low)[self.free_mask]
+        with torch.random.fork_rng(devices=[]), npe.torch_threads(n_threads):
+            torch.manual_seed(seed)
+            z = flow.sample((n,), cond).reshape(n, -1)
+            lp = flow.log_prob(z.unsqueeze(1), cond).reshape(-1).double()
+        z = z.double()
+        free = lo + w * torch.sigmoid(z)
+        logdet = (torch.log(w) + nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
+        theta = self.low.repeat(n, 1)
+        theta[:, self.free_mask] = free
+        return theta, lp - logdet
+
     def posterior(self, observations, space: str, *, n_threads: int | None = 1) -> npe.NpePosterior:
         """The combined posterior of the reaches (`npe.NpePosterior`, the same flow N times)."""
         x = self.conditions(observations, space)
@@ -469,7 +592,8 @@ class AmortizedEstimator:
 
 
 class _SingleReach:
-    """sbi-style posterior of ONE reach: ``sample_batched((n,), x)`` -> (n, B, n_free) theta draws."""
+    """sbi-style posterior of ONE condition row (one reach, or one packed set for the set form):
+    ``sample_batched((n,), x)`` -> (n, B, n_free) theta draws."""
 
     def __init__(self, est: AmortizedEstimator, space: str, chunk: int):
         self._flow = est.flows[space]
@@ -514,21 +638,32 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
     flows, features, training = {}, {}, {}
     for k, space in enumerate(config.spaces):
         x = data["x"][space]
-        finite = torch.isfinite(x).all(dim=1)
-        keep = x[finite].std(dim=0) > 1e-8 * (1.0 + x[finite].abs().amax(dim=0))
-        xk = x[finite][:, keep].float()
-        flow = _new_flow(config, z.shape[1], xk.shape[1], _seed(seed, 3, k))
-        flow.set_statistics(z[finite], xk)
+        reaches = x.reshape(-1, x.shape[-1])
+        finite = torch.isfinite(x).reshape(x.shape[0], -1).all(dim=1)
+        fr = torch.isfinite(reaches).all(dim=1)
+        keep = reaches[fr].std(dim=0) > 1e-8 * (1.0 + reaches[fr].abs().amax(dim=0))
+        flow = _new_flow(config, z.shape[1], int(keep.sum()), _seed(seed, 3, k))
+        flow.set_statistics(z[finite], reaches[fr][:, keep].float())
+        if config.form == "set":
+            sets = x[finite][..., keep]
+            gen = torch.Generator().manual_seed(_seed(seed, 11, k))
+            size = torch.randint(1, config.max_set + 1, (sets.shape[0], 1), generator=gen)
+            valid = torch.argsort(torch.rand(sets.shape[:2], generator=gen), dim=1).argsort(dim=1) < size
+            xk = _SetFlow.pack(sets, valid)  # stored flags: the validation sets; training redraws them
+        else:
+            xk = x[finite][:, keep].float()
         with npe.torch_threads(config.n_threads):
             info = sbi_adapter.fit_density_estimator(
-                flow, z[finite], xk, seed=_seed(seed, 4, k), batch_size=config.training_batch_size,
+                flow, z[finite], xk, seed=_seed(seed, 4, k),
+                batch_size=max(2, config.training_batch_size // (config.max_set if config.form == "set" else 1)),
                 learning_rate=config.learning_rate, validation_fraction=config.validation_fraction,
                 stop_after_epochs=config.stop_after_epochs, max_epochs=config.max_epochs,
                 max_seconds=config.max_train_seconds, progress=progress, desc=f"training {space}")
         info.pop("training_loss")
         info["n_invalid"] = int((~finite).sum())
         flows[space] = flow
-        features[space] = {"keep": keep.tolist(), "n_kept": int(keep.sum())}
+        features[space] = {"keep": keep.tolist(), "n_kept": int(keep.sum()),
+                           "n_reaches": int(x[finite].reshape(-1, x.shape[-1]).shape[0])}
         training[space] = info
     total = time.perf_counter() - t0
     import camo_sbi
@@ -542,7 +677,7 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
         "seed": seed,
         "features": features,
         "training": training,
-        "training_simulations": int(config.simulations),
+        "training_simulations": int(data["theta"].shape[0] * (config.max_set if config.form == "set" else 1)),
         "time_simulate": data["time_simulate"],
         "training_time": total,
         "versions": {"camo_sbi": getattr(camo_sbi, "__version__", "0"), "torch": torch.__version__,
@@ -618,14 +753,20 @@ def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig |
     est = load_estimator(config.estimator)
     t_load = time.perf_counter() - t0
     est.check_task(task, observations, config.space)
-    posterior = est.posterior(observations, config.space, n_threads=config.n_threads)
     t1 = time.perf_counter()
-    draws = posterior.sample(config.n_posterior_samples, _seed(seed, 5) % (2**32), is_rounds=config.is_rounds,
-                             defensive_fraction=config.defensive_fraction)
+    if est.form == "set":
+        theta, lp = est.sample_set(observations, config.space, config.n_posterior_samples, _seed(seed, 5) % (2**32),
+                                   n_threads=config.n_threads)
+        n = theta.shape[0]
+        draws = npe.ImportanceSample(theta.numpy(), np.full(n, 1.0 / n), lp.numpy(), float(n), [float(n)])
+    else:
+        posterior = est.posterior(observations, config.space, n_threads=config.n_threads)
+        draws = posterior.sample(config.n_posterior_samples, _seed(seed, 5) % (2**32), is_rounds=config.is_rounds,
+                                 defensive_fraction=config.defensive_fraction)
     t_sample = time.perf_counter() - t1
     estimate = npe.point_estimate(draws, config.point_estimate, prior)
     status = STATUS_OK
-    if not draws.ess >= config.min_ess or not math.isfinite(draws.ess):
+    if est.form != "set" and (not draws.ess >= config.min_ess or not math.isfinite(draws.ess)):
         status = (f"fallback: degenerate importance weights combining {len(observations)} reaches (ESS "
                   f"{draws.ess:.1f} of {config.n_posterior_samples} < min_ess {config.min_ess:g})")
     extras = {
@@ -633,7 +774,9 @@ def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig |
         "estimator_path": est.path, "training_simulations": est.training_simulations,
         "training_time": est.training_time, "space": config.space,
     }
-    return PosteriorResult(method="npe-amortized", samples=draws.theta, weights=draws.weights, estimate=estimate,
+    extras["form"] = est.form
+    weights = None if est.form == "set" else draws.weights
+    return PosteriorResult(method="npe-amortized", samples=draws.theta, weights=weights, estimate=estimate,
                            n_simulations=0, wall_time=time.perf_counter() - t0, n_tasks=len(observations),
                            extras=extras, status=status)
 
@@ -660,11 +803,17 @@ def sbi_diagnostics(estimator: AmortizedEstimator, simulator, space: str, *, n: 
         raise ValueError(f"simulator: differs from the estimator's model in {', '.join(diff)}")
     n = check_positive_int(n, "n", minimum=10)
     sim = unwrap_simulator(simulator)
+    n_sims = n * (estimator.settings.max_set if estimator.form == "set" else 1)
     prior = BoxPrior(sim.bounds, sim.start)
     settings = dataclasses.replace(estimator.settings, spaces=(space,))
-    data = simulate_training_set(sim, prior, settings, _seed(seed, 6), n=n)
+    data = simulate_training_set(sim, prior, settings, _seed(seed, 6), n=n_sims)
     keep = torch.tensor(estimator.metadata["features"][space]["keep"], dtype=torch.bool)
-    x = data["x"][space][:, keep].float()
+    x = data["x"][space][..., keep].float()
+    if estimator.form == "set":  # sets of 1..max_set reaches, sizes drawn uniformly (seeded)
+        gen = torch.Generator().manual_seed(_seed(seed, 12))
+        size = torch.randint(1, settings.max_set + 1, (x.shape[0], 1), generator=gen)
+        valid = torch.arange(settings.max_set)[None] < size
+        x = _SetFlow.pack(x, valid)
     theta = data["theta"][:, prior.free_mask].float()
     post = estimator.single_reach_posterior(space)
     ranks, dap = sbi_adapter.run_sbc(theta, x, post, num_posterior_samples=num_posterior_samples,
@@ -674,7 +823,7 @@ def sbi_diagnostics(estimator: AmortizedEstimator, simulator, space: str, *, n: 
     ecp, alpha = sbi_adapter.run_tarp(theta, x, post, num_posterior_samples=num_posterior_samples,
                                       seed=_seed(seed, 10))
     atc, ks = sbi_adapter.check_tarp(ecp, alpha)
-    return {"n": n, "simulations": n, "space": space, "num_posterior_samples": num_posterior_samples,
+    return {"n": n, "simulations": n_sims, "form": estimator.form, "space": space, "num_posterior_samples": num_posterior_samples,
             "sbc_ks_pvals": checks["ks_pvals"], "sbc_c2st_ranks": checks["c2st_ranks"],
             "c2st_dap": checks["c2st_dap"][0], "tarp_ecp": ecp.tolist(), "tarp_alpha": alpha.tolist(),
             "tarp_atc": atc, "tarp_ks_pvalue": ks}
