@@ -302,3 +302,72 @@ def test_toy_posterior_recovered_roughly(tmp_path):
 def test_toy_posterior_recovered(tmp_path):
     """40 000 simulations: the mean within 1.5 exact sd, the sd within a factor 0.5-3."""
     _check_toy(40000, 80, tmp_path, mean_tol_sd=1.5, sd_ratio=(0.5, 3.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# the command line: amortize, compare --amortized, compare training once
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--simulations", "0"], "--simulations"),
+    (["--space", "elbow"], "--space"),
+    (["--noise-ee-mm", "-1"], "--noise-ee-mm"),
+    (["--seed", "-1"], "--seed"),
+])
+def test_amortize_bad_options_exit_2(extra, needle, tmp_path, capsys):
+    from camo_sbi.experiments.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["amortize", "--out", str(tmp_path / "x.pt"), *extra])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+
+
+def test_amortize_then_compare_with_the_file(tmp_path):
+    import pandas as pd
+
+    from camo_sbi.experiments.cli import main
+
+    path = tmp_path / "panda.pt"
+    assert main(["amortize", "--model", "panda", "--simulations", "300", "--max-epochs", "2", "--out",
+                 str(path), "--space", "joint,cartesian", "--noise-joint-deg", "0.5"]) == 0
+    est = load_estimator(path)
+    assert est.spaces == ("joint", "cartesian") and est.noise == NoiseModel(joint_deg=0.5)
+    with pytest.raises(SystemExit) as exc:  # no silent overwrite
+        main(["amortize", "--model", "panda", "--simulations", "300", "--out", str(path)])
+    assert exc.value.code == 2
+    # compare's tasks are noise-free: the noisy estimator is refused, naming task.noise
+    with pytest.raises(SystemExit) as exc:
+        main(["compare", "--methods", "npe-amortized", "--budgets", "20", "--seeds", "1", "--tasks", "1",
+              "--test-goals", "2", "--amortized", str(path), "--no-report", "--out", str(tmp_path / "c0")])
+    assert exc.value.code == 2
+    clean = tmp_path / "clean.pt"
+    assert main(["amortize", "--model", "panda", "--simulations", "300", "--max-epochs", "2", "--out",
+                 str(clean)]) == 0
+    out = tmp_path / "c1"
+    assert main(["compare", "--methods", "npe-amortized,camo", "--budgets", "20", "--seeds", "1", "--tasks", "2",
+                 "--test-goals", "2", "--amortized", str(clean), "--no-report", "--out", str(out)]) == 0
+    df = pd.read_csv(out / "results.csv")
+    am = df[df["method"] == "npe-amortized"]
+    assert set(am.loc[am["metric"] == "n_simulations", "value"]) == {0}
+    assert set(am.loc[am["metric"] == "training_simulations", "value"]) == {300}
+    cost = pd.read_csv(out / "amortized_cost.csv")
+    camo = cost[cost["method"] == "camo"].iloc[0]
+    assert camo["simulations_per_person"] == 40 and camo["training_simulations"] == 300
+    assert camo["break_even_persons_simulations"] == math.ceil(300 / 40)
+
+
+def test_compare_trains_the_estimator_once_and_reuses_it(tmp_path, capsys):
+    from camo_sbi.experiments.cli import main
+
+    argv = ["compare", "--methods", "npe-amortized", "--budgets", "20", "--seeds", "2", "--tasks", "1",
+            "--test-goals", "2", "--amortize-simulations", "200", "--no-report", "--out", str(tmp_path / "c")]
+    assert main(argv) == 0
+    first = capsys.readouterr().out
+    files = list((tmp_path / "c" / "work" / "amortized").glob("*.pt"))
+    assert len(files) == 1 and first.count("trained ") == 1
+    mtime = files[0].stat().st_mtime_ns
+    assert main([*argv[:-2], "--workers", "2", "--out", str(tmp_path / "c")]) == 0
+    assert "reused " in capsys.readouterr().out and files[0].stat().st_mtime_ns == mtime
