@@ -669,7 +669,7 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
                            "n_reaches": int(x[finite].reshape(-1, x.shape[-1]).shape[0])}
         training[space] = info
     total = time.perf_counter() - t0
-    import camo_sbi
+    from importlib.metadata import version
 
     metadata = {
         "format": FORMAT,
@@ -683,7 +683,7 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
         "training_simulations": int(data["theta"].shape[0] * (config.max_set if config.form == "set" else 1)),
         "time_simulate": data["time_simulate"],
         "training_time": total,
-        "versions": {"camo_sbi": getattr(camo_sbi, "__version__", "0"), "torch": torch.__version__,
+        "versions": {"camo_sbi": version("camo_sbi"), "torch": torch.__version__,
                      "sbi": ".".join(map(str, sbi_adapter.sbi_version()))},
     }
     return AmortizedEstimator(metadata, flows)
