@@ -325,7 +325,9 @@ def test_capabilities_drive_the_method_lists():
     assert "npe" in registry.names(baseline=False) and "naive" not in registry.names(baseline=False)
     assert registry.names(space="cartesian", baseline=True) == ["nominal", "oracle"]  # naive needs joints
     assert "camo-cs" not in registry.names(space="joint")
-    assert set(registry.names(simulates=False)) == set(baselines)
+    # what simulates nothing per person: the baselines and the amortized methods (trained once beforehand)
+    assert set(registry.names(simulates=False)) == set(baselines) | set(registry.names(amortized=True))
+    assert "npe-amortized" in registry.names(amortized=True)
     assert registry.capabilities("oracle").needs_truth and not registry.capabilities("nominal").needs_truth
     for name in registry.names():
         spec = get_method(name)

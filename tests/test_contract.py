@@ -32,8 +32,25 @@ FAST = {
 for _name in registry.names():
     if "camo" in (_name, get_method(_name).base):
         FAST[_name] = {"keep_best": 10}
+# amortized methods: a tiny estimator trained once for the toy model (`trained_estimators` below)
+TINY_AMORTIZED = {"simulations": 400, "spaces": ("joint", "cartesian"), "max_epochs": 2, "hidden_features": 8,
+                  "num_transforms": 1, "training_batch_size": 50}
+FAST["npe-amortized"] = {"n_posterior_samples": 200, "is_rounds": 1, "min_ess": 0.0}
 
 METHODS = registry.names()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def trained_estimators(tmp_path_factory):
+    """Train each amortized method's estimator once for the toy model and point FAST at it."""
+    from camo_sbi.inference import amortized
+
+    path = tmp_path_factory.mktemp("amortized") / "toy.pt"
+    amortized.train(ToySimulator(), model="toy", config=amortized.TrainConfig(**TINY_AMORTIZED), seed=0).save(path)
+    for name in METHODS:
+        if capabilities(name).amortized:
+            FAST[name] = {**FAST.get(name, {}), "estimator": str(path)}
+    return path
 
 
 @pytest.fixture(scope="module")

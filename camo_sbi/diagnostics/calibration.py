@@ -6,8 +6,8 @@ of `PosteriorResult` (their weights are used) — and ``true_thetas`` (S, D).
 Coordinates whose posterior has zero width in a subject (fixed / known limits of a
 strong prior) are ignored for that subject.
 
-No arviz here; sbi is imported lazily, inside :func:`c2st` only (the project's sbi
-adapter is ``camo_sbi/inference/npe.py``; the metric is a standalone utility).
+No arviz here; :func:`c2st` uses sbi's through the project's one sbi module,
+``camo_sbi/inference/sbi_adapter.py``.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from scipy import stats
 
 from camo_sbi._validation import check_positive_int, numpy_generator
 from camo_sbi.diagnostics.style import method_order, method_style
+from camo_sbi.inference import sbi_adapter
 from camo_sbi.inference.result import PosteriorResult
 
 __all__ = [
@@ -268,9 +269,8 @@ def c2st(samples_a, samples_b, seed, *, n_folds: int = 5, classifier: str = "rf"
          max_samples: int | None = None) -> float:
     """Classifier two-sample test accuracy between two sample sets (0.5: indistinguishable, 1: disjoint).
 
-    Uses ``sbi.utils.metrics.c2st`` (sbi 0.27: random forest, z-scored by ``samples_a``'s
-    statistics, ``n_folds`` cross-validation), imported lazily here so this module does not
-    import sbi; falls back to an equivalent scikit-learn implementation if sbi is missing.
+    Uses ``sbi.utils.metrics.c2st`` through `camo_sbi.inference.sbi_adapter` (sbi 0.27: random
+    forest, z-scored by ``samples_a``'s statistics, ``n_folds`` cross-validation).
     The larger set is subsampled (seeded) to the size of the smaller so 0.5 is the chance level.
 
     Args:
@@ -295,31 +295,7 @@ def c2st(samples_a, samples_b, seed, *, n_folds: int = 5, classifier: str = "rf"
     a = a[rng.choice(a.shape[0], m, replace=False)] if a.shape[0] > m else a
     b = b[rng.choice(b.shape[0], m, replace=False)] if b.shape[0] > m else b
     int_seed = int(seed) if isinstance(seed, numbers.Integral) else int(rng.integers(2**31 - 1))
-    try:
-        import torch
-        from sbi.utils.metrics import c2st as sbi_c2st
-    except ImportError:  # pragma: no cover - sbi is a hard dependency of the project
-        return _c2st_sklearn(a, b, int_seed, n_folds, classifier)
-    acc = sbi_c2st(torch.as_tensor(a, dtype=torch.float32), torch.as_tensor(b, dtype=torch.float32),
-                   seed=int_seed, n_folds=n_folds, classifier=classifier)
-    return float(acc)
-
-
-def _c2st_sklearn(a: np.ndarray, b: np.ndarray, seed: int, n_folds: int, classifier: str) -> float:
-    """Fallback C2ST with scikit-learn, mirroring sbi's defaults."""
-    from sklearn.ensemble import RandomForestClassifier
-    from sklearn.model_selection import KFold, cross_val_score
-    from sklearn.neural_network import MLPClassifier
-
-    mu, sd = a.mean(axis=0), a.std(axis=0)
-    sd[sd < 1e-14] = 1.0
-    X = (np.concatenate([a, b]) - mu) / sd
-    y = np.concatenate([np.zeros(len(a)), np.ones(len(b))])
-    D = a.shape[1]
-    clf = (RandomForestClassifier(random_state=seed) if classifier == "rf" else
-           MLPClassifier(hidden_layer_sizes=(10 * D, 10 * D), max_iter=1000, solver="adam", random_state=seed))
-    cv = KFold(n_splits=n_folds, shuffle=True, random_state=seed)
-    return float(np.mean(cross_val_score(clf, X, y, cv=cv, scoring="accuracy")))
+    return sbi_adapter.c2st(a, b, seed=int_seed, n_folds=n_folds, classifier=classifier)
 
 
 # --------------------------------------------------------------------------- plot

@@ -172,6 +172,14 @@ def cell_specs(args) -> list[dict]:
     model_key = {} if model.is_default else {"model_settings": json.dumps(model.key(), sort_keys=True)}
     overrides = parse_configs(args.config, methods)
     configs = {m: method_config(m, args.budget, overrides.get(m)) for m in methods}
+    from camo_sbi.inference.registry import capabilities
+
+    for m in methods:
+        if capabilities(m).amortized:
+            if getattr(args, "amortized", None) is None:
+                raise ValueError("--amortized: npe-amortized needs an estimator file (main() trains one when none "
+                                 "is given)")
+            configs[m] = {**configs[m], "estimator": str(args.amortized)}
     for m, cfg in configs.items():
         if m == "abc-smc" and cfg.get("population_size", 100) > args.budget:
             raise ValueError(f"--budget: abc-smc population_size {cfg['population_size']} exceeds the "
@@ -368,11 +376,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="base seed (subjects and method seeds derive from it)")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
+    p.add_argument("--amortized", type=Path, default=None,
+                   help="trained estimator file for npe-amortized; default: train one under OUT/work/amortized "
+                        "once, before the cells, and reuse it")
+    p.add_argument("--amortize-simulations", type=int, default=200_000,
+                   help="training simulations when calibrate trains the amortized estimator itself")
+    p.add_argument("--space", choices=("joint", "cartesian"), default="joint",
+                   help="observation space of npe-amortized (the other methods keep their own)")
+    p.add_argument("--sbi-diagnostics", type=int, default=500,
+                   help="npe-amortized: fresh (theta, x) pairs for sbi's run_sbc / TARP (0: skip)")
     p.add_argument("--out", type=Path, default=Path("runs/calibrate"))
 
 
 def main(args) -> int:
     t0 = time.perf_counter()
+    from camo_sbi.experiments.amortize import estimator_for_run
+
+    args = argparse.Namespace(**{**vars(args), "amortized": estimator_for_run(
+        _parse_methods(args.methods), model=model_from_args(args), path=getattr(args, "amortized", None),
+        out=args.out,
+        simulations=getattr(args, "amortize_simulations", 200_000), space=getattr(args, "space", "joint"),
+        seed=args.seed)})
     specs = cell_specs(args)
     out = Path(args.out)
     # the resolved per-method configs replace the raw --config entries
@@ -420,10 +444,34 @@ def main(args) -> int:
         redrawn = int((ranks.drop_duplicates(["method", "subject"]).groupby("subject")["attempt"].first() > 0).sum())
         cell_time = float(df.loc[(df["record"] == "meta") & (df["name"] == "wall_time"), "value"].sum())
         text = _format_summary(summary, args, model, redrawn, time.perf_counter() - t0, cell_time)
+        if getattr(args, "amortized", None) is not None and getattr(args, "sbi_diagnostics", 0):
+            text += "\n" + _sbi_diagnostics(args, out)
         print(text)
         atomic_write_text(out / "summary.txt", text + "\n")
         print(f"tables: {out / 'coverage.csv'}, {out / 'sbc.csv'}  figure: {out / 'coverage.png'}")
     return 0
+
+
+def _sbi_diagnostics(args, out: Path) -> str:
+    """sbi's run_sbc/check_sbc and TARP on the amortized posterior itself (the case they apply to:
+    one posterior amortized over (theta, x) pairs from a fixed simulator), written to
+    OUT/sbi_diagnostics.json; returns the summary lines."""
+    from camo_sbi.inference.amortized import load_estimator, sbi_diagnostics
+
+    est = load_estimator(args.amortized)
+    space = json.loads(next(s for s in cell_specs(args) if s["method"] == "npe-amortized")["config"]).get(
+        "space", "joint")
+    d = sbi_diagnostics(est, model_from_args(args).build(), space, n=args.sbi_diagnostics, seed=args.seed)
+    atomic_write_text(out / "sbi_diagnostics.json", json.dumps(d, indent=2))
+    ks = np.asarray(d["sbc_ks_pvals"])
+    return "\n".join([
+        f"sbi diagnostics of the npe-amortized estimator ({d['form']} form, {d['n']} fresh (theta, x) pairs from "
+        f"the training distribution, {d['simulations']} simulations, {d['num_posterior_samples']} posterior draws):",
+        f"  run_sbc/check_sbc: KS p-value per coordinate min {ks.min():.3g} median {np.median(ks):.3g} "
+        f"({int((ks < 0.05).sum())}/{ks.size} < 0.05); C2ST(ranks, uniform) mean "
+        f"{np.mean(d['sbc_c2st_ranks']):.3f}; C2ST(data-averaged posterior, prior) {d['c2st_dap']:.3f} (0.5 ideal)",
+        f"  TARP: ATC {d['tarp_atc']:.4f} (> 0 too wide, < 0 too narrow), KS p-value {d['tarp_ks_pvalue']:.3g}",
+    ])
 
 
 def _uniformity_table(ranks: pd.DataFrame, sbc_draws: int) -> pd.DataFrame:

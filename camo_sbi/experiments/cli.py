@@ -64,7 +64,7 @@ def _demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from camo_sbi.experiments import calibrate, compare, hrc, manipulator, recorded
+    from camo_sbi.experiments import amortize, calibrate, compare, hrc, manipulator, recorded
 
     parser = argparse.ArgumentParser(prog="camo-sbi", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -83,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
         ("compare", "compare inference methods on a grid (resumable)", compare.add_arguments, compare.main),
         ("calibrate", "coverage and SBC of each method over synthetic subjects", calibrate.add_arguments,
          calibrate.main),
+        ("amortize", "train an amortized estimator (npe-amortized) once per body model", amortize.add_arguments,
+         amortize.main),
         ("report", "write a self-contained HTML report of a run directory", _report_arguments, _report),
         ("demo", "simulate a batch of reaches and plot them", _demo_arguments, _demo),
         ("simulate-observations", "write synthetic recorded reaches of a subject (recording format)",

@@ -73,6 +73,13 @@ def cell_specs(args) -> list[dict]:
         true_limits(model, sim, s)
     # a built-in model with its defaults keeps the cell keys it always had
     model_key = {} if model.is_default else {"model": json.dumps(model.key(), sort_keys=True)}
+    from camo_sbi.inference.registry import capabilities
+
+    amortized = {m for m in methods if capabilities(m).amortized}
+    amortized_path = getattr(args, "amortized", None)
+    if amortized and amortized_path is None:
+        raise ValueError("--amortized: npe-amortized needs an estimator file (main() trains one when none is given)")
+    amortized_path = None if amortized_path is None else str(amortized_path)
     specs = []
     for subject in subjects:
         for method in methods:
@@ -81,16 +88,18 @@ def cell_specs(args) -> list[dict]:
                     spec = {"task": model.name, "subject": subject, "method": method, "budget": budget,
                             "seed": seed, "tasks": args.tasks, "test_goals": args.test_goals,
                             "space": args.space, "base_seed": args.seed}
+                    if method in amortized:
+                        spec["estimator"] = amortized_path
                     spec["key"] = cell_key({**spec, **model_key})
                     spec["model"] = model  # a picklable ModelSpec: workers rebuild the simulator from it
                     specs.append(spec)
     return specs
 
 
-def method_config(method: str, space: str, workdir: Path) -> dict:
+def method_config(method: str, space: str, workdir: Path, estimator: str | None = None) -> dict:
     """The config a cell gives ``method``, from its capabilities: ``space`` for methods that
     choose their observation space (a variant that fixes it keeps its own), ``workdir`` for
-    methods that write artefacts."""
+    methods that write artefacts, ``estimator`` (the trained file) for amortized methods."""
     from camo_sbi.inference.registry import get_method
 
     spec = get_method(method)
@@ -99,6 +108,8 @@ def method_config(method: str, space: str, workdir: Path) -> dict:
         cfg["space"] = space
     if spec.capabilities.workdir:
         cfg["workdir"] = str(workdir)
+    if spec.capabilities.amortized:
+        cfg["estimator"] = estimator
     return cfg
 
 
@@ -127,7 +138,8 @@ def run_cell(spec: dict, out: str) -> str:
     workdir = out / "work" / spec["key"]
     results = run_method_sequence(spec["method"], task, budget=spec["budget"],
                                   seed=derive_seed(spec["base_seed"], spec["seed"], 7),
-                                  config=method_config(spec["method"], spec["space"], workdir))
+                                  config=method_config(spec["method"], spec["space"], workdir,
+                                                       spec.get("estimator")))
     rows = []
     base = {k: spec[k] for k in ("task", "subject", "method", "budget", "seed")}
     for res in results:
@@ -137,6 +149,9 @@ def run_cell(spec: dict, out: str) -> str:
             metrics[f"limit_error_deg_{name}"] = float(err[2 * j : 2 * j + 2].mean())
         metrics["n_simulations"] = res.n_simulations
         metrics["wall_time"] = res.wall_time
+        for k in ("training_simulations", "training_time"):  # an amortized method's one-off cost
+            if k in res.extras:
+                metrics[k] = res.extras[k]
         rows += [{**base, "n_tasks": res.n_tasks, "metric": k, "value": v, "status": res.status}
                  for k, v in metrics.items()]
     _save_posterior(out, spec, sim, task, results[-1])
@@ -236,6 +251,18 @@ def run_in_processes(cell_fn, specs: list[dict], out, workers: int, *, on_done) 
     _run_in_processes(cell_fn, specs, out, workers, on_done=on_done, initializer=_init_worker)
 
 
+def _with_estimator(args):
+    """``args`` with ``amortized`` set to the estimator file amortized methods use (see
+    `camo_sbi.experiments.amortize.estimator_for_run`: trained once here, in the parent, before
+    any cell runs, also with --workers / --scheduler, when --amortized is not given)."""
+    from camo_sbi.experiments.amortize import estimator_for_run
+
+    path = estimator_for_run(grid_methods(args.methods), model=model_from_args(args),
+                             path=getattr(args, "amortized", None),
+                             out=args.out, simulations=args.amortize_simulations, space=args.space, seed=args.seed)
+    return argparse.Namespace(**{**vars(args), "amortized": path})
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_model_arguments(p)
     p.add_argument("--methods", default="camo,naive,abc-smc,npe", help="comma-separated method names")
@@ -251,6 +278,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run the cells on Dask: 'local:N' (a LocalCluster with N worker processes) or "
                         "a scheduler address 'tcp://host:8786'; default: in-process / --workers")
     p.add_argument("--seed", type=int, default=0, help="base seed")
+    p.add_argument("--amortized", type=Path, default=None,
+                   help="trained estimator file for amortized methods (npe-amortized); default: train one "
+                        "under OUT/work/amortized once, before the cells, and reuse it")
+    p.add_argument("--amortize-simulations", type=int, default=200_000,
+                   help="training simulations when compare trains the amortized estimator itself")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--out", type=Path, default=Path("runs/compare"))
@@ -258,6 +290,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args) -> int:
     t0 = time.perf_counter()
+    args = _with_estimator(args)
     specs = cell_specs(args)
     if args.workers < 1:
         raise ValueError("--workers: must be >= 1")
@@ -293,6 +326,10 @@ def main(args) -> int:
         if missing:
             raise RuntimeError(f"{len(missing)} cells did not finish")
         figs = make_figures(df, out)
+        if getattr(args, "amortized", None) is not None:
+            from camo_sbi.experiments.amortize import write_cost_table
+
+            write_cost_table(df, args.amortized, out)
         last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(["cartesian_error_mm", "limit_error_deg",
                                                                                   "wall_time", "n_simulations"])]
         summary = last.groupby(["method", "budget", "metric"])["value"].agg(["mean", "std"]).unstack("metric")

@@ -1,6 +1,6 @@
 """Neural posterior estimation (sbi) per observed task, combined into the joint posterior.
 
-The only module importing sbi.
+sbi is used only through `camo_sbi.inference.sbi_adapter` (the one module importing sbi).
 
 Design (same simulation design as CAMO, so budgets are equal):
 
@@ -45,11 +45,9 @@ Continual use: task i's simulations and training are seeded by (seed, i) only, s
 from __future__ import annotations
 
 import contextlib
-import io
 import math
 import os
 import time
-import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -65,6 +63,7 @@ from camo_sbi._validation import (
     check_positive_int,
 )
 from camo_sbi.distributed import parse_scheduler, run_chunks
+from camo_sbi.inference import sbi_adapter
 from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.result import STATUS_OK, PosteriorResult, weighted_median
 from camo_sbi.priors import BoxPrior
@@ -72,13 +71,17 @@ from camo_sbi.task import NoiseModel, contain
 
 __all__ = [
     "ImportanceSample",
+    "check_training_settings",
     "NpeConfig",
     "NpePosterior",
     "fit",
     "load_posterior",
+    "point_estimate",
     "run",
     "run_sequence",
     "summarize",
+    "to_unconstrained",
+    "torch_threads",
 ]
 
 _SPACES = ("joint", "cartesian")
@@ -168,13 +171,7 @@ class NpeConfig:
         check_positive_int(self.hidden_features, "hidden_features")
         check_positive_int(self.num_transforms, "num_transforms")
         check_choice(self.theta_transform, _TRANSFORMS, "theta_transform")
-        check_positive_int(self.training_batch_size, "training_batch_size", minimum=2)
-        check_positive_float(self.learning_rate, "learning_rate")
-        check_positive_float(self.validation_fraction, "validation_fraction")
-        if self.validation_fraction >= 0.5:
-            raise ValueError(f"validation_fraction: must be < 0.5, got {self.validation_fraction}")
-        check_positive_int(self.stop_after_epochs, "stop_after_epochs")
-        check_positive_int(self.max_epochs, "max_epochs")
+        check_training_settings(self)
         check_positive_int(self.n_posterior_samples, "n_posterior_samples", minimum=2)
         check_positive_int(self.is_rounds, "is_rounds", minimum=0)
         check_positive_float(self.defensive_fraction, "defensive_fraction")
@@ -194,6 +191,18 @@ class NpeConfig:
         except RuntimeError as exc:
             raise ValueError(f"device: {exc}") from exc
         parse_scheduler(self.scheduler)
+
+
+def check_training_settings(config) -> None:
+    """Check a config's ``training_batch_size``, ``learning_rate``, ``validation_fraction``
+    (< 0.5), ``stop_after_epochs`` and ``max_epochs`` (errors name the field)."""
+    check_positive_int(config.training_batch_size, "training_batch_size", minimum=2)
+    check_positive_float(config.learning_rate, "learning_rate")
+    check_positive_float(config.validation_fraction, "validation_fraction")
+    if config.validation_fraction >= 0.5:
+        raise ValueError(f"validation_fraction: must be < 0.5, got {config.validation_fraction}")
+    check_positive_int(config.stop_after_epochs, "stop_after_epochs")
+    check_positive_int(config.max_epochs, "max_epochs")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -234,7 +243,7 @@ def summarize(traj, lengths, *, n_points: int = 20, include_length: bool = True)
     return feats
 
 
-def _to_unconstrained(theta_free: torch.Tensor, lo: torch.Tensor, width: torch.Tensor,
+def to_unconstrained(theta_free: torch.Tensor, lo: torch.Tensor, width: torch.Tensor,
                       transform: str) -> torch.Tensor:
     """Free coordinates (N, d) -> flow coordinates: logit of the position in the box, or as is."""
     theta_free = theta_free.to(torch.float64)
@@ -244,7 +253,7 @@ def _to_unconstrained(theta_free: torch.Tensor, lo: torch.Tensor, width: torch.T
 
 
 @contextlib.contextmanager
-def _torch_threads(n: int | None):
+def torch_threads(n: int | None):
     """torch's intra-op thread count set to ``n`` for the block (None: unchanged)."""
     old = torch.get_num_threads()
     if n is not None and n != old:
@@ -322,7 +331,7 @@ class NpePosterior:
 
     def to_unconstrained(self, theta_free: torch.Tensor) -> torch.Tensor:
         """(N, n_free) free coordinates -> (N, n_free) flow coordinates z."""
-        return _to_unconstrained(theta_free, self._lo, self._w, self.theta_transform)
+        return to_unconstrained(theta_free, self._lo, self._w, self.theta_transform)
 
     def from_unconstrained(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """z (N, n_free) -> (free coordinates (N, n_free), log |d theta / d z| (N,))."""
@@ -348,7 +357,7 @@ class NpePosterior:
         """(k, N) log q_i(z | x_i) in flow coordinates (NaN mapped to -inf)."""
         z = torch.as_tensor(z, dtype=torch.float32)
         out = torch.empty(self.n_tasks, z.shape[0], dtype=torch.float64)
-        with _torch_threads(self.n_threads):
+        with torch_threads(self.n_threads):
             for i, (est, x) in enumerate(zip(self.estimators, self.x_obs, strict=True)):
                 for s in range(0, z.shape[0], _CHUNK):
                     zc = z[s : s + _CHUNK]
@@ -438,7 +447,7 @@ class NpePosterior:
         gen = torch.Generator().manual_seed(seed)
         best, ess_rounds, product = None, [], None
         eye = torch.eye(d, dtype=torch.float64)
-        with torch.random.fork_rng(devices=[]), _torch_threads(self.n_threads):
+        with torch.random.fork_rng(devices=[]), torch_threads(self.n_threads):
             torch.manual_seed(seed)
             for r in range(is_rounds + 1):
                 if r == 0:
@@ -531,27 +540,6 @@ def load_posterior(path) -> NpePosterior:
 # ----------------------------------------------------------------------------------------------
 
 
-class _NullTracker:
-    """sbi Tracker that records nothing (sbi's default writes TensorBoard logs to ./sbi-logs)."""
-
-    log_dir = None
-
-    def log_metric(self, name, value, step=None):
-        pass
-
-    def log_metrics(self, metrics, step=None):
-        pass
-
-    def log_params(self, params):
-        pass
-
-    def add_figure(self, name, figure, step=None):
-        pass
-
-    def flush(self):
-        pass
-
-
 def _seed_int(*key: int) -> int:
     """A 63-bit integer seed from a SeedSequence keyed by ``key``."""
     ss = np.random.SeedSequence(key[0], spawn_key=tuple(key[1:]))
@@ -559,40 +547,15 @@ def _seed_int(*key: int) -> int:
 
 
 def _train_flow(theta_z: torch.Tensor, x: torch.Tensor, config: NpeConfig, seed: int):
-    """Train q(z | x) with sbi; returns (estimator, info). Global torch RNG untouched."""
-    from sbi.inference import NPE
-    from sbi.neural_nets import posterior_nn
-    from sbi.neural_nets.embedding_nets import FCEmbedding
-
-    t0 = time.perf_counter()
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        embedding = (FCEmbedding(x.shape[1], config.embedding_dim) if config.embedding == "mlp"
-                     else nn.Identity())
-        builder = posterior_nn(
-            model=config.density_estimator, hidden_features=config.hidden_features,
-            num_transforms=config.num_transforms, embedding_net=embedding,
-            z_score_theta="independent", z_score_x="independent",
-        )
-        trainer = NPE(prior=None, density_estimator=builder, device=config.device,
-                      show_progress_bars=False, tracker=_NullTracker())
-        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
-            warnings.simplefilter("ignore")
-            trainer.append_simulations(theta_z.float(), x.float())
-            estimator = trainer.train(
-                training_batch_size=config.training_batch_size, learning_rate=config.learning_rate,
-                validation_fraction=config.validation_fraction,
-                stop_after_epochs=config.stop_after_epochs, max_num_epochs=config.max_epochs,
-                show_train_summary=False,
-            )
-    estimator = estimator.to("cpu").eval()
-    summary = trainer._summary
-    info = {
-        "epochs": int(summary["epochs_trained"][-1]),
-        "best_validation_loss": float(summary["best_validation_loss"][-1]),
-        "time_train": time.perf_counter() - t0,
-    }
-    return estimator, info
+    """Train q(z | x) with sbi (through `sbi_adapter.train_npe`); returns (estimator, info)."""
+    return sbi_adapter.train_npe(
+        theta_z, x, seed=seed, density_estimator=config.density_estimator,
+        hidden_features=config.hidden_features, num_transforms=config.num_transforms,
+        embedding_dim=config.embedding_dim if config.embedding == "mlp" else None,
+        training_batch_size=config.training_batch_size, learning_rate=config.learning_rate,
+        validation_fraction=config.validation_fraction, stop_after_epochs=config.stop_after_epochs,
+        max_epochs=config.max_epochs, device=config.device,
+    )
 
 
 def _check_run_args(task, observations, budget, seed, config):
@@ -653,8 +616,8 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
         keep = x[finite].std(dim=0) > 1e-8 * (1.0 + x[finite].abs().amax(dim=0))
         if not bool(keep.any()):
             raise RuntimeError(f"observations: task {i}'s simulations are all identical; nothing to learn")
-        z = _to_unconstrained(theta[:, prior.free_mask], lo_free, width_free, config.theta_transform)
-        with _torch_threads(config.n_threads):
+        z = to_unconstrained(theta[:, prior.free_mask], lo_free, width_free, config.theta_transform)
+        with torch_threads(config.n_threads):
             est, info = _train_flow(z, x[:, keep], config, _seed_int(seed, 1, i))
         info.update(task=i, n_features=int(keep.sum()), n_invalid=int((~finite).sum()),
                     time_simulate=t_sim)
@@ -693,6 +656,19 @@ def fit(task, observations, *, budget: int, seed: int, config: NpeConfig | None 
 NPE_MIN_ESS = 20
 
 
+def point_estimate(draws: ImportanceSample, kind: str, prior: BoxPrior) -> np.ndarray:
+    """(2n,) point estimate of weighted draws: "mean", "median" (coordinate-wise) or "map"
+    (the draw with the highest combined density); known coordinates set exactly."""
+    check_choice(kind, _ESTIMATORS, "estimator")
+    if kind == "mean":
+        estimate = draws.weights @ draws.theta
+    elif kind == "median":
+        estimate = weighted_median(draws.theta, draws.weights)
+    else:
+        estimate = draws.theta[int(np.argmax(draws.log_prob))]
+    return prior.with_known(torch.from_numpy(estimate)).numpy()  # exact, not a mean of constants
+
+
 def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed: int,
             t_start: float) -> PosteriorResult:
     """Sample the combined posterior and package it (saved to the workdir if any).
@@ -704,13 +680,7 @@ def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed:
                              is_rounds=config.is_rounds, defensive_fraction=config.defensive_fraction)
     t_sample = time.perf_counter() - t0
     w = draws.weights
-    if config.estimator == "mean":
-        estimate = w @ draws.theta
-    elif config.estimator == "median":
-        estimate = weighted_median(draws.theta, w)
-    else:
-        estimate = draws.theta[int(np.argmax(draws.log_prob))]
-    estimate = task.prior.with_known(torch.from_numpy(estimate)).numpy()  # exact, not a mean of constants
+    estimate = point_estimate(draws, config.estimator, task.prior)
     path = None
     if config.workdir is not None:
         path = posterior.save(Path(config.workdir) / f"npe_posterior_k{posterior.n_tasks}_seed{seed}.pt")

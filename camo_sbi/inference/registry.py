@@ -297,6 +297,12 @@ def _npe() -> Implementation:
     return Implementation(npe.run, npe.NpeConfig, npe.run_sequence)
 
 
+def _npe_amortized() -> Implementation:
+    from camo_sbi.inference import amortized
+
+    return Implementation(amortized.run, amortized.AmortizedConfig)
+
+
 _CAMO = Capabilities(continual=True)
 _BASELINE = Capabilities(spaces=(), continual=True, simulates=False, posterior=False, baseline=True)
 
@@ -322,3 +328,6 @@ register(MethodSpec("abc-smc", "ABC-SMC (pyabc) on the joint posterior of all ob
                     Capabilities(workdir=True)))
 register(MethodSpec("npe", "neural posterior estimation (sbi), one flow per task, combined", _npe,
                     Capabilities(continual=True, workdir=True)))
+register(MethodSpec("npe-amortized", "amortized NPE (sbi): one per-reach flow per body model, trained once, "
+                    "combined over a person's reaches; no simulation per person", _npe_amortized,
+                    Capabilities(amortized=True, simulates=False, posterior=True, spaces=("joint", "cartesian"))))

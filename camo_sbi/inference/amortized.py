@@ -1,0 +1,832 @@
+"""Amortized NPE: one per-reach flow per body model, combined over a person's reaches.
+
+    est = train(simulator, model="panda", config=TrainConfig(simulations=200_000), seed=0)
+    est.save("panda.pt");  est = load_estimator("panda.pt")
+    run_method("npe-amortized", task, budget=1, seed=0, config={"estimator": "panda.pt"})
+
+**Training** (once per body model, `train`): ``simulations`` independent triples
+
+- limits theta ~ the model's box prior ``BoxPrior(sim.bounds, sim.start)`` (split at the
+  default start, so every draw contains it);
+- a goal drawn INDEPENDENTLY of theta: the end-effector position FK(q') of a configuration
+  q' uniform inside the limits theta' of a second, independent prior draw. Its distribution
+  is the marginal (over the prior) of the experiments' goal design, which draws goals inside
+  the subject's TRUE limits and keeps them only if reachable (`camo_sbi.scenarios.reaching`).
+  That selection makes an experiment's goals informative about theta (a goal is only asked
+  where the person can go); the estimator ignores this information, as CAMO and per-task NPE
+  do: it models p(trajectory | theta, goal) with the goal as a given condition. Goals are
+  never filtered by reachability under the training theta (that would couple them to theta).
+- the start: the model's default start posture, the start of every experiment and the
+  prior's split point. Under the model rule ("observed postures bound the limits") a start
+  outside theta's limits is impossible, so a start drawn independently of theta would need a
+  prior that is not split at it; we keep the start fixed instead and REFUSE tasks whose
+  reaches start elsewhere or whose prior is not this box (strong priors, other starts):
+  retrain for those. The start is therefore constant in training and not a network input.
+
+Each triple is simulated once (large batched ``simulate`` calls), optionally perturbed with
+the observation-noise model (`NoiseModel.perturb`, seeded), and summarised per space exactly
+as per-task NPE does (`npe.summarize`: the valid part resampled at ``n_points`` times after
+the start, plus the length), with the goal prepended: condition x = [goal (3), summary].
+Features constant over the training set are dropped. One conditional flow q(z | x) per
+requested space (joint and/or Cartesian, from the SAME simulations, so training cost is
+paid once) is trained by maximum likelihood in the logit coordinates z of the prior box
+(no mass outside the box), inputs and conditions standardised with stored statistics.
+
+**Inference** (`run`, no simulation): for reaches x_1..x_N of one person,
+p(theta | x_1..N) ∝ p(theta)^(1-N) ∏_i q(theta | x_i) (sbi's i.i.d. NPE rule, exact when q
+is the exact per-reach posterior), sampled by the importance sampler of per-task NPE
+(`npe.NpePosterior`: the same flow with N conditions). An effective sample size below
+``min_ess`` sets ``status = "fallback: ..."`` (warned about by the registry).
+
+**Files**: one ``torch.save`` dict {"format", "metadata" (JSON text), "state_dict"} read with
+``torch.load(weights_only=True)``; the metadata (format version, model name and fingerprint:
+joint names, bounds, start, URDF and controller; prior box; spaces; summary settings; noise;
+feature masks; training cost) is checked against every task before use.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from camo_sbi._io import atomic_write_bytes
+from camo_sbi._validation import (
+    check_bool,
+    check_choice,
+    check_positive_float,
+    check_positive_int,
+)
+from camo_sbi.budget import unwrap_simulator
+from camo_sbi.inference import npe, sbi_adapter
+from camo_sbi.inference.contract import check_run_args
+from camo_sbi.inference.result import STATUS_OK, PosteriorResult
+from camo_sbi.priors import BoxPrior
+from camo_sbi.task import SPACES, NoiseModel
+
+__all__ = [
+    "AmortizedConfig",
+    "AmortizedEstimator",
+    "FORMAT",
+    "TrainConfig",
+    "load_estimator",
+    "model_fingerprint",
+    "run",
+    "simulate_training_set",
+    "train",
+]
+
+FORMAT = "camo_sbi.amortized/1"
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+FORMS = ("set", "per-reach")
+_START_TOL = 1e-6  # radians: an observed start this close to the estimator's counts as the same
+_BOX_TOL = 1e-9
+
+
+# ----------------------------------------------------------------------------------- configs
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """How an amortized estimator is trained (all of it is stored in the file's metadata).
+
+    Attributes:
+        simulations: simulated reaches (one trajectory each).
+        form: "per-reach" (one flow q(theta | one reach), combined by the i.i.d. rule; the
+            measured default) or "set" (EXPERIMENTAL: one flow q(theta | set of 1..max_set
+            reaches) behind a DeepSet embedding; the simulations are max_set reaches of each of
+            simulations // max_set limit vectors. On the Panda at 200k simulations its training
+            loss stalled at ~28.3 nats (per-reach: 17.2), not yet understood).
+        max_set: the largest set of reaches the "set" form is trained on (and accepts).
+        spaces: observation spaces to train a flow for ("joint", "cartesian" or both; the
+            same simulations serve every space).
+        noise: observation-noise model applied to the simulated trajectories (seeded).
+        n_points, include_length: the trajectory summary (`npe.summarize`).
+        density_estimator: "maf" or "nsf".  hidden_features, num_transforms: flow size.
+        embedding_dim, embedding_hidden: None, or an MLP embedding of the condition (3 layers of
+            ``embedding_hidden`` units, ``embedding_dim`` outputs) trained with the flow.
+        training_batch_size, learning_rate, validation_fraction, stop_after_epochs,
+        max_epochs: maximum-likelihood training with early stopping (a batch holds
+            ``training_batch_size`` reaches: for the set form that many // max_set sets).
+            max_epochs = 40 keeps 200 000 Panda simulations near 20 minutes on a loaded 2-core
+            machine (measured: 21.5 min at load 6-8, 6 min of CPU); the validation loss was
+            still falling, so more epochs buy accuracy on a quieter machine.
+        max_train_seconds: per space, stop after the epoch that crosses it (None: no limit).
+        simulation_batch_size: trajectories per ``simulate`` call.
+        sim_dtype: "float32" or "float64" for the simulations.
+        n_threads: torch intra-op threads while training (None: unchanged).
+    """
+
+    simulations: int = 200_000
+    form: str = "per-reach"
+    max_set: int = 10
+    spaces: tuple[str, ...] = ("joint",)
+    noise: NoiseModel = field(default_factory=NoiseModel)
+    n_points: int = 20
+    include_length: bool = True
+    density_estimator: str = "maf"
+    hidden_features: int = 64
+    num_transforms: int = 5
+    embedding_dim: int | None = None
+    embedding_hidden: int = 128
+    training_batch_size: int = 512
+    learning_rate: float = 1e-3
+    validation_fraction: float = 0.05
+    stop_after_epochs: int = 8
+    max_epochs: int = 40
+    max_train_seconds: float | None = None
+    simulation_batch_size: int = 10_000
+    sim_dtype: str = "float32"
+    n_threads: int | None = 1
+
+    def __post_init__(self):
+        check_positive_int(self.simulations, "simulations", minimum=10)
+        check_choice(self.form, FORMS, "form")
+        check_positive_int(self.max_set, "max_set", minimum=2)
+        if self.form == "set" and self.simulations < 10 * self.max_set:
+            raise ValueError(f"simulations: the set form needs at least {10 * self.max_set} (10 sets of "
+                             f"max_set={self.max_set} reaches), got {self.simulations}")
+        spaces = (self.spaces,) if isinstance(self.spaces, str) else tuple(self.spaces)
+        if not spaces or len(set(spaces)) != len(spaces):
+            raise ValueError(f"spaces: expected one or more distinct spaces of {SPACES}, got {self.spaces!r}")
+        for s in spaces:
+            check_choice(s, SPACES, "spaces")
+        object.__setattr__(self, "spaces", spaces)
+        if not isinstance(self.noise, NoiseModel):
+            raise TypeError(f"noise: expected a NoiseModel, got {type(self.noise).__name__}")
+        check_positive_int(self.n_points, "n_points")
+        check_bool(self.include_length, "include_length")
+        check_choice(self.density_estimator, sbi_adapter.FLOW_KINDS, "density_estimator")
+        check_positive_int(self.hidden_features, "hidden_features")
+        check_positive_int(self.num_transforms, "num_transforms")
+        if self.embedding_dim is not None:
+            check_positive_int(self.embedding_dim, "embedding_dim")
+        check_positive_int(self.embedding_hidden, "embedding_hidden")
+        npe.check_training_settings(self)
+        if self.max_train_seconds is not None:
+            check_positive_float(self.max_train_seconds, "max_train_seconds")
+        check_positive_int(self.simulation_batch_size, "simulation_batch_size")
+        check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
+        if self.n_threads is not None:
+            check_positive_int(self.n_threads, "n_threads")
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["spaces"] = list(self.spaces)
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict) -> TrainConfig:
+        d = dict(d)
+        d["noise"] = NoiseModel(**d["noise"])
+        d["spaces"] = tuple(d["spaces"])
+        return cls(**d)
+
+
+@dataclass(frozen=True)
+class AmortizedConfig:
+    """npe-amortized settings at inference.
+
+    Attributes:
+        estimator: path of a trained estimator file (`train` + `AmortizedEstimator.save`, or
+            ``camo-sbi amortize``). Required.
+        space: the observation space read ("joint" or "cartesian"); the file must hold a flow
+            for it.
+        n_posterior_samples, is_rounds, defensive_fraction: the importance sampler of
+            `npe.NpePosterior.sample`.
+        point_estimate: "mean", "median" or "map" (`npe.point_estimate`).
+        min_ess: an importance sample with a smaller effective sample size is reported as
+            ``status = "fallback: ..."``.
+        n_threads: torch intra-op threads while sampling (None: unchanged).
+    """
+
+    estimator: str | os.PathLike | None = None
+    space: str = "joint"
+    n_posterior_samples: int = 10_000
+    is_rounds: int = 3
+    defensive_fraction: float = 0.2
+    point_estimate: str = "mean"
+    min_ess: float = 20.0
+    n_threads: int | None = 1
+
+    def __post_init__(self):
+        if self.estimator is not None and not isinstance(self.estimator, (str, os.PathLike)):
+            raise TypeError(f"estimator: expected a path, got {type(self.estimator).__name__}")
+        check_choice(self.space, SPACES, "space")
+        check_positive_int(self.n_posterior_samples, "n_posterior_samples", minimum=2)
+        check_positive_int(self.is_rounds, "is_rounds", minimum=0)
+        check_positive_float(self.defensive_fraction, "defensive_fraction")
+        if self.defensive_fraction >= 1:
+            raise ValueError(f"defensive_fraction: must be in (0, 1), got {self.defensive_fraction}")
+        check_choice(self.point_estimate, ("mean", "median", "map"), "point_estimate")
+        check_positive_float(self.min_ess, "min_ess", allow_zero=True)
+        if self.n_threads is not None:
+            check_positive_int(self.n_threads, "n_threads")
+
+
+# ----------------------------------------------------------------------------------- model identity
+
+
+def model_fingerprint(simulator) -> dict:
+    """What identifies a body model: joint names, bounds, default start, URDF, end effector, controller."""
+    sim = unwrap_simulator(simulator)
+    cfg = getattr(sim, "config", None)
+    if dataclasses.is_dataclass(cfg):
+        cfg = {k: (v if isinstance(v, (int, float, str, bool)) or v is None else repr(v))
+               for k, v in dataclasses.asdict(cfg).items()}
+    elif cfg is not None:
+        cfg = repr(cfg)
+    urdf = getattr(sim, "urdf", "") or ""
+    return {
+        "joint_names": list(sim.joint_names),
+        "bounds": torch.as_tensor(sim.bounds, dtype=torch.float64).tolist(),
+        "start": torch.as_tensor(sim.start, dtype=torch.float64).tolist(),
+        "urdf_sha256": hashlib.sha256(urdf.encode()).hexdigest(),
+        "end_effector": getattr(sim, "end_effector", None),
+        "controller": cfg,
+        "max_steps": getattr(sim, "max_steps", None) or (cfg.get("max_steps") if isinstance(cfg, dict) else None),
+    }
+
+
+def _fingerprint_differences(a: dict, b: dict) -> list[str]:
+    """Fields of the current fingerprint ``b`` on which the stored fingerprint ``a`` differs."""
+    out = []
+    for k in sorted(b):
+        va, vb = a.get(k), b.get(k)
+        if k in ("bounds", "start") and va is not None and vb is not None:
+            ta, tb = torch.tensor(va, dtype=torch.float64), torch.tensor(vb, dtype=torch.float64)
+            if ta.shape != tb.shape or not torch.allclose(ta, tb, atol=1e-9, rtol=0):
+                out.append(k)
+        elif va != vb:
+            out.append(k)
+    return out
+
+
+# ----------------------------------------------------------------------------------- the flow
+
+
+class _Flow(nn.Module):
+    """An sbi flow q(z' | x') on standardised coordinates, exposed on raw ones.
+
+    z' = (z - z_mean) / z_std, x' = (x - x_mean) / x_std (statistics of the training set,
+    stored as buffers); ``log_prob`` includes the Jacobian of the z standardisation. Same
+    interface as an sbi density estimator: ``log_prob(input, condition)``, ``sample(shape,
+    condition)``, ``loss(input, condition)``.
+    """
+
+    def __init__(self, net: nn.Module, n_inputs: int, n_conditions: int):
+        super().__init__()
+        self.net = net
+        self.register_buffer("z_mean", torch.zeros(n_inputs))
+        self.register_buffer("z_std", torch.ones(n_inputs))
+        self.register_buffer("x_mean", torch.zeros(n_conditions))
+        self.register_buffer("x_std", torch.ones(n_conditions))
+
+    def set_statistics(self, z: torch.Tensor, x: torch.Tensor) -> None:
+        self.z_mean.copy_(z.mean(0))
+        self.z_std.copy_(z.std(0).clamp_min(1e-6))
+        self.x_mean.copy_(x.mean(0))
+        self.x_std.copy_(x.std(0).clamp_min(1e-6))
+
+    def _x(self, condition):
+        return (condition.to(torch.float32) - self.x_mean) / self.x_std
+
+    def log_prob(self, input, condition):  # noqa: A002 - sbi's argument name
+        zs = (input.to(torch.float32) - self.z_mean) / self.z_std
+        return self.net.log_prob(zs, self._x(condition)) - torch.log(self.z_std).sum()
+
+    def loss(self, input, condition):  # noqa: A002
+        return -self.log_prob(input, condition)
+
+    def sample(self, sample_shape, condition):
+        return self.net.sample(torch.Size(sample_shape), self._x(condition)) * self.z_std + self.z_mean
+
+
+class _SetFlow(nn.Module):
+    """q(z | {x_1..x_k}): a DeepSet embedding (per-reach MLP phi, masked mean, the set size, MLP
+    rho) feeding an sbi flow; trained jointly.
+
+    Conditions are packed as (B, K * (F + 1)): K = max_set reaches of F raw features, each
+    followed by a validity flag (1: a reach of the set, 0: padding). In training mode ``loss``
+    redraws every example's subset (size uniform on 1..K among its valid reaches) from the global
+    torch RNG, which `sbi_adapter.fit_density_estimator` seeds inside ``fork_rng``: each epoch sees
+    new sets. In eval mode (validation, inference) the stored flags are used.
+    """
+
+    def __init__(self, net: nn.Module, n_inputs: int, n_features: int, max_set: int, hidden: int = 128,
+                 embed: int = 64):
+        super().__init__()
+        self.net, self.n_features, self.max_set = net, n_features, max_set
+        self.phi = nn.Sequential(nn.Linear(n_features, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                                 nn.Linear(hidden, embed))
+        self.rho = nn.Sequential(nn.Linear(embed + 1, hidden), nn.ReLU(), nn.Linear(hidden, embed))
+        self.register_buffer("z_mean", torch.zeros(n_inputs))
+        self.register_buffer("z_std", torch.ones(n_inputs))
+        self.register_buffer("x_mean", torch.zeros(n_features))
+        self.register_buffer("x_std", torch.ones(n_features))
+
+    set_statistics = _Flow.set_statistics
+
+    @staticmethod
+    def pack(sets: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """(B, K, F) reaches and (B, K) bool validity -> (B, K * (F + 1)) float32 conditions."""
+        return torch.cat([sets.to(torch.float32), valid.to(torch.float32).unsqueeze(-1)], -1).flatten(1)
+
+    def _unpack(self, condition):
+        c = condition.to(torch.float32).reshape(condition.shape[0], self.max_set, self.n_features + 1)
+        return c[..., :-1], c[..., -1] > 0.5
+
+    def embed(self, condition) -> torch.Tensor:
+        sets, valid = self._unpack(condition)
+        if self.training:  # a new random subset of each example's valid reaches
+            k = torch.randint(1, self.max_set + 1, (sets.shape[0], 1))
+            k = torch.minimum(k, valid.sum(1, keepdim=True))
+            rank = torch.argsort(torch.argsort(torch.rand(valid.shape) + (~valid).float(), dim=1), dim=1)
+            valid = rank < k
+        h = self.phi((sets - self.x_mean) / self.x_std)
+        w = valid.to(torch.float32).unsqueeze(-1)
+        n = w.sum(1)
+        return self.rho(torch.cat([(h * w).sum(1) / n.clamp_min(1.0), n / self.max_set], -1))
+
+    def log_prob(self, input, condition):  # noqa: A002
+        zs = (input.to(torch.float32) - self.z_mean) / self.z_std
+        return self.net.log_prob(zs, self.embed(condition)) - torch.log(self.z_std).sum()
+
+    def loss(self, input, condition):  # noqa: A002
+        return -self.log_prob(input, condition)
+
+    def sample(self, sample_shape, condition):
+        return self.net.sample(torch.Size(sample_shape), self.embed(condition)) * self.z_std + self.z_mean
+
+
+_SET_EMBED = 64
+
+
+def _new_flow(settings: TrainConfig, n_inputs: int, n_conditions: int, seed: int) -> nn.Module:
+    """The untrained flow of ``settings.form``; ``n_conditions``: features per reach."""
+    is_set = settings.form == "set"
+    net = sbi_adapter.build_flow(settings.density_estimator, n_inputs, _SET_EMBED if is_set else n_conditions,
+                                 hidden_features=settings.hidden_features,
+                                 num_transforms=settings.num_transforms,
+                                 embedding_dim=None if is_set else settings.embedding_dim,
+                                 embedding_hidden=settings.embedding_hidden, seed=seed)
+    if not is_set:
+        return _Flow(net, n_inputs, n_conditions)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed + 1)
+        return _SetFlow(net, n_inputs, n_conditions, settings.max_set, settings.embedding_hidden, _SET_EMBED)
+
+
+# ----------------------------------------------------------------------------------- summaries
+
+
+def _conditions(traj: torch.Tensor, lengths: torch.Tensor, goals: torch.Tensor, settings: TrainConfig) -> torch.Tensor:
+    """(B, 3 + summary) float64: the goal, then `npe.summarize` of the trajectory."""
+    s = npe.summarize(traj, lengths, n_points=settings.n_points, include_length=settings.include_length)
+    return torch.cat([torch.as_tensor(goals, dtype=torch.float64).reshape(-1, 3), s], dim=1)
+
+
+def _seed(seed: int, *key: int) -> int:
+    return int(np.random.SeedSequence(seed, spawn_key=key).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
+def design_goals(simulator, prior: BoxPrior, n: int, seed: int) -> torch.Tensor:
+    """(n, 3) float64 training goals, independent of the training limits (see the module docstring):
+    FK of configurations uniform inside the limits of independent prior draws."""
+    sim = unwrap_simulator(simulator)
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1,)))
+    theta_goal = prior.sample(n, rng)
+    u = torch.from_numpy(rng.random((n, sim.n_joints)))
+    q = theta_goal[:, 0::2] + (theta_goal[:, 1::2] - theta_goal[:, 0::2]) * u
+    return torch.cat([sim.forward_kinematics(q[s : s + 20000]).to(torch.float64)
+                      for s in range(0, n, 20000)])
+
+
+def simulate_training_set(simulator, prior: BoxPrior, settings: TrainConfig, seed: int, *,
+                          n: int | None = None, progress: bool = False) -> dict:
+    """Simulate ``n`` (default ``settings.simulations``) training triples; no count is charged.
+
+    Returns {"theta": (n, 2n) float64, "x": {space: (n, D) float64 conditions},
+    "time_simulate": seconds (FK of the goals + simulation + summaries)}. Seeded by ``seed``:
+    limits, goals and noise come from independent streams. The "set" form simulates
+    ``max_set`` reaches (independent goals) of each of n // max_set limit vectors: "theta" is
+    (n // max_set, 2n) and "x" (n // max_set, max_set, D).
+    """
+    from tqdm import tqdm
+
+    sim = unwrap_simulator(simulator)
+    n = settings.simulations if n is None else check_positive_int(n, "n")
+    r = settings.max_set if settings.form == "set" else 1
+    m = n // r
+    n = m * r
+    t0 = time.perf_counter()
+    theta_m = prior.sample(m, np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,))))
+    theta = theta_m.repeat_interleave(r, dim=0)
+    goals = design_goals(sim, prior, n, seed)
+    start = torch.as_tensor(sim.start, dtype=torch.float64)
+    noise_gen = torch.Generator().manual_seed(_seed(seed, 2))
+    dtype = _DTYPES[settings.sim_dtype]
+    parts = {s: [] for s in settings.spaces}
+    b = settings.simulation_batch_size
+    for s in tqdm(range(0, n, b), desc="simulating", unit="batch", disable=not progress, leave=False):
+        out = sim.simulate(theta[s : s + b].to(dtype), goals[s : s + b].to(dtype), start.to(dtype))
+        for space in settings.spaces:
+            traj = out.q if space == "joint" else out.ee
+            traj = settings.noise.perturb(traj.to(torch.float64), space, noise_gen)
+            parts[space].append(_conditions(traj, out.length, goals[s : s + b], settings))
+    x = {k: torch.cat(v) for k, v in parts.items()}
+    if r > 1:
+        x = {k: v.reshape(m, r, -1) for k, v in x.items()}
+    return {"theta": theta_m, "x": x, "time_simulate": time.perf_counter() - t0}
+
+
+# ----------------------------------------------------------------------------------- the estimator
+
+
+class AmortizedEstimator:
+    """Per-reach flows q(theta | goal, trajectory) for one body model, one per space.
+
+    Build with `train`, reload with `load_estimator`. ``metadata`` holds everything needed
+    to check a task against it and to rebuild the flows; ``flows`` maps a space to its flow.
+    """
+
+    def __init__(self, metadata: dict, flows: dict[str, _Flow]):
+        self.metadata = metadata
+        self.flows = {k: f.eval() for k, f in flows.items()}
+        self.settings = TrainConfig.from_json(metadata["settings"])
+        self.low = torch.tensor(metadata["prior"]["low"], dtype=torch.float64)
+        self.high = torch.tensor(metadata["prior"]["high"], dtype=torch.float64)
+        self.free_mask = self.high > self.low
+        self.start = torch.tensor(metadata["fingerprint"]["start"], dtype=torch.float64)
+        self.noise = NoiseModel(**metadata["settings"]["noise"])
+        self.path: str | None = None
+
+    @property
+    def model(self) -> str:
+        return self.metadata["model"]
+
+    @property
+    def spaces(self) -> tuple[str, ...]:
+        return tuple(self.flows)
+
+    @property
+    def training_simulations(self) -> int:
+        return int(self.metadata["training_simulations"])
+
+    @property
+    def training_time(self) -> float:
+        return float(self.metadata["training_time"])
+
+    # -- use
+
+    def check_task(self, task, observations, space: str) -> None:
+        """ValueError (naming what differs) unless ``task`` is one this estimator was trained for."""
+        name = self.path or "the estimator"
+        if space not in self.flows:
+            raise ValueError(f"space: {name} has flows for {list(self.flows)} only, not {space!r}; "
+                             f"train one with --space {space}")
+        diff = _fingerprint_differences(self.metadata["fingerprint"], model_fingerprint(task.simulator))
+        if diff:
+            raise ValueError(f"estimator: {name} was trained for model {self.model!r}; the task's simulator "
+                             f"differs in {', '.join(diff)}")
+        prior = task.prior
+        if (prior.low.shape != self.low.shape or not torch.allclose(prior.low, self.low, atol=_BOX_TOL, rtol=0)
+                or not torch.allclose(prior.high, self.high, atol=_BOX_TOL, rtol=0)):
+            raise ValueError(f"task.prior: differs from the prior {name} was trained under (the model's full "
+                             f"range split at its default start, no fixed joints); retrain for this prior")
+        for i, o in enumerate(observations):
+            if not torch.allclose(o.start, self.start, atol=_START_TOL, rtol=0):
+                raise ValueError(f"observations: reach {i} starts at {o.start.tolist()}, but {name} was trained "
+                                 f"for reaches from the model's default start {self.start.tolist()}")
+        if task.noise != self.noise:
+            raise ValueError(f"task.noise: the task's observation noise {task.noise} differs from the noise "
+                             f"{name} was trained with ({self.noise}); retrain with --noise-joint-deg / "
+                             f"--noise-ee-mm matching the recordings")
+
+    def conditions(self, observations, space: str) -> torch.Tensor:
+        """(N, D) float32 network conditions of observed reaches (kept features only)."""
+        keep = torch.tensor(self.metadata["features"][space]["keep"], dtype=torch.bool)
+        rows = []
+        for o in observations:
+            traj = o.trajectory(space).to(torch.float64)
+            rows.append(_conditions(traj, torch.tensor([traj.shape[0]]), o.goal, self.settings)[0, keep])
+        return torch.stack(rows).float()
+
+    @property
+    def form(self) -> str:
+        return self.settings.form
+
+    def set_condition(self, observations, space: str) -> torch.Tensor:
+        """(1, K * (F + 1)) the packed set condition of 1..max_set observed reaches (set form)."""
+        x = self.conditions(observations, space)
+        k = self.settings.max_set
+        if x.shape[0] > k:
+            raise ValueError(f"observations: {x.shape[0]} reaches, but the set estimator {self.path or ''} was "
+                             f"trained on sets of at most max_set={k}; pass at most {k} or retrain")
+        sets = torch.zeros(1, k, x.shape[1])
+        sets[0, : x.shape[0]] = x
+        valid = torch.arange(k)[None] < x.shape[0]
+        return _SetFlow.pack(sets, valid)
+
+    @torch.no_grad()
+    def sample_set(self, observations, space: str, n: int, seed: int, *, n_threads: int | None = 1):
+        """(n, 2n) float64 draws of q(theta | the set of reaches) and their log densities (theta coordinates)."""
+        cond = self.set_condition(observations, space)
+        flow = self.flows[space]
+        lo, w = self.low[self.free_mask], (self.high - self.low)[self.free_mask]
+        with torch.random.fork_rng(devices=[]), npe.torch_threads(n_threads):
+            torch.manual_seed(seed)
+            z = flow.sample((n,), cond).reshape(n, -1)
+            lp = flow.log_prob(z.unsqueeze(1), cond).reshape(-1).double()
+        z = z.double()
+        free = lo + w * torch.sigmoid(z)
+        logdet = (torch.log(w) + nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
+        theta = self.low.repeat(n, 1)
+        theta[:, self.free_mask] = free
+        return theta, lp - logdet
+
+    def posterior(self, observations, space: str, *, n_threads: int | None = 1) -> npe.NpePosterior:
+        """The combined posterior of the reaches (`npe.NpePosterior`, the same flow N times)."""
+        x = self.conditions(observations, space)
+        flow = self.flows[space]
+        return npe.NpePosterior([flow] * x.shape[0], list(x), self.low, self.high, theta_transform="logit",
+                                n_threads=n_threads, info={"estimator": self.path, "space": space})
+
+    def single_reach_posterior(self, space: str, *, chunk: int = 256) -> _SingleReach:
+        """q(theta_free | x) for batches of raw conditions: sbi's ``sample_batched`` interface."""
+        return _SingleReach(self, space, chunk)
+
+    # -- persistence
+
+    def to_bytes(self) -> bytes:
+        state = {f"{space}.{k}": v.detach().cpu().clone() for space, f in self.flows.items()
+                 for k, v in f.state_dict().items()}
+        buf = io.BytesIO()
+        torch.save({"format": FORMAT, "metadata": json.dumps(self.metadata, sort_keys=True),
+                    "state_dict": state}, buf)
+        return buf.getvalue()
+
+    def save(self, path) -> Path:
+        """Write the estimator atomically to ``path`` (state dict + JSON metadata in one file)."""
+        path = Path(path)
+        atomic_write_bytes(path, self.to_bytes())
+        return path
+
+    def describe(self) -> str:
+        m = self.metadata
+        lines = [f"amortized estimator for model {m['model']!r}: spaces {', '.join(self.flows)}, "
+                 f"{m['training_simulations']} training simulations, {m['training_time']:.1f} s to train",
+                 f"  noise: {self.noise}; summary: {self.settings.n_points} points + length, goal prepended"]
+        for space, info in m["training"].items():
+            lines.append(f"  {space}: {m['features'][space]['n_kept']} features, {info['epochs']} epochs "
+                         f"({info['stopped']}), best validation loss {info['best_validation_loss']:.3f}, "
+                         f"{info['time_train']:.1f} s")
+        return "\n".join(lines)
+
+
+class _SingleReach:
+    """sbi-style posterior of ONE condition row (one reach, or one packed set for the set form):
+    ``sample_batched((n,), x)`` -> (n, B, n_free) theta draws."""
+
+    def __init__(self, est: AmortizedEstimator, space: str, chunk: int):
+        self._flow = est.flows[space]
+        self._lo = est.low[est.free_mask]
+        self._w = (est.high - est.low)[est.free_mask]
+        self._chunk = chunk
+
+    @torch.no_grad()
+    def sample_batched(self, sample_shape, x, show_progress_bars: bool = False, **kwargs):
+        n = int(torch.Size(sample_shape).numel())
+        x = torch.as_tensor(x, dtype=torch.float32)
+        out = []
+        for s in range(0, x.shape[0], self._chunk):
+            z = self._flow.sample((n,), x[s : s + self._chunk]).to(torch.float64)
+            out.append(self._lo + self._w * torch.sigmoid(z))
+        return torch.cat(out, dim=1).float()
+
+
+def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int,
+          progress: bool = False) -> AmortizedEstimator:
+    """Simulate ``config.simulations`` training triples for ``simulator`` and train one flow per space.
+
+    ``model``: the name recorded in the file (e.g. "panda"). The simulator is used directly
+    (never through a budget counter); the cost is recorded in ``metadata``
+    (``training_simulations``, ``training_time`` = simulation + training seconds).
+    Deterministic given ``seed``; the global torch RNG is untouched.
+    """
+    config = TrainConfig() if config is None else config
+    if not isinstance(config, TrainConfig):
+        raise TypeError(f"config: expected a TrainConfig, got {type(config).__name__}")
+    if not isinstance(model, str) or not model:
+        raise ValueError(f"model: expected a non-empty name, got {model!r}")
+    seed = check_positive_int(seed, "seed", minimum=0)
+    sim = unwrap_simulator(simulator)
+    prior = BoxPrior(sim.bounds, sim.start)
+    if prior.n_free == 0:
+        raise ValueError("simulator: every limit is fixed by its bounds and start; nothing to infer")
+    t0 = time.perf_counter()
+    data = simulate_training_set(sim, prior, config, seed, progress=progress)
+    lo, w = prior.low[prior.free_mask], (prior.high - prior.low)[prior.free_mask]
+    z = npe.to_unconstrained(data["theta"][:, prior.free_mask], lo, w, "logit").float()
+    flows, features, training = {}, {}, {}
+    for k, space in enumerate(config.spaces):
+        x = data["x"][space]
+        reaches = x.reshape(-1, x.shape[-1])
+        finite = torch.isfinite(x).reshape(x.shape[0], -1).all(dim=1)
+        fr = torch.isfinite(reaches).all(dim=1)
+        keep = reaches[fr].std(dim=0) > 1e-8 * (1.0 + reaches[fr].abs().amax(dim=0))
+        flow = _new_flow(config, z.shape[1], int(keep.sum()), _seed(seed, 3, k))
+        flow.set_statistics(z[finite], reaches[fr][:, keep].float())
+        if config.form == "set":
+            sets = x[finite][..., keep]
+            gen = torch.Generator().manual_seed(_seed(seed, 11, k))
+            size = torch.randint(1, config.max_set + 1, (sets.shape[0], 1), generator=gen)
+            valid = torch.argsort(torch.rand(sets.shape[:2], generator=gen), dim=1).argsort(dim=1) < size
+            xk = _SetFlow.pack(sets, valid)  # stored flags: the validation sets; training redraws them
+        else:
+            xk = x[finite][:, keep].float()
+        with npe.torch_threads(config.n_threads):
+            info = sbi_adapter.fit_density_estimator(
+                flow, z[finite], xk, seed=_seed(seed, 4, k),
+                batch_size=max(2, config.training_batch_size // (config.max_set if config.form == "set" else 1)),
+                learning_rate=config.learning_rate, validation_fraction=config.validation_fraction,
+                stop_after_epochs=config.stop_after_epochs, max_epochs=config.max_epochs,
+                max_seconds=config.max_train_seconds, progress=progress, desc=f"training {space}")
+        info.pop("training_loss")
+        info["n_invalid"] = int((~finite).sum())
+        flows[space] = flow
+        features[space] = {"keep": keep.tolist(), "n_kept": int(keep.sum()),
+                           "n_reaches": int(x[finite].reshape(-1, x.shape[-1]).shape[0])}
+        training[space] = info
+    total = time.perf_counter() - t0
+    from importlib.metadata import version
+
+    metadata = {
+        "format": FORMAT,
+        "model": model,
+        "fingerprint": model_fingerprint(sim),
+        "prior": {"low": prior.low.tolist(), "high": prior.high.tolist()},
+        "settings": config.to_json(),
+        "seed": seed,
+        "features": features,
+        "training": training,
+        "training_simulations": int(data["theta"].shape[0] * (config.max_set if config.form == "set" else 1)),
+        "time_simulate": data["time_simulate"],
+        "training_time": total,
+        "versions": {"camo_sbi": version("camo_sbi"), "torch": torch.__version__,
+                     "sbi": ".".join(map(str, sbi_adapter.sbi_version()))},
+    }
+    return AmortizedEstimator(metadata, flows)
+
+
+def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
+    """Rebuild an estimator from `AmortizedEstimator.to_bytes` (``torch.load(weights_only=True)``)."""
+    try:
+        blob = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unpickling error means "not our file"
+        raise ValueError(f"estimator: {name} is not a camo_sbi amortized estimator ({exc})") from exc
+    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+        found = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
+        raise ValueError(f"estimator: {name} has format {found!r}, expected {FORMAT!r} (retrain it with this "
+                         f"version of camo_sbi)")
+    meta = json.loads(blob["metadata"])
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"estimator: {name}'s metadata has format {meta.get('format')!r}, expected {FORMAT!r}")
+    settings = TrainConfig.from_json(meta["settings"])
+    n_in = int(sum(1 for lo, hi in zip(meta["prior"]["low"], meta["prior"]["high"], strict=True) if hi > lo))
+    flows = {}
+    for k, space in enumerate(settings.spaces):
+        prefix = f"{space}."
+        state = {key[len(prefix):]: v for key, v in blob["state_dict"].items() if key.startswith(prefix)}
+        flow = _new_flow(settings, n_in, meta["features"][space]["n_kept"], _seed(meta["seed"], 3, k))
+        try:
+            flow.load_state_dict(state, strict=True)
+        except RuntimeError as exc:
+            raise ValueError(f"estimator: {name}'s {space} weights do not fit its metadata ({exc})") from exc
+        flows[space] = flow
+    return AmortizedEstimator(meta, flows)
+
+
+_CACHE: dict[tuple, AmortizedEstimator] = {}
+
+
+def load_estimator(path) -> AmortizedEstimator:
+    """Load an estimator file (cached per process by path, size and modification time)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"estimator: expected a path, got {type(path).__name__}")
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"estimator: no such file {str(p)!r} (train one with `camo-sbi amortize`)")
+    st = p.stat()
+    key = (str(p.resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _CACHE:
+        est = from_bytes(p.read_bytes(), repr(str(p)))
+        est.path = str(p)
+        _CACHE.clear()  # one estimator at a time is what every caller needs
+        _CACHE[key] = est
+    return _CACHE[key]
+
+
+# ----------------------------------------------------------------------------------- the run contract
+
+
+def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig | None = None) -> PosteriorResult:
+    """The combined posterior of ``observations`` from a trained estimator; simulates nothing.
+
+    ``budget`` is accepted for the common contract and unused (the cost was paid in training:
+    ``extras["training_simulations"]``, ``extras["training_time"]``). extras also hold
+    ``ess``, ``ess_rounds``, ``time_load``, ``time_sample``, ``estimator_path``.
+    """
+    config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
+                                                               AmortizedConfig)
+    t0 = time.perf_counter()
+    if config.estimator is None:
+        raise ValueError("estimator: npe-amortized needs a trained estimator file, config={'estimator': FILE}; "
+                         "train one with `camo-sbi amortize --model M --out FILE`")
+    est = load_estimator(config.estimator)
+    t_load = time.perf_counter() - t0
+    est.check_task(task, observations, config.space)
+    t1 = time.perf_counter()
+    if est.form == "set":
+        theta, lp = est.sample_set(observations, config.space, config.n_posterior_samples, _seed(seed, 5) % (2**32),
+                                   n_threads=config.n_threads)
+        n = theta.shape[0]
+        draws = npe.ImportanceSample(theta.numpy(), np.full(n, 1.0 / n), lp.numpy(), float(n), [float(n)])
+    else:
+        posterior = est.posterior(observations, config.space, n_threads=config.n_threads)
+        draws = posterior.sample(config.n_posterior_samples, _seed(seed, 5) % (2**32), is_rounds=config.is_rounds,
+                                 defensive_fraction=config.defensive_fraction)
+    t_sample = time.perf_counter() - t1
+    estimate = npe.point_estimate(draws, config.point_estimate, prior)
+    status = STATUS_OK
+    if est.form != "set" and (not draws.ess >= config.min_ess or not math.isfinite(draws.ess)):
+        status = (f"fallback: degenerate importance weights combining {len(observations)} reaches (ESS "
+                  f"{draws.ess:.1f} of {config.n_posterior_samples} < min_ess {config.min_ess:g})")
+    extras = {
+        "ess": draws.ess, "ess_rounds": draws.ess_rounds, "time_load": t_load, "time_sample": t_sample,
+        "estimator_path": est.path, "training_simulations": est.training_simulations,
+        "training_time": est.training_time, "space": config.space,
+    }
+    extras["form"] = est.form
+    weights = None if est.form == "set" else draws.weights
+    return PosteriorResult(method="npe-amortized", samples=draws.theta, weights=weights, estimate=estimate,
+                           n_simulations=0, wall_time=time.perf_counter() - t0, n_tasks=len(observations),
+                           extras=extras, status=status)
+
+
+# ----------------------------------------------------------------------------------- sbi diagnostics
+
+
+def sbi_diagnostics(estimator: AmortizedEstimator, simulator, space: str, *, n: int = 500,
+                    num_posterior_samples: int = 500, seed: int = 0) -> dict:
+    """sbi's SBC (`run_sbc` + `check_sbc`) and TARP (`run_tarp` + `check_tarp`) of the per-reach posterior.
+
+    The case where they apply: one amortized posterior q(theta | x) checked on ``n`` fresh
+    (theta, x) pairs from the training distribution (theta ~ prior, goal ~ the design,
+    noise as trained). Costs ``n`` simulations (reported as ``simulations``), uncounted by
+    any budget. Returns SBC KS p-values and C2ST per free coordinate, C2ST of the
+    data-averaged posterior vs the prior, TARP's ECP curve, ATC and KS p-value.
+    """
+    if not isinstance(estimator, AmortizedEstimator):
+        raise TypeError(f"estimator: expected an AmortizedEstimator, got {type(estimator).__name__}")
+    if space not in estimator.flows:
+        raise ValueError(f"space: the estimator has flows for {list(estimator.flows)} only, not {space!r}")
+    diff = _fingerprint_differences(estimator.metadata["fingerprint"], model_fingerprint(simulator))
+    if diff:
+        raise ValueError(f"simulator: differs from the estimator's model in {', '.join(diff)}")
+    n = check_positive_int(n, "n", minimum=10)
+    sim = unwrap_simulator(simulator)
+    n_sims = n * (estimator.settings.max_set if estimator.form == "set" else 1)
+    prior = BoxPrior(sim.bounds, sim.start)
+    settings = dataclasses.replace(estimator.settings, spaces=(space,))
+    data = simulate_training_set(sim, prior, settings, _seed(seed, 6), n=n_sims)
+    keep = torch.tensor(estimator.metadata["features"][space]["keep"], dtype=torch.bool)
+    x = data["x"][space][..., keep].float()
+    if estimator.form == "set":  # sets of 1..max_set reaches, sizes drawn uniformly (seeded)
+        gen = torch.Generator().manual_seed(_seed(seed, 12))
+        size = torch.randint(1, settings.max_set + 1, (x.shape[0], 1), generator=gen)
+        valid = torch.arange(settings.max_set)[None] < size
+        x = _SetFlow.pack(x, valid)
+    theta = data["theta"][:, prior.free_mask].float()
+    post = estimator.single_reach_posterior(space)
+    ranks, dap = sbi_adapter.run_sbc(theta, x, post, num_posterior_samples=num_posterior_samples,
+                                     seed=_seed(seed, 7))
+    checks = sbi_adapter.check_sbc(ranks, prior.sample(n, _seed(seed, 8))[:, prior.free_mask], dap,
+                                   num_posterior_samples=num_posterior_samples, seed=_seed(seed, 9))
+    ecp, alpha = sbi_adapter.run_tarp(theta, x, post, num_posterior_samples=num_posterior_samples,
+                                      seed=_seed(seed, 10))
+    atc, ks = sbi_adapter.check_tarp(ecp, alpha)
+    return {"n": n, "simulations": n_sims, "form": estimator.form, "space": space, "num_posterior_samples": num_posterior_samples,
+            "sbc_ks_pvals": checks["ks_pvals"], "sbc_c2st_ranks": checks["c2st_ranks"],
+            "c2st_dap": checks["c2st_dap"][0], "tarp_ecp": ecp.tolist(), "tarp_alpha": alpha.tolist(),
+            "tarp_atc": atc, "tarp_ks_pvalue": ks}

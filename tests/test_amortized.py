@@ -1,0 +1,373 @@
+"""npe-amortized: training once, files, refusals, zero simulations at inference, a known posterior."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from camo_sbi.budget import CountingSimulator
+from camo_sbi.inference import amortized
+from camo_sbi.inference.amortized import AmortizedConfig, TrainConfig, load_estimator, train
+from camo_sbi.inference.registry import capabilities, run_method
+from camo_sbi.priors import BoxPrior
+from camo_sbi.scenarios.reaching import make_reaching_task, observe
+from camo_sbi.task import NoiseModel, Observation, Task
+from tests.toy_sim import ToySimulator
+
+TRUE = torch.tensor([-0.3, 0.4, -0.5, 0.6], dtype=torch.float64)
+TINY = TrainConfig(simulations=600, spaces=("joint", "cartesian"), max_epochs=3, hidden_features=8,
+                   num_transforms=1, training_batch_size=50)
+RUN = {"n_posterior_samples": 300, "is_rounds": 1, "min_ess": 0.0}
+
+
+@pytest.fixture(scope="module")
+def paths(tmp_path_factory):
+    """One tiny toy estimator per form (the default form is "per-reach")."""
+    d = tmp_path_factory.mktemp("amortized")
+    out = {}
+    for form in amortized.FORMS:
+        out[form] = d / f"toy-{form}.pt"
+        train(ToySimulator(), model="toy", config=dataclasses.replace(TINY, form=form), seed=0).save(out[form])
+    return out
+
+
+@pytest.fixture(scope="module")
+def est_path(paths):
+    return paths["per-reach"]
+
+
+@pytest.fixture(scope="module")
+def task():
+    return make_reaching_task(ToySimulator(), TRUE, n_train=3, n_test=2, seed=0, name="toy", subject="toy")
+
+
+def _run(task, path, **cfg):
+    return run_method("npe-amortized", task, budget=1, seed=5, config={**RUN, "estimator": str(path), **cfg})
+
+
+def test_registered_as_amortized_and_simulation_free():
+    cap = capabilities("npe-amortized")
+    assert cap.amortized and not cap.simulates and cap.posterior
+    assert set(cap.spaces) == {"joint", "cartesian"}
+
+
+def test_training_is_deterministic_and_leaves_the_global_rng_alone():
+    cfg = dataclasses.replace(TINY, simulations=200, max_epochs=1, spaces=("joint",))
+    torch.manual_seed(123)
+    before = torch.random.get_rng_state()
+    a = train(ToySimulator(), model="toy", config=cfg, seed=3)
+    assert torch.equal(torch.random.get_rng_state(), before)
+    b = train(ToySimulator(), model="toy", config=cfg, seed=3)
+    for (ka, va), (kb, vb) in zip(a.flows["joint"].state_dict().items(), b.flows["joint"].state_dict().items(),
+                                  strict=True):
+        assert ka == kb and torch.equal(va, vb), ka
+    c = train(ToySimulator(), model="toy", config=cfg, seed=4)
+    assert not torch.equal(next(iter(a.flows["joint"].parameters())), next(iter(c.flows["joint"].parameters())))
+
+
+@pytest.mark.parametrize("form", amortized.FORMS)
+def test_save_load_round_trip_gives_identical_samples(form, paths, task, tmp_path):
+    est_path = paths[form]
+    est = load_estimator(est_path)
+    assert est.form == form
+    assert est.training_simulations == TINY.simulations and est.training_time > 0
+    assert est.spaces == ("joint", "cartesian")
+    # the file is a state dict + JSON metadata: it loads with weights_only=True
+    blob = torch.load(est_path, weights_only=True)
+    assert set(blob) == {"format", "metadata", "state_dict"} and isinstance(blob["metadata"], str)
+    copy = tmp_path / "copy.pt"
+    copy.write_bytes(est.to_bytes())
+    again = amortized.from_bytes(copy.read_bytes())
+    for space in est.spaces:
+        for (k, v), (k2, v2) in zip(est.flows[space].state_dict().items(),
+                                    again.flows[space].state_dict().items(), strict=True):
+            assert k == k2 and torch.equal(v, v2)
+    for space in ("joint", "cartesian"):
+        a = _run(task, est_path, space=space)
+        b = _run(task, copy, space=space)
+        np.testing.assert_array_equal(a.samples, b.samples)
+        np.testing.assert_array_equal(a.weights, b.weights)
+        np.testing.assert_array_equal(a.estimate, b.estimate)
+    assert not np.array_equal(_run(task, est_path).samples,
+                              run_method("npe-amortized", task, budget=1, seed=6,
+                                         config={**RUN, "estimator": str(est_path)}).samples)
+
+
+class _NoSimulation:
+    """A simulator that fails the test if anything simulates (attributes delegated)."""
+
+    def __init__(self, sim):
+        self._sim = sim
+
+    def simulate(self, *args, **kwargs):
+        raise AssertionError("npe-amortized simulated at inference")
+
+    def __getattr__(self, name):
+        return getattr(self._sim, name)
+
+
+@pytest.mark.parametrize("form", amortized.FORMS)
+def test_inference_simulates_nothing(form, paths, task):
+    est_path = paths[form]
+    res = _run(task, est_path)
+    assert res.n_simulations == 0  # counted by the registry's budget wrapper
+    assert res.status == "ok" and res.n_tasks == 3
+    assert res.extras["training_simulations"] == TINY.simulations and res.extras["form"] == form
+    guarded = task.with_simulator(CountingSimulator(_NoSimulation(task.simulator), 1))
+    res2 = _run(guarded, est_path)
+    np.testing.assert_array_equal(res.samples, res2.samples)
+    assert bool(task.prior.contains(torch.from_numpy(res.samples)).all())
+
+
+def test_refuses_what_it_was_not_trained_for(est_path, task, tmp_path):
+    with pytest.raises(ValueError, match="^estimator: npe-amortized needs"):
+        run_method("npe-amortized", task, budget=1, seed=0, config=RUN)
+    with pytest.raises(ValueError, match="^estimator: no such file"):
+        _run(task, tmp_path / "missing.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match="^estimator: .*not a camo_sbi amortized estimator"):
+        _run(task, bad)
+    other = tmp_path / "other.pt"
+    torch.save({"format": "something/else", "metadata": "{}", "state_dict": {}}, other)
+    with pytest.raises(ValueError, match="^estimator: .*format"):
+        _run(task, other)
+    # another body model (3 joints), another horizon
+    three = make_reaching_task(ToySimulator(n=3), torch.tensor([-0.3, 0.4, -0.5, 0.6, -0.2, 0.2]), n_train=1,
+                               n_test=1, seed=0)
+    with pytest.raises(ValueError, match="^estimator: .*differs in .*joint_names"):
+        _run(three, est_path)
+    slow = make_reaching_task(ToySimulator(max_steps=25), TRUE, n_train=1, n_test=1, seed=0)
+    with pytest.raises(ValueError, match="^estimator: .*differs in"):
+        _run(slow, est_path)
+    # a strong prior (a fixed joint), another start, other noise, a space without a flow
+    strong = dataclasses.replace(task, prior=BoxPrior(task.prior.bounds, task.prior.start, fixed={0: (-0.3, 0.4)}))
+    with pytest.raises(ValueError, match="^task.prior:"):
+        _run(strong, est_path)
+    start = torch.tensor([0.05, -0.05], dtype=torch.float64)
+    moved = task.with_observations(observe(task.simulator, TRUE, torch.tensor([[0.3, 0.2, 0.0]]), start))
+    with pytest.raises(ValueError, match="^observations: reach 0 starts at"):
+        _run(moved, est_path)
+    noisy = dataclasses.replace(task, noise=NoiseModel(joint_deg=1.0))
+    with pytest.raises(ValueError, match="^task.noise:"):
+        _run(noisy, est_path)
+    joint_only = tmp_path / "joint.pt"
+    train(ToySimulator(), model="toy", config=dataclasses.replace(TINY, spaces=("joint",), simulations=200,
+                                                                  max_epochs=1), seed=0).save(joint_only)
+    with pytest.raises(ValueError, match="^space: .*not 'cartesian'"):
+        _run(task, joint_only, space="cartesian")
+
+
+def test_set_form_refuses_more_reaches_than_it_was_trained_on(paths):
+    est_path = paths["set"]
+    sim = ToySimulator()
+    many = make_reaching_task(sim, TRUE, n_train=TINY.max_set + 1, n_test=1, seed=0)
+    with pytest.raises(ValueError, match="^observations: .*at most max_set"):
+        _run(many, est_path)
+    ok = run_method("npe-amortized", many, many.observations[: TINY.max_set], budget=1, seed=0,
+                    config={**RUN, "estimator": str(est_path)})
+    assert ok.n_tasks == TINY.max_set and ok.weights is None
+
+
+def test_set_training_data_are_sets_of_one_limit_vector():
+    sim = ToySimulator()
+    prior = BoxPrior(sim.bounds, sim.start)
+    cfg = dataclasses.replace(TINY, spaces=("joint",), max_set=4, form="set")
+    data = amortized.simulate_training_set(sim, prior, cfg, 0, n=400)
+    assert data["theta"].shape == (100, 4) and data["x"]["joint"].shape[:2] == (100, 4)
+    # the 4 reaches of a set share their limits but not their goals
+    goals = data["x"]["joint"][:, :, :2]
+    assert bool((goals[:, 0] != goals[:, 1]).any(dim=-1).all())
+    ref = sim.simulate(data["theta"][:1].expand(4, -1), torch.cat([goals[0], torch.zeros(4, 1, dtype=goals.dtype)], 1))
+    from camo_sbi.inference.npe import summarize
+
+    np.testing.assert_allclose(data["x"]["joint"][0, :, 3:].numpy(),
+                               summarize(ref.q, ref.length, n_points=cfg.n_points).numpy(), atol=1e-5)
+
+
+def test_config_and_train_arguments_are_checked():
+    with pytest.raises(TypeError, match="^estimator:"):
+        AmortizedConfig(estimator=3)
+    with pytest.raises(ValueError, match="^point_estimate:"):
+        AmortizedConfig(point_estimate="mode")
+    with pytest.raises(ValueError, match="^spaces:"):
+        TrainConfig(spaces=("joint", "joint"))
+    with pytest.raises(ValueError, match="^spaces:"):
+        TrainConfig(spaces=("elbow",))
+    with pytest.raises(ValueError, match="^simulations:"):
+        TrainConfig(simulations=1)
+    with pytest.raises(ValueError, match="^simulations: the set form"):
+        TrainConfig(simulations=50, form="set")
+    with pytest.raises(ValueError, match="^form:"):
+        TrainConfig(form="pairs")
+    with pytest.raises(TypeError, match="^noise:"):
+        TrainConfig(noise=0.1)
+    with pytest.raises(ValueError, match="^model:"):
+        train(ToySimulator(), model="", config=TINY, seed=0)
+    with pytest.raises(TypeError, match="^config:"):
+        train(ToySimulator(), model="toy", config={"simulations": 10}, seed=0)
+
+
+def test_degenerate_importance_weights_set_a_fallback_status(paths, task):
+    """The per-reach form combines by importance sampling; a too-small ESS is a fallback, warned."""
+    with pytest.warns(RuntimeWarning, match="fallback: degenerate importance weights"):
+        res = _run(task, paths["per-reach"], min_ess=1e9)
+    assert res.status.startswith("fallback: degenerate importance weights")
+
+
+def test_goal_design_is_independent_of_the_training_limits():
+    sim = ToySimulator()
+    prior = BoxPrior(sim.bounds, sim.start)
+    data = amortized.simulate_training_set(sim, prior, dataclasses.replace(TINY, spaces=("joint",), form="per-reach"),
+                                           0, n=4000)
+    theta, goal = data["theta"], data["x"]["joint"][:, :2]
+    # the goals are the design's (FK of configurations inside independent prior draws) ...
+    np.testing.assert_array_equal(goal.numpy(), amortized.design_goals(sim, prior, 4000, 0)[:, :2].numpy())
+    # ... uncorrelated with the limits they are simulated with (|r| ~ 1/sqrt(4000) ~ 0.016)
+    r = np.corrcoef(np.c_[theta.numpy(), goal.numpy()].T)[:4, 4:]
+    assert np.abs(r).max() < 0.06
+    # and the training starts are the model's default start (inside every drawn limit vector)
+    assert bool(((theta[:, 0::2] <= sim.start) & (sim.start <= theta[:, 1::2])).all())
+
+
+# ---------------------------------------------------------------------------------------------
+# a toy with a known posterior
+# ---------------------------------------------------------------------------------------------
+# A 1-joint point robot (ToySimulator n=1) moving 0.04 per step from 0 toward goals beyond 0.8:
+# 21 points, never arriving, so the summary (20 points after the start + the length) IS the
+# trajectory, and with Gaussian noise sigma on every point the per-reach likelihood is exactly
+# prod_t N(x_t | min(0.04 t, hi), sigma^2) (goals > 0; lo for goals < 0). The exact combined
+# posterior is a 1-D grid computation per limit, with the simulator itself on the grid.
+
+SIGMA = 0.05
+TOY_TRUE = torch.tensor([-0.6, 0.5], dtype=torch.float64)
+TOY_GOALS = torch.tensor([[0.9, 0.0, 0.0], [0.95, 0.0, 0.0], [-0.95, 0.0, 0.0]], dtype=torch.float64)
+
+
+def _toy_problem():
+    sim = ToySimulator(n=1, max_steps=21, step=0.04)
+    noise = NoiseModel(joint_deg=math.degrees(SIGMA))
+    gen = torch.Generator().manual_seed(1)
+    obs = tuple(Observation(o.start, o.goal, noise.perturb(o.q, "joint", gen)) for o in observe(sim, TOY_TRUE, TOY_GOALS))
+    assert all(o.length == 21 for o in obs)
+    return Task("toy1", "toy1", sim, BoxPrior(sim.bounds, sim.start), obs, noise=noise), sim, noise
+
+
+def _reference(task, sim) -> dict:
+    """Exact posterior mean and sd of each limit (uniform prior, the grid through the simulator)."""
+    out = {}
+    for idx, side in ((0, "lo"), (1, "hi")):
+        grid = torch.linspace(-1, 0, 4001) if side == "lo" else torch.linspace(0, 1, 4001)
+        theta = torch.tensor([[-1.0, 1.0]], dtype=torch.float64).repeat(grid.shape[0], 1)
+        theta[:, idx] = grid.double()
+        ll = torch.zeros(grid.shape[0], dtype=torch.float64)
+        for o in task.observations:
+            if (float(o.goal[0]) > 0) == (side == "hi"):
+                q = sim.simulate(theta, o.goal).q[:, 1:21, 0]
+                ll += (-((o.q[1:21, 0] - q) ** 2) / (2 * SIGMA**2)).sum(1)
+        w = torch.softmax(ll, 0)
+        mu = float((w * grid.double()).sum())
+        out[side] = (mu, float((w * (grid.double() - mu) ** 2).sum().sqrt()))
+    return out
+
+
+def _check_toy(sims: int, epochs: int, tmp_path, mean_tol_sd: float, sd_ratio: tuple[float, float],
+               form: str = "per-reach"):
+    task, sim, noise = _toy_problem()
+    cfg = TrainConfig(simulations=sims, form=form, noise=noise, max_epochs=epochs, hidden_features=32, num_transforms=3,
+                      training_batch_size=256, stop_after_epochs=5)
+    path = train(sim, model="toy1", config=cfg, seed=0).save(tmp_path / "toy1.pt")
+    res = run_method("npe-amortized", task, budget=1, seed=0, config={"estimator": str(path)})
+    assert res.status == "ok" and res.n_simulations == 0
+    w = res.normalized_weights()
+    mean = w @ res.samples
+    sd = np.sqrt(w @ (res.samples - mean) ** 2)
+    ref = _reference(task, sim)
+    for i, side in enumerate(("lo", "hi")):
+        mu, s = ref[side]
+        assert abs(mean[i] - mu) <= mean_tol_sd * s, (side, mean[i], mu, s)
+        assert sd_ratio[0] * s <= sd[i] <= sd_ratio[1] * s, (side, sd[i], s)
+
+
+def test_toy_posterior_recovered_roughly(tmp_path):
+    """Fast variant (~20 s): 5 000 simulations; the mean within 5 sd of the exact one."""
+    _check_toy(5000, 15, tmp_path, mean_tol_sd=5.0, sd_ratio=(0.5, 20.0))
+
+
+@pytest.mark.slow
+def test_toy_posterior_recovered(tmp_path):
+    """40 000 simulations: the mean within 1.5 exact sd, the sd within a factor 0.5-3."""
+    _check_toy(40000, 80, tmp_path, mean_tol_sd=1.5, sd_ratio=(0.5, 3.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# the command line: amortize, compare --amortized, compare training once
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--simulations", "0"], "--simulations"),
+    (["--space", "elbow"], "--space"),
+    (["--noise-ee-mm", "-1"], "--noise-ee-mm"),
+    (["--seed", "-1"], "--seed"),
+])
+def test_amortize_bad_options_exit_2(extra, needle, tmp_path, capsys):
+    from camo_sbi.experiments.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["amortize", "--out", str(tmp_path / "x.pt"), *extra])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+
+
+def test_amortize_then_compare_with_the_file(tmp_path):
+    import pandas as pd
+
+    from camo_sbi.experiments.cli import main
+
+    path = tmp_path / "panda.pt"
+    assert main(["amortize", "--model", "panda", "--simulations", "300", "--max-epochs", "2", "--out",
+                 str(path), "--space", "joint,cartesian", "--noise-joint-deg", "0.5"]) == 0
+    est = load_estimator(path)
+    assert est.spaces == ("joint", "cartesian") and est.noise == NoiseModel(joint_deg=0.5)
+    with pytest.raises(SystemExit) as exc:  # no silent overwrite
+        main(["amortize", "--model", "panda", "--simulations", "300", "--out", str(path)])
+    assert exc.value.code == 2
+    # compare's tasks are noise-free: the noisy estimator is refused, naming task.noise
+    with pytest.raises(SystemExit) as exc:
+        main(["compare", "--methods", "npe-amortized", "--budgets", "20", "--seeds", "1", "--tasks", "1",
+              "--test-goals", "2", "--amortized", str(path), "--no-report", "--out", str(tmp_path / "c0")])
+    assert exc.value.code == 2
+    clean = tmp_path / "clean.pt"
+    assert main(["amortize", "--model", "panda", "--simulations", "300", "--max-epochs", "2", "--out",
+                 str(clean)]) == 0
+    out = tmp_path / "c1"
+    assert main(["compare", "--methods", "npe-amortized,camo", "--budgets", "20", "--seeds", "1", "--tasks", "2",
+                 "--test-goals", "2", "--amortized", str(clean), "--no-report", "--out", str(out)]) == 0
+    df = pd.read_csv(out / "results.csv")
+    am = df[df["method"] == "npe-amortized"]
+    assert set(am.loc[am["metric"] == "n_simulations", "value"]) == {0}
+    assert set(am.loc[am["metric"] == "training_simulations", "value"]) == {300}
+    cost = pd.read_csv(out / "amortized_cost.csv")
+    camo = cost[cost["method"] == "camo"].iloc[0]
+    assert camo["simulations_per_person"] == 40 and camo["training_simulations"] == 300
+    assert camo["break_even_persons_simulations"] == math.ceil(300 / 40)
+
+
+def test_compare_trains_the_estimator_once_and_reuses_it(tmp_path, capsys):
+    from camo_sbi.experiments.cli import main
+
+    argv = ["compare", "--methods", "npe-amortized", "--budgets", "20", "--seeds", "2", "--tasks", "1",
+            "--test-goals", "2", "--amortize-simulations", "200", "--no-report", "--out", str(tmp_path / "c")]
+    assert main(argv) == 0
+    first = capsys.readouterr().out
+    files = list((tmp_path / "c" / "work" / "amortized").glob("*.pt"))
+    assert len(files) == 1 and first.count("trained ") == 1
+    mtime = files[0].stat().st_mtime_ns
+    assert main([*argv[:-2], "--workers", "2", "--out", str(tmp_path / "c")]) == 0
+    assert "reused " in capsys.readouterr().out and files[0].stat().st_mtime_ns == mtime
