@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from numba.core.dispatcher import Dispatcher
 
+from camo_sbi import _threads as sched
 from camo_sbi.inference import distances
 from camo_sbi.inference.distances import ChunkRunner, chunks, dtw_distances, numba_cache
-from camo_sbi.inference.distances import scheduling as sched
 
 
 def _mark(c, n_chunks, out):

@@ -31,7 +31,7 @@ whose value is not needed:
 Modules, each with its own docstring (shapes, invariants):
 
 * `api`: `dtw_distances`, `l2_distance`, input checks, the pruned cascade's phases;
-* `scheduling`: `ChunkRunner` (owns a thread pool) and the shared default runner;
+* `camo_sbi._threads`: `ChunkRunner` (owns a thread pool) and the shared default runner;
 * `chunks`: what one thread does with its chunk of blocks (bounds, thresholds, DP);
 * `kernels`: the DP of a lane block (pruned, exact) and of one candidate;
 * `bounds`: LB_Keogh-style envelope bounds with LB_Kim ends, the straight-path upper bound;
@@ -42,10 +42,10 @@ Modules, each with its own docstring (shapes, invariants):
 
 from __future__ import annotations
 
+from camo_sbi._threads import ChunkRunner
 from camo_sbi.inference.distances import blocks, bounds, chunks, costs, kernels, numba_cache
 from camo_sbi.inference.distances.api import _candidate_bounds as _candidate_bounds  # tests
 from camo_sbi.inference.distances.api import dtw_distances, l2_distance
-from camo_sbi.inference.distances.scheduling import ChunkRunner
 
 __all__ = ["ChunkRunner", "dtw_distances", "l2_distance"]
 

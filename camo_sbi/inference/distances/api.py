@@ -5,7 +5,7 @@ float64 are read as they are, anything else is converted to float64); ``lengths`
 integers in [1, T]. Results are (B,) float64 CPU tensors. Input errors are ValueError or
 TypeError whose message starts with the argument's name (``"lengths: ..."``).
 
-`dtw_distances` validates, then runs the chunk kernels of `chunks` on threads (`scheduling`):
+`dtw_distances` validates, then runs the chunk kernels of `chunks` on threads (`camo_sbi._threads`):
 one pass of exact DTW without pruning options, else the pruned cascade of `_dtw_with_pruning`.
 `_candidate_bounds` exposes the bounds of `bounds` for tests and diagnostics.
 """
@@ -17,10 +17,10 @@ import numbers
 import numpy as np
 import torch
 
+from camo_sbi._threads import default_workers, run_chunks
 from camo_sbi._validation import as_tensor, check_finite, check_positive_float, check_positive_int
 from camo_sbi.inference.distances.blocks import LANES, SEG
 from camo_sbi.inference.distances.chunks import coarse_chunk, dtw_chunk, fine_bounds
-from camo_sbi.inference.distances.scheduling import default_workers, run_chunks
 
 __all__ = ["dtw_distances", "l2_distance"]
 

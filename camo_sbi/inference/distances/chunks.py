@@ -2,7 +2,7 @@
 
 Each kernel takes (c, n_chunks, ...) and handles blocks c, c + n_chunks, c + 2 n_chunks, ... of
 the candidates ``ids`` (int64, in the order the caller chose), so its work and results depend
-only on (c, n_chunks), never on thread timing; `scheduling` runs the chunks. Shapes: the
+only on (c, n_chunks), never on thread timing; `camo_sbi._threads` runs the chunks. Shapes: the
 observed ``x`` (n, D) float64; ``sim`` (B, T, D) float32 or float64 with ``lengths`` (B,)
 int64; per-candidate outputs (B,) float64 indexed by candidate; ``bad`` (1,) int64 (see
 `blocks.record_nonfinite`).

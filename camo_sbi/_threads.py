@@ -1,5 +1,7 @@
 """Running the chunks of a kernel on threads: `ChunkRunner` owns a pool, `run_chunks` shares one.
 
+Used by the simulators' generated kernels and the DTW kernels alike (one pool per process).
+
 A chunk kernel is ``fn(c, n_chunks, *args)``: a ``nogil`` numba function that handles a fixed
 share of the work (blocks c, c + n_chunks, ...) and writes its results into arrays of ``args``,
 so results never depend on which thread runs a chunk or when. Chunk 0 runs in the calling
@@ -26,7 +28,11 @@ __all__ = ["ChunkRunner", "default_workers", "run_chunks"]
 
 
 def default_workers() -> int:
-    """The number of CPUs this process may run on (at least 1)."""
+    """Threads a kernel runs on: ``NUMBA_NUM_THREADS`` if set (worker processes set it to 1), else
+    the number of CPUs this process may run on (at least 1)."""
+    env = os.environ.get("NUMBA_NUM_THREADS")
+    if env and env.strip().isdigit() and int(env) >= 1:
+        return int(env)
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
@@ -45,7 +51,7 @@ class ChunkRunner:
 
     def __init__(self, threads: int):
         self.threads = check_positive_int(threads, "threads")
-        self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="dtw")
+        self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="camo_sbi")
         self._lock = threading.Lock()
         self._runs = 0  # runs in progress
         self._closed = False
