@@ -64,7 +64,15 @@ def _demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from camo_sbi.experiments import amortize, calibrate, compare, hrc, manipulator, recorded
+    from camo_sbi.experiments import (
+        amortize,
+        calibrate,
+        compare,
+        hrc,
+        manipulator,
+        recorded,
+        robustness,
+    )
 
     parser = argparse.ArgumentParser(prog="camo-sbi", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -90,6 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
         ("simulate-observations", "write synthetic recorded reaches of a subject (recording format)",
          recorded.add_simulate_arguments, recorded.simulate_main),
         ("infer", "infer joint limits from recorded reaches", recorded.add_infer_arguments, recorded.infer_main),
+        ("robustness", "every method under observation noise, a faster recorder and a mis-sized model",
+         robustness.add_arguments, robustness.main),
     )
     for name, help_text, add_arguments, func in commands:
         p = sub.add_parser(name, help=help_text)

@@ -34,7 +34,7 @@ from camo_sbi._validation import derive_seed, torch_generator
 from camo_sbi.experiments.models import add_model_arguments, model_from_args, true_limits
 
 __all__ = ["add_infer_arguments", "add_simulate_arguments", "infer_main", "limits_table", "simulate_main",
-           "simulate_recordings", "weighted_quantiles"]
+           "simulate_recordings"]
 
 PPC_DRAWS = 50
 MAX_REPORT_REACHES = 12
@@ -131,20 +131,6 @@ def simulate_main(args) -> int:
 # ----------------------------------------------------------------------------- infer
 
 
-def weighted_quantiles(x: np.ndarray, w: np.ndarray | None, qs) -> np.ndarray:
-    """(len(qs), D) weighted quantiles of samples ``x`` (N, D) (inverse of the weighted CDF)."""
-    x = np.asarray(x, dtype=np.float64)
-    w = np.full(x.shape[0], 1.0 / x.shape[0]) if w is None else np.asarray(w, dtype=np.float64) / np.sum(w)
-    out = np.empty((len(qs), x.shape[1]))
-    for d in range(x.shape[1]):
-        order = np.argsort(x[:, d], kind="stable")
-        cw = np.cumsum(w[order])
-        for i, q in enumerate(qs):
-            k = min(int(np.searchsorted(cw, q * cw[-1], side="left")), x.shape[0] - 1)
-            out[i, d] = x[order[k], d]
-    return out
-
-
 def limits_table(results: dict, sim):
     """One row per method, joint and bound: estimate [rad], [deg] and the 90% central interval [deg].
 
@@ -153,11 +139,14 @@ def limits_table(results: dict, sim):
     """
     import pandas as pd
 
+    from camo_sbi.inference.result import weighted_quantile
+
     a = (1.0 - INTERVAL) / 2
     types = getattr(getattr(sim, "spec", None), "joint_types", ("revolute",) * sim.n_joints)
     rows = []
     for name, res in results.items():
-        lo, hi = weighted_quantiles(res.samples, res.weights, (a, 1.0 - a))
+        w = res.normalized_weights()
+        lo, hi = weighted_quantile(res.samples, w, a), weighted_quantile(res.samples, w, 1.0 - a)
         for j, joint in enumerate(sim.joint_names):
             for b, bound in enumerate(("lower", "upper")):
                 k = 2 * j + b

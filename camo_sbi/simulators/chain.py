@@ -28,7 +28,7 @@ import torch
 from pytorch_kinematics.urdf_parser_py.urdf import URDF
 from pytorch_kinematics.urdf_parser_py.xml_reflection import core as _xml_core
 
-__all__ = ["ChainSpec", "KinematicChain", "load_chain", "read_urdf"]
+__all__ = ["ChainSpec", "KinematicChain", "load_chain", "read_urdf", "scale_urdf"]
 
 _SNAP = 1e-9
 _MOVABLE = {"revolute": "revolute", "continuous": "revolute", "prismatic": "prismatic"}
@@ -170,6 +170,26 @@ def read_urdf(urdf) -> str:
     if not isinstance(urdf, str):
         raise TypeError(f"urdf: expected URDF text or a path, got {type(urdf).__name__}")
     return urdf
+
+
+def scale_urdf(urdf, factor: float) -> str:
+    """URDF text with every joint origin's translation (``<joint><origin xyz>``) scaled by ``factor``.
+
+    A body ``factor`` times as tall, with every segment length off by that much (geometry and
+    inertia are left as they are: kinematics only). ValueError for a non-positive factor.
+    """
+    import xml.etree.ElementTree as ET
+
+    factor = float(factor)
+    if not (np.isfinite(factor) and factor > 0):
+        raise ValueError(f"factor: expected a finite number > 0, got {factor}")
+    root = ET.fromstring(read_urdf(urdf))
+    for joint in root.iter("joint"):
+        origin = joint.find("origin")
+        if origin is not None and origin.get("xyz"):
+            xyz = [float(v) * factor for v in origin.get("xyz").split()]
+            origin.set("xyz", " ".join(repr(v) for v in xyz))
+    return ET.tostring(root, encoding="unicode")
 
 
 class KinematicChain:

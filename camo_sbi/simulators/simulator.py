@@ -88,6 +88,15 @@ class KinematicSimulator:
         return (f"KinematicSimulator({self.spec.base_link!r} -> {self.end_effector!r}, n_joints={self.n_joints}, "
                 f"backend={self.backend!r}, config={self.config})")
 
+    def scaled(self, factor: float) -> KinematicSimulator:
+        """The same chain with every segment ``factor`` times as long (`chain.scale_urdf`), same
+        joints, start, controller and backend: a person taller or shorter than the model."""
+        from camo_sbi.simulators.chain import scale_urdf
+
+        chain = load_chain(scale_urdf(self.urdf, factor), self.end_effector, self.joint_names,
+                           base_link=self.spec.base_link)
+        return KinematicSimulator(chain, self.start, config=self.config, backend=self.backend)
+
     def with_config(self, config: ControllerConfig | None = None, *, backend: str | None = None,
                     **changes) -> KinematicSimulator:
         """Same chain and start with another config (or ``changes`` to this one) / backend."""

@@ -1,0 +1,259 @@
+"""`camo-sbi robustness`: every method on imperfect observations, against its own clean result.
+
+Conditions (each seed's subject and goals are the same in every condition, so results pair):
+
+* ``clean``: exact joint and end-effector recordings at the controller's rate, exact model;
+* ``noise 1deg/5mm`` and ``noise 3deg/15mm``: i.i.d. Gaussian noise on every recorded joint
+  angle / end-effector coordinate; the task carries the noise model, so every method can
+  honour it (`camo_sbi.task.NoiseModel`);
+* ``rate x3``: recorded at 3 times the controller's rate, then resampled to the controller's
+  step as the recording loader does (the rate estimated from the reaches, normalised time);
+* ``taller 5%`` / ``shorter 5%``: the observed person's segments 5% longer / shorter than the
+  model's (`KinematicSimulator.scaled`); observations and the true held-out reaches come from
+  that body, inference and predictions from the model.
+
+Per (seed, condition, method): ``cartesian_error_mm`` of the held-out reaches (the true body's
+reaches vs the model's prediction from the estimate), ``limit_error_binding_deg`` (binding on
+the true body's held-out reaches) and ``coverage90``: the share of the free true limits inside
+the posterior's 90% central interval (a point estimate covers only an exact value). The
+oracle (the true limits) shows what the condition itself costs: under a mis-sized model even
+the true limits mispredict. Outputs:
+``results.csv`` (tidy), ``robustness.csv`` (per method and condition: mean over seeds, and the
+error's ratio to the clean condition), ``robustness.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from tqdm import tqdm
+
+from camo_sbi._io import atomic_write_text
+from camo_sbi._validation import derive_seed
+from camo_sbi.experiments.models import (
+    add_model_arguments,
+    model_from_args,
+    subject_list,
+    true_limits,
+)
+from camo_sbi.experiments.rundir import RunDirectory, run_settings
+from camo_sbi.experiments.store import cell_key
+from camo_sbi.task import NoiseModel
+
+__all__ = ["CONDITIONS", "Condition", "add_arguments", "coverage90", "main", "run_cell", "summary_table"]
+
+
+@dataclass(frozen=True)
+class Condition:
+    """How the observations are imperfect: noise, recording-rate multiplier, body scale."""
+
+    name: str
+    noise: NoiseModel = NoiseModel()
+    rate: float = 1.0
+    scale: float = 1.0
+
+
+CONDITIONS = (
+    Condition("clean"),
+    Condition("noise 1deg/5mm", noise=NoiseModel(joint_deg=1.0, ee_mm=5.0)),
+    Condition("noise 3deg/15mm", noise=NoiseModel(joint_deg=3.0, ee_mm=15.0)),
+    Condition("rate x3", rate=3.0),
+    Condition("taller 5%", scale=1.05),
+    Condition("shorter 5%", scale=0.95),
+)
+_DEFAULT_METHODS = "camo-js,camo-cs,camo-hull,npe,naive,nominal,oracle"
+_CONFIGS = {"abc-smc": {"population_size": 100}}
+
+
+def coverage90(result, truth, prior) -> float:
+    """Share of the prior's free true limits inside the posterior's 90% central weighted interval."""
+    from camo_sbi.inference.result import weighted_quantile
+
+    w = result.normalized_weights()
+    lo = weighted_quantile(result.samples, w, 0.05)
+    hi = weighted_quantile(result.samples, w, 0.95)
+    t = torch.as_tensor(truth, dtype=torch.float64).numpy()
+    free = prior.free_mask.numpy()
+    inside = (lo - 1e-12 <= t) & (t <= hi + 1e-12)
+    return float(inside[free].mean())
+
+
+def _observations(sim, theta, n, seed, cond: Condition):
+    from camo_sbi.experiments.recorded import simulate_recordings
+    from camo_sbi.io.recordings import estimate_rate, resample_to_controller
+
+    obs = simulate_recordings(sim, theta, n, seed=seed, noise=cond.noise, rate_multiplier=cond.rate)
+    if cond.rate != 1.0:  # what the recording loader does with a faster recorder
+        rate = estimate_rate(obs, sim)
+        obs = tuple(resample_to_controller(o, sim, mode="time", rate=rate) for o in obs)
+    return obs
+
+
+def run_cell(spec: dict, out: str) -> str:
+    """One (seed, condition): every method on the same imperfect observations; writes its rows."""
+    from camo_sbi._validation import torch_generator
+    from camo_sbi.evaluation.metrics import binding_bounds, cartesian_error_mm, limit_errors
+    from camo_sbi.experiments.store import ResultStore
+    from camo_sbi.inference.registry import capabilities, run_method
+    from camo_sbi.priors import BoxPrior
+    from camo_sbi.scenarios.reaching import reachable_goals
+    from camo_sbi.task import Task, predict
+
+    model, cond = spec["model"], next(c for c in CONDITIONS if c.name == spec["condition"])
+    sim = model.build()
+    body = sim if cond.scale == 1.0 else sim.scaled(cond.scale)
+    theta = true_limits(model, sim, spec["subject"])
+    obs = _observations(body, theta, spec["tasks"], derive_seed(spec["base_seed"], spec["seed"]), cond)
+    start = sim.start.to(torch.float64)
+    goals = reachable_goals(body, theta, spec["test_goals"],
+                            torch_generator(derive_seed(spec["base_seed"], spec["seed"], 5)), start)
+    starts = start.expand(goals.shape[0], -1).clone()
+    prior = BoxPrior(sim.bounds, obs[0].start)
+    task = Task(name=model.name, subject=spec["subject"], simulator=sim, prior=prior, observations=obs,
+                test_starts=starts, test_goals=goals, true_theta=theta, noise=cond.noise)
+    true_test = predict(body, theta, starts, goals)
+    binding = binding_bounds(body, theta, starts, goals, prior)
+    rows = []
+    base = {k: spec[k] for k in ("task", "subject", "seed", "condition")}
+    for method in spec["methods"]:
+        cfg = dict(_CONFIGS.get(method, {}))
+        if capabilities(method).workdir:
+            cfg["workdir"] = str(Path(out) / "work" / spec["key"])
+        res = run_method(method, task, budget=spec["budget"], seed=derive_seed(spec["base_seed"], spec["seed"], 7),
+                         config=cfg)
+        pred = predict(sim, res.estimate, starts, goals)
+        metrics = {"cartesian_error_mm": float(cartesian_error_mm(true_test, pred).mean()),
+                   "coverage90": coverage90(res, theta, prior), "wall_time": res.wall_time,
+                   **limit_errors(res.estimate, theta, prior, binding)}
+        rows += [{**base, "method": method, "metric": k, "value": v, "status": res.status} for k, v in metrics.items()]
+    ResultStore(out).put(spec["key"], rows)
+    return spec["key"]
+
+
+def summary_table(df: pd.DataFrame) -> pd.DataFrame:
+    """Per method and condition: mean over seeds of each metric, and the error's ratio to clean
+    (the ratio of the means; ``within_2x_clean`` for the issue's goal)."""
+    wide = df.pivot_table(index=["method", "condition"], columns="metric", values="value", aggfunc="mean")
+    clean = wide.xs("clean", level="condition")["cartesian_error_mm"]
+    wide["error_ratio_to_clean"] = [v / clean[m] if clean[m] > 0 else np.nan
+                                    for (m, _), v in wide["cartesian_error_mm"].items()]
+    wide["within_2x_clean"] = wide["error_ratio_to_clean"] <= 2.0
+    order = {c.name: i for i, c in enumerate(CONDITIONS)}
+    wide = wide.reset_index()
+    wide["_o"] = wide["condition"].map(order)
+    cols = ["method", "condition", "cartesian_error_mm", "error_ratio_to_clean", "within_2x_clean",
+            "limit_error_binding_deg", "coverage90", "wall_time"]
+    return wide.sort_values(["method", "_o"])[[c for c in cols if c in wide.columns]].reset_index(drop=True)
+
+
+def make_figure(df: pd.DataFrame, out: Path) -> Path:
+    from camo_sbi.diagnostics.style import (
+        figure_legend,
+        method_order,
+        method_style,
+        new_figure,
+        save_figure,
+    )
+
+    metrics = [("cartesian_error_mm", "held-out Cartesian error per point [mm]"),
+               ("limit_error_binding_deg", "binding-limit error [deg]"),
+               ("coverage90", "coverage of the 90% interval")]
+    conds = [c.name for c in CONDITIONS if c.name in set(df.condition)]
+    methods = method_order(sorted(set(df.method)))
+    fig, axes = new_figure(1, len(metrics), panel=(5.2, 3.6))
+    width = 0.8 / max(len(methods), 1)
+    n = df.seed.nunique()
+    for ax, (metric, label) in zip(axes[0], metrics, strict=True):
+        sub = df[df.metric == metric]
+        for i, m in enumerate(methods):
+            g = sub[sub.method == m].groupby("condition")["value"]
+            means = [g.mean().get(c, np.nan) for c in conds]
+            st = method_style(m)
+            ax.bar(np.arange(len(conds)) + (i - (len(methods) - 1) / 2) * width, means, width, color=st.color,
+                   label=m)
+        ax.set_xticks(np.arange(len(conds)), conds, rotation=30, ha="right", fontsize=8)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3, axis="y")
+    if metrics[2][0] in set(df.metric):
+        axes[0, 2].axhline(0.9, color="k", lw=0.8, ls=":")
+    figure_legend(fig, axes, title=f"mean over {n} seed{'s' if n != 1 else ''}")
+    path = out / "robustness.png"
+    save_figure(fig, path)
+    return path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_model_arguments(p)
+    p.add_argument("--methods", default=_DEFAULT_METHODS, help="comma-separated registered methods")
+    p.add_argument("--subjects", default=None, help="subject profile (default: the model's first)")
+    p.add_argument("--seeds", type=int, default=3, help="seeds (each its own goals)")
+    p.add_argument("--tasks", type=int, default=5, help="observed reaches per subject")
+    p.add_argument("--test-goals", type=int, default=10)
+    p.add_argument("--budget", type=int, default=1000, help="simulations per observed reach")
+    p.add_argument("--conditions", default=",".join(c.name for c in CONDITIONS),
+                   help="comma-separated subset of the conditions")
+    p.add_argument("--seed", type=int, default=0, help="base seed")
+    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
+    p.add_argument("--out", type=Path, default=Path("runs/robustness"))
+
+
+def main(args) -> int:
+    from camo_sbi.inference.registry import capabilities, get_method
+
+    t0 = time.perf_counter()
+    methods = [m.strip() for m in str(args.methods).split(",") if m.strip()]
+    for m in methods:
+        try:
+            get_method(m)
+        except ValueError as exc:
+            raise ValueError(f"--methods: {exc}") from exc
+        if capabilities(m).amortized:
+            raise ValueError(f"--methods: {m!r} needs a trained estimator file; not supported here yet")
+    names = {c.name for c in CONDITIONS}
+    conditions = [c.strip() for c in str(args.conditions).split(",") if c.strip()]
+    bad = [c for c in conditions if c not in names]
+    if bad or "clean" not in conditions:
+        raise ValueError(f"--conditions: expected a subset of {sorted(names)} that includes 'clean', got {conditions}")
+    for name in ("seeds", "tasks", "test_goals", "budget"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
+    model = model_from_args(args)
+    sim = model.build()
+    subject = subject_list(model, args.subjects)[0]
+    true_limits(model, sim, subject)
+    out = Path(args.out)
+    specs = []
+    for seed in range(args.seeds):
+        for cond in conditions:
+            spec = {"task": model.name, "subject": subject, "seed": seed, "condition": cond, "tasks": args.tasks,
+                    "test_goals": args.test_goals, "budget": args.budget, "base_seed": args.seed,
+                    "methods": methods}
+            spec["key"] = cell_key({**{k: v for k, v in spec.items() if k != "methods"},
+                                    "methods": ",".join(methods), "model": str(model.key())})
+            spec["model"] = model
+            specs.append(spec)
+    settings = run_settings(args, methods=methods, conditions=conditions, subjects=[subject],
+                            model=model.name if model.is_default else str(model.key()))
+    with RunDirectory(out, "robustness", settings, wait=getattr(args, "wait", False)) as rundir:
+        store = rundir.store
+        todo = [s for s in specs if not store.done(s["key"])]
+        print(f"{len(specs)} cells ({args.seeds} seeds x {len(conditions)} conditions), "
+              f"{len(specs) - len(todo)} already finished")
+        for spec in tqdm(todo, desc="robustness", unit="cell"):
+            run_cell(spec, str(out))
+        df = store.write_table()
+        table = summary_table(df)
+        atomic_write_text(out / "robustness.csv", table.to_csv(index=False))
+        fig = make_figure(df, out)
+    print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    bad = df[df.status != "ok"]
+    if len(bad):
+        print(f"non-ok statuses: {bad.drop_duplicates(['seed', 'condition', 'method']).groupby(['method', 'status']).size().to_dict()}")
+    print(f"table: {out / 'robustness.csv'}  figure: {fig}  wall time: {time.perf_counter() - t0:.1f} s")
+    return 0
