@@ -1,5 +1,8 @@
 """ArviZ adapter: `PosteriorResult` <-> `arviz.InferenceData` (the only module importing arviz).
 
+Why one module of ~700 lines: it is the arviz adapter (one module per third-party library):
+conversion, netCDF I/O, summaries and the arviz plots all call arviz.
+
 Layout of the InferenceData built by :func:`to_inference_data`:
 
 * ``posterior``: variable ``limits`` with dims ``(chain, draw, joint, bound)``,

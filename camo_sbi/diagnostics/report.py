@@ -1,5 +1,8 @@
 """One self-contained HTML report for a run directory (opens offline, no external assets).
 
+Why one module of ~780 lines: one report, section by section (each section a function of the
+run directory); the figures themselves live in `figures` and `style`.
+
 Reads, from ``run_dir`` (every input optional)::
 
     config.json        run settings                          -> "Settings"

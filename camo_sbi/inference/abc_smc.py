@@ -1,5 +1,10 @@
 """ABC-SMC (pyabc) on the joint posterior of every observed task; the only module importing pyabc.
 
+Why one module of ~950 lines: it is the pyabc adapter, and the project keeps each third-party
+library behind ONE module, so an API change in pyabc touches this file only. The batched
+sampler, the stable transition, the prior conversion and the seeding all subclass or call
+pyabc types; splitting them would spread pyabc over several modules.
+
 Target: the ABC posterior of theta given ALL observed tasks at once. One particle theta is
 simulated to every observed task's goal from that task's start, and its distance is the sum
 of the per-task exact DTW distances (observed vs simulated trajectory, in ``config.space``)::

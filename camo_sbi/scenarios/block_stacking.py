@@ -1,5 +1,9 @@
 """The human-robot block-stacking scene of the paper (section V-B), on its own pybullet client.
 
+Why one module of ~800 lines: it is the only module importing pybullet (one adapter per
+third-party library); the scene, its reachability test, the collision check and the renderer
+all hold the same pybullet client and body ids.
+
 A person with limited mobility stands at a table with 4 coloured blocks; the goal is a
 tower in a random order. The person picks a block if they can reach it *and* carry it
 to the tower; the robot (a floating gripper) takes the others. This is the only module

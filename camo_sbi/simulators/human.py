@@ -1,5 +1,9 @@
 """A 9-DOF human model (torso + right arm) generated as URDF text, with impairment profiles.
 
+Why one module of ~700 lines: the anthropometric tables (segment ratios, masses, ranges of
+motion, impairment profiles with their sources) and the URDF writer that uses them are one
+definition of the model; most of the length is data with its references.
+
 The model stands for the person in the paper's human-robot collaboration scenario
 (CAMO, section V-B: "9 Degrees of Freedom in total -- 7 in the right arm, and 2 in the
 torso"). The URDF is written by `human_urdf` from a height and a sex; it uses primitive
