@@ -286,7 +286,8 @@ def test_generated_source_is_dtype_pure(panda_sim):
     assert "F = np.float32" in body and "float64" not in body and "linalg" not in body
     stripped = re.sub(r"F\([^()]*\)", "F()", body)
     assert not re.search(r"(?<![\w.])\d+\.\d*|(?<![\w.])\.\d+", stripped), "bare float literal in kernel"
-    assert "prange" in body
+    # serial row-chunk kernels run on the shared thread runner (no numba prange)
+    assert "prange" not in body and "nogil=True" in body and "def simulate(c, n_chunks," in body
 
 
 # ----------------------------------------------------------------------------- validation
