@@ -183,7 +183,7 @@ def test_oracle_is_skipped_on_recordings(recording, tmp_path, capsys):
     # without its noise model the noisy recording's ee_* are too far from the FK of its joints
     without = [a for a in argv if a not in NOISE]
     line = _exit_2(without, capsys)
-    assert line.startswith(f"camo-sbi: error: {recording}: column 'ee_x', line ") and "(--ee)?" in line
+    assert line.startswith(f"camo-sbi: error: {recording}: column 'ee_x', line ") and "(--ee)" in line and "--noise-joint-deg 0" in line
 
 
 def _csv_edit(src: Path, dst: Path, fn) -> Path:

@@ -274,7 +274,8 @@ def _check_ee_matches_fk(table: _Table, simulator, q: np.ndarray, ee: np.ndarray
     if dist[i] > tol:
         raise ValueError(f"{table.where('ee_x', i)}: the model's end effector at this row's joint values is "
                          f"{dist[i] * 1000:.1f} mm from ee_x, ee_y, ee_z (tolerance {tol * 1000:.1f} mm): was the "
-                         f"recording made at another link than the model's end effector (--ee)?")
+                         f"recording made at another link than the model's end effector (--ee), or is it noisier than "
+                         f"the noise model says (--noise-joint-deg {noise.joint_deg:g}, --noise-ee-mm {noise.ee_mm:g})?")
 
 
 def load_recordings(path, simulator, *, degrees: bool = False, noise: NoiseModel | None = None,
