@@ -1,0 +1,184 @@
+"""Print the README's result tables (markdown) from run directories, so every number in
+the README comes from a `results.csv` / `claims.csv` a command wrote.
+
+    python docs/readme_tables.py manipulator DIR     # reproduce panda (either setting)
+    python docs/readme_tables.py hrc DIR             # reproduce hrc
+    python docs/readme_tables.py compare DIR         # compare (final task count)
+    python docs/readme_tables.py robustness DIR      # robustness
+    python docs/readme_tables.py calibrate DIR       # calibrate
+
+Means are over runs (or seeds), with the half-width of the 95% Student-t CI of the mean.
+Rows whose method had a non-ok status in any cell are marked with a dagger and the statuses
+are listed under the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+BASELINES = ("nominal", "naive", "oracle", "majority")
+
+
+def _ci(v: np.ndarray) -> float:
+    v = v[np.isfinite(v)]
+    if v.size < 2:
+        return float("nan")
+    return float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size))
+
+
+def _fmt(mean: float, ci: float, digits: int) -> str:
+    if not np.isfinite(mean):
+        return "–"
+    if not np.isfinite(ci) or ci <= 1e-9 * max(1.0, abs(mean)):  # identical over runs
+        return f"{mean:.{digits}f}"
+    return f"{mean:.{digits}f} ± {ci:.{digits}f}"
+
+
+def _order(methods) -> list[str]:
+    methods = list(dict.fromkeys(methods))
+    return [m for m in methods if m not in BASELINES] + [m for m in BASELINES if m in methods]
+
+
+def _marks(df: pd.DataFrame, by: list[str]) -> tuple[dict, list[str]]:
+    bad = df[df.status.astype(str) != "ok"]
+    keys = bad.groupby(by[0] if len(by) == 1 else by).groups if len(bad) else {}
+    marks = {k: "†" for k in keys}
+    notes = sorted(bad.status.astype(str).str.replace(r"\d+(\.\d+)?", "#", regex=True).unique()) if len(bad) else []
+    return marks, notes
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+PRIMARY = ("cartesian_error_mm", "joint_error_deg", "precision", "recall", "f1")
+
+
+def claims_table(path: Path) -> str:
+    """The claims on the primary metrics (claims.csv also holds the reference-metric rows)."""
+    c = pd.read_csv(path)
+    c = c[c.statistic.astype(str).str.split(":").str[0].str.split(" ").str[0].isin(PRIMARY)
+          | ~c.statistic.astype(str).str.contains("_")]
+    rows = []
+    for _, r in c.iterrows():
+        setting = f" ({r.setting})" if "setting" in c and isinstance(r.setting, str) and "/" in r.setting else ""
+        ci = (f"[{r.ci_low:.3g}, {r.ci_high:.3g}]" if np.isfinite(r.ci_low) else "–")
+        rows.append([f"{r.claim}{setting}", r.method, str(r.baseline), str(r.statistic).split(":")[0],
+                     f"{r.value:.3g}", ci, f"{r.p_value:.2g}", r.test, "**yes**" if r.holds else "no"])
+    return _table(["claim", "method", "vs", "statistic", "value", "95% CI", "p (Holm)", "paired test", "holds"], rows)
+
+
+def manipulator(d: Path) -> str:
+    df = pd.read_csv(d / "results.csv")
+    marks, notes = _marks(df, ["method"])
+    ks = sorted(df.n_tasks.unique())
+    show = [k for k in (1, 2, 3, 5, 10) if k in ks] or ks
+    parts = []
+    for metric, unit, dig in (("cartesian_error_mm", "mm", 1), ("joint_error_deg", "deg", 2),
+                              ("limit_error_binding_deg", "deg", 1), ("limit_error_free_deg", "deg", 1)):
+        sub = df[df.metric == metric]
+        rows = []
+        for m in _order(sub.method):
+            cells = []
+            for k in show:
+                v = sub[(sub.method == m) & (sub.n_tasks == k)].value.to_numpy(float)
+                cells.append(_fmt(v.mean(), _ci(v), dig))
+            rows.append([m + marks.get(m, "")] + cells)
+        parts.append(f"**{metric}** [{unit}], mean ± 95% CI over {df.run.nunique()} runs, by observed tasks:\n\n"
+                     + _table(["method"] + [str(k) for k in show], rows))
+    last = df[df.n_tasks == max(ks)]
+    rows = []
+    for m in _order(last.method):
+        r = [m + marks.get(m, "")]
+        for metric in ("eq2_cartesian", "eq2_joint", "reference_cartesian", "reference_joint"):
+            v = last[(last.method == m) & (last.metric == metric)].value.to_numpy(float)
+            r.append(_fmt(v.mean(), _ci(v), 3))
+        rows.append(r)
+    parts.append(f"The paper's Eq. 2 and the authors' code's metric after {max(ks)} tasks (summed over the test goals):\n\n"
+                 + _table(["method", "eq2_cartesian [m]", "eq2_joint [rad]", "reference_cartesian [m]",
+                           "reference_joint [rad]"], rows))
+    if notes:
+        parts.append("† " + "; ".join(notes))
+    if (d / "claims.csv").exists():
+        parts.append(claims_table(d / "claims.csv"))
+    return "\n\n".join(parts)
+
+
+def hrc(d: Path) -> str:
+    df = pd.read_csv(d / "results.csv")
+    df = df[df.method != "truth"]
+    marks, notes = _marks(df, ["method"])
+    last = df[df.n_tasks == df.n_tasks.max()]
+    rows = []
+    for prior in last.prior.unique():
+        for m in _order(last[last.prior == prior].method):
+            r = [prior, m + marks.get(m, "")]
+            for metric, dig in (("precision", 3), ("recall", 3), ("f1", 3), ("limit_error_free_deg", 1)):
+                v = last[(last.prior == prior) & (last.method == m) & (last.metric == metric)].value.to_numpy(float)
+                r.append(_fmt(v.mean(), _ci(v), dig) if v.size else "–")
+            rows.append(r)
+    out = (f"After {df.n_tasks.max()} tasks, mean ± 95% CI over {df.run.nunique()} runs:\n\n"
+           + _table(["prior", "method", "precision", "recall", "F1", "free-limit error [deg]"], rows))
+    if notes:
+        out += "\n\n† " + "; ".join(notes)
+    if (d / "claims.csv").exists():
+        out += "\n\n" + claims_table(d / "claims.csv")
+    return out
+
+
+def compare(d: Path) -> str:
+    df = pd.read_csv(d / "results.csv")
+    marks, notes = _marks(df, ["method", "budget"])
+    last = df[df.n_tasks == df.n_tasks.max()]
+    metrics = [("cartesian_error_mm", "held-out Cartesian [mm]", 1), ("joint_error_deg", "held-out joint [deg]", 2),
+               ("limit_error_deg", "limit error [deg]", 1), ("limit_error_binding_deg", "binding-limit error [deg]", 1),
+               ("ppc_cartesian_error_mm", "posterior-predictive [mm]", 1), ("n_simulations", "simulations", 0),
+               ("wall_time", "wall time [s]", 2)]
+    metrics = [m for m in metrics if m[0] in set(last.metric)]
+    rows = []
+    for m in _order(last.method):
+        for b in sorted(last[last.method == m].budget.unique()):
+            sub = last[(last.method == m) & (last.budget == b)]
+            r = [m + marks.get((m, b), ""), str(b)]
+            for metric, _, dig in metrics:
+                v = sub[sub.metric == metric].value.to_numpy(float)
+                r.append(_fmt(v.mean(), _ci(v), dig) if v.size else "–")
+            rows.append(r)
+    out = (f"After {df.n_tasks.max()} observed tasks, mean ± 95% CI over {df.seed.nunique()} seeds:\n\n"
+           + _table(["method", "budget"] + [m[1] for m in metrics], rows))
+    if notes:
+        out += "\n\n† " + "; ".join(notes)
+    return out
+
+
+def robustness(d: Path) -> str:
+    t = pd.read_csv(d / "robustness.csv")
+    return _table(list(t.columns), [[f"{v:.3g}" if isinstance(v, float) else str(v) for v in r]
+                                    for r in t.itertuples(index=False)])
+
+
+def calibrate(d: Path) -> str:
+    t = pd.read_csv(d / "coverage.csv")
+    return _table(list(t.columns), [[f"{v:.3g}" if isinstance(v, float) else str(v) for v in r]
+                                    for r in t.itertuples(index=False)])
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("kind", choices=["manipulator", "hrc", "compare", "robustness", "calibrate"])
+    p.add_argument("dir", type=Path)
+    a = p.parse_args(argv)
+    print(globals()[a.kind](a.dir))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
