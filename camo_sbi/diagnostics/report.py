@@ -66,7 +66,8 @@ h2{border-bottom:1px solid #ccd;margin-top:2em}
 h3{margin:1.2em 0 .4em}
 nav ul{columns:3;list-style:none;padding-left:0}
 table{border-collapse:collapse;font-size:12px;margin:.3em 0 .6em}
-th,td{border:1px solid #ccd;padding:2px 6px;text-align:right}
+th,td{border:1px solid #ccd;padding:2px 6px;text-align:right;overflow-wrap:normal}
+th{white-space:nowrap}
 th{background:#eef}
 td:first-child,th:first-child{text-align:left}
 caption{caption-side:top;text-align:left;font-weight:600;font-size:12px;padding:.2em 0}
