@@ -34,9 +34,24 @@ paid once) is trained by maximum likelihood in the logit coordinates z of the pr
 
 **Inference** (`run`, no simulation): for reaches x_1..x_N of one person,
 p(theta | x_1..N) ∝ p(theta)^(1-N) ∏_i q(theta | x_i) (sbi's i.i.d. NPE rule, exact when q
-is the exact per-reach posterior), sampled by the importance sampler of per-task NPE
-(`npe.NpePosterior`: the same flow with N conditions). An effective sample size below
-``min_ess`` sets ``status = "fallback: ..."`` (warned about by the registry).
+is the exact per-reach posterior), held by `npe.NpePosterior` (the same flow with N
+conditions; its log target in the logit coordinates z, with the prior pushed to z as
+standard logistic densities, serves both samplers). ``combine="mcmc"`` (default):
+`npe.NpePosterior.sample_mcmc`, a population MCMC in z: 128 chains started from a Gaussian
+approximation of the product, 300 sweeps (150 of adaptation, discarded), each half of the
+population moved by random-walk Metropolis with the other half's covariance (or a
+differential-evolution move), one batched flow call over half the chains x N reaches per
+half-sweep; equally weighted draws (``weights`` None). An acceptance rate below
+``min_acceptance`` or more than half of the chains never moving sets ``status =
+"fallback: ..."``. ``combine="is"``: the importance sampler of per-task NPE
+(`npe.NpePosterior.sample`); an effective sample size below ``min_ess`` sets the fallback
+status (both warned about by the registry). Why MCMC (Panda, 5 reaches, the 200k-simulation
+estimator): the importance weights were degenerate (ESS 1-27 of 10 000), so IS draws were a
+handful of points: over-confident (calibration mean |coverage - alpha| 0.183 over 50
+subjects) and slow (~6 s per person). The target itself is hard for a random walk: the
+adapted step is 0.03-0.15 of the population's spread (a rugged product of flows), so 300
+sweeps do not mix fully and the draws stay somewhat under-confident (calibration 0.047
+with 300 sweeps, 0.079 with 100; see `AmortizedConfig` for the measured numbers).
 
 **Files**: one ``torch.save`` dict {"format", "metadata" (JSON text), "state_dict"} read with
 ``torch.load(weights_only=True)``; the metadata (format version, model name and fingerprint:
@@ -212,7 +227,11 @@ class AmortizedConfig:
         is_rounds, defensive_fraction: the importance sampler (combine="is").
         mcmc_chains, mcmc_steps, mcmc_burn_in, mcmc_de_fraction: the population MCMC
             (combine="mcmc"): chains, sweeps, discarded adaptation sweeps, share of
-            differential-evolution moves.
+            differential-evolution moves. Measured (Panda, `camo-sbi calibrate --subjects 50
+            --tasks 5`, 2 loaded cores): 300 / 150 sweeps: mean |coverage - alpha| 0.047
+            (under-confident), 5.5 s per subject; 100 / 50 sweeps: 0.079 (under-confident),
+            2.0 s. The chains are still contracting from their start at 300 sweeps: more
+            sweeps buy calibration at a linear cost in time.
         min_acceptance: an MCMC acceptance rate below it (or more than half of the chains never
             moving after burn-in) sets ``status = "fallback: ..."``.
         point_estimate: "mean", "median" or "map" (`npe.point_estimate`).
@@ -228,8 +247,8 @@ class AmortizedConfig:
     is_rounds: int = 3
     defensive_fraction: float = 0.2
     mcmc_chains: int = 128
-    mcmc_steps: int = 100
-    mcmc_burn_in: int = 50
+    mcmc_steps: int = 300
+    mcmc_burn_in: int = 150
     mcmc_de_fraction: float = 0.2
     point_estimate: str = "mean"
     min_ess: float = 20.0
