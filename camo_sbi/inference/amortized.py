@@ -34,9 +34,24 @@ paid once) is trained by maximum likelihood in the logit coordinates z of the pr
 
 **Inference** (`run`, no simulation): for reaches x_1..x_N of one person,
 p(theta | x_1..N) ∝ p(theta)^(1-N) ∏_i q(theta | x_i) (sbi's i.i.d. NPE rule, exact when q
-is the exact per-reach posterior), sampled by the importance sampler of per-task NPE
-(`npe.NpePosterior`: the same flow with N conditions). An effective sample size below
-``min_ess`` sets ``status = "fallback: ..."`` (warned about by the registry).
+is the exact per-reach posterior), held by `npe.NpePosterior` (the same flow with N
+conditions; its log target in the logit coordinates z, with the prior pushed to z as
+standard logistic densities, serves both samplers). ``combine="mcmc"`` (default):
+`npe.NpePosterior.sample_mcmc`, a population MCMC in z: 128 chains started from a Gaussian
+approximation of the product, 300 sweeps (150 of adaptation, discarded), each half of the
+population moved by random-walk Metropolis with the other half's covariance (or a
+differential-evolution move), one batched flow call over half the chains x N reaches per
+half-sweep; equally weighted draws (``weights`` None). An acceptance rate below
+``min_acceptance`` or more than half of the chains never moving sets ``status =
+"fallback: ..."``. ``combine="is"``: the importance sampler of per-task NPE
+(`npe.NpePosterior.sample`); an effective sample size below ``min_ess`` sets the fallback
+status (both warned about by the registry). Why MCMC (Panda, 5 reaches, the 200k-simulation
+estimator): the importance weights were degenerate (ESS 1-27 of 10 000), so IS draws were a
+handful of points: over-confident (calibration mean |coverage - alpha| 0.183 over 50
+subjects) and slow (~6 s per person). The target itself is hard for a random walk: the
+adapted step is 0.03-0.15 of the population's spread (a rugged product of flows), so 300
+sweeps do not mix fully and the draws stay somewhat under-confident (calibration 0.047
+with 300 sweeps, 0.079 with 100; see `AmortizedConfig` for the measured numbers).
 
 **Files**: one ``torch.save`` dict {"format", "metadata" (JSON text), "state_dict"} read with
 ``torch.load(weights_only=True)``; the metadata (format version, model name and fingerprint:
@@ -89,6 +104,7 @@ __all__ = [
 FORMAT = "camo_sbi.amortized/1"
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 FORMS = ("set", "per-reach")
+COMBINE = ("mcmc", "is")  # samplers of the per-reach form's product posterior
 _START_TOL = 1e-6  # radians: an observed start this close to the estimator's counts as the same
 _BOX_TOL = 1e-9
 
@@ -202,28 +218,58 @@ class AmortizedConfig:
             ``camo-sbi amortize``). Required.
         space: the observation space read ("joint" or "cartesian"); the file must hold a flow
             for it.
-        n_posterior_samples, is_rounds, defensive_fraction: the importance sampler of
-            `npe.NpePosterior.sample`.
+        combine: how the per-reach form's product posterior is sampled: "mcmc" (default:
+            population MCMC, `npe.NpePosterior.sample_mcmc`, equally weighted draws) or "is"
+            (the importance sampler of `npe.NpePosterior.sample`, weighted draws). Measured on
+            the Panda (200k-simulation estimator, 5 reaches): IS had ESS 1-27 of 10 000 and
+            calibration mean |coverage - alpha| 0.183 (50 subjects); see the module docstring.
+        n_posterior_samples: draws returned (MCMC: at most this many, mcmc_chains per kept sweep).
+        is_rounds, defensive_fraction: the importance sampler (combine="is").
+        mcmc_chains, mcmc_steps, mcmc_burn_in, mcmc_de_fraction: the population MCMC
+            (combine="mcmc"): chains, sweeps, discarded adaptation sweeps, share of
+            differential-evolution moves. Measured (Panda, `camo-sbi calibrate --subjects 50
+            --tasks 5`, 2 loaded cores): 300 / 150 sweeps: mean |coverage - alpha| 0.047
+            (under-confident), 5.5 s per subject; 100 / 50 sweeps: 0.079 (under-confident),
+            2.0 s. The chains are still contracting from their start at 300 sweeps: more
+            sweeps buy calibration at a linear cost in time.
+        min_acceptance: an MCMC acceptance rate below it (or more than half of the chains never
+            moving after burn-in) sets ``status = "fallback: ..."``.
         point_estimate: "mean", "median" or "map" (`npe.point_estimate`).
-        min_ess: an importance sample with a smaller effective sample size is reported as
-            ``status = "fallback: ..."``.
+        min_ess: an importance sample (combine="is") with a smaller effective sample size is
+            reported as ``status = "fallback: ..."``.
         n_threads: torch intra-op threads while sampling (None: unchanged).
     """
 
     estimator: str | os.PathLike | None = None
     space: str = "joint"
+    combine: str = "mcmc"
     n_posterior_samples: int = 10_000
     is_rounds: int = 3
     defensive_fraction: float = 0.2
+    mcmc_chains: int = 128
+    mcmc_steps: int = 300
+    mcmc_burn_in: int = 150
+    mcmc_de_fraction: float = 0.2
     point_estimate: str = "mean"
     min_ess: float = 20.0
+    min_acceptance: float = 0.01
     n_threads: int | None = 1
 
     def __post_init__(self):
         if self.estimator is not None and not isinstance(self.estimator, (str, os.PathLike)):
             raise TypeError(f"estimator: expected a path, got {type(self.estimator).__name__}")
         check_choice(self.space, SPACES, "space")
+        check_choice(self.combine, COMBINE, "combine")
         check_positive_int(self.n_posterior_samples, "n_posterior_samples", minimum=2)
+        check_positive_int(self.mcmc_chains, "mcmc_chains", minimum=8)
+        check_positive_int(self.mcmc_steps, "mcmc_steps")
+        check_positive_int(self.mcmc_burn_in, "mcmc_burn_in", minimum=0)
+        if self.mcmc_burn_in >= self.mcmc_steps:
+            raise ValueError(f"mcmc_burn_in: must be < mcmc_steps ({self.mcmc_steps}), got {self.mcmc_burn_in}")
+        check_positive_float(self.mcmc_de_fraction, "mcmc_de_fraction", allow_zero=True)
+        if self.mcmc_de_fraction > 1:
+            raise ValueError(f"mcmc_de_fraction: must be in [0, 1], got {self.mcmc_de_fraction}")
+        check_positive_float(self.min_acceptance, "min_acceptance", allow_zero=True)
         check_positive_int(self.is_rounds, "is_rounds", minimum=0)
         check_positive_float(self.defensive_fraction, "defensive_fraction")
         if self.defensive_fraction >= 1:
@@ -745,7 +791,9 @@ def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig |
 
     ``budget`` is accepted for the common contract and unused (the cost was paid in training:
     ``extras["training_simulations"]``, ``extras["training_time"]``). extras also hold
-    ``ess``, ``ess_rounds``, ``time_load``, ``time_sample``, ``estimator_path``.
+    ``sampler`` ("mcmc", "is" or "flow" for the set form), ``time_load``, ``time_sample``,
+    ``estimator_path``; with MCMC ``acceptance``, ``stuck_fraction``, ``chains``, ``steps``,
+    ``burn_in``, ``step_scale``; with IS ``ess``, ``ess_rounds``.
     """
     config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
                                                                AmortizedConfig)
@@ -764,21 +812,35 @@ def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig |
         draws = npe.ImportanceSample(theta.numpy(), np.full(n, 1.0 / n), lp.numpy(), float(n), [float(n)])
     else:
         posterior = est.posterior(observations, config.space, n_threads=config.n_threads)
-        draws = posterior.sample(config.n_posterior_samples, _seed(seed, 5) % (2**32), is_rounds=config.is_rounds,
-                                 defensive_fraction=config.defensive_fraction)
+        if config.combine == "mcmc":
+            draws = posterior.sample_mcmc(config.n_posterior_samples, _seed(seed, 5) % (2**32),
+                                          chains=config.mcmc_chains, steps=config.mcmc_steps,
+                                          burn_in=config.mcmc_burn_in, de_fraction=config.mcmc_de_fraction)
+        else:
+            draws = posterior.sample(config.n_posterior_samples, _seed(seed, 5) % (2**32),
+                                     is_rounds=config.is_rounds, defensive_fraction=config.defensive_fraction)
     t_sample = time.perf_counter() - t1
     estimate = npe.point_estimate(draws, config.point_estimate, prior)
     status = STATUS_OK
-    if est.form != "set" and (not draws.ess >= config.min_ess or not math.isfinite(draws.ess)):
-        status = (f"fallback: degenerate importance weights combining {len(observations)} reaches (ESS "
-                  f"{draws.ess:.1f} of {config.n_posterior_samples} < min_ess {config.min_ess:g})")
-    extras = {
-        "ess": draws.ess, "ess_rounds": draws.ess_rounds, "time_load": t_load, "time_sample": t_sample,
-        "estimator_path": est.path, "training_simulations": est.training_simulations,
-        "training_time": est.training_time, "space": config.space,
-    }
-    extras["form"] = est.form
-    weights = None if est.form == "set" else draws.weights
+    extras = {"time_load": t_load, "time_sample": t_sample, "estimator_path": est.path,
+              "training_simulations": est.training_simulations, "training_time": est.training_time,
+              "space": config.space, "form": est.form}
+    weights = None
+    if est.form == "set":
+        extras["sampler"] = "flow"
+    elif config.combine == "mcmc":
+        extras.update(sampler="mcmc", acceptance=draws.acceptance, stuck_fraction=draws.stuck_fraction,
+                      chains=draws.chains, steps=draws.steps, burn_in=draws.burn_in, step_scale=draws.step_scale)
+        if not draws.acceptance >= config.min_acceptance or draws.stuck_fraction > 0.5:
+            status = (f"fallback: MCMC combining {len(observations)} reaches barely moved (acceptance "
+                      f"{draws.acceptance:.4f}, min_acceptance {config.min_acceptance:g}; "
+                      f"{draws.stuck_fraction:.0%} of {draws.chains} chains never moved after burn-in)")
+    else:
+        extras.update(sampler="is", ess=draws.ess, ess_rounds=draws.ess_rounds)
+        weights = draws.weights
+        if not draws.ess >= config.min_ess or not math.isfinite(draws.ess):
+            status = (f"fallback: degenerate importance weights combining {len(observations)} reaches (ESS "
+                      f"{draws.ess:.1f} of {config.n_posterior_samples} < min_ess {config.min_ess:g})")
     return PosteriorResult(method="npe-amortized", samples=draws.theta, weights=weights, estimate=estimate,
                            n_simulations=0, wall_time=time.perf_counter() - t0, n_tasks=len(observations),
                            extras=extras, status=status)

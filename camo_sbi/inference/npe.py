@@ -76,6 +76,7 @@ from camo_sbi.task import NoiseModel, contain
 
 __all__ = [
     "ImportanceSample",
+    "McmcSample",
     "check_training_settings",
     "NpeConfig",
     "NpePosterior",
@@ -291,6 +292,27 @@ class ImportanceSample:
     ess_rounds: list[float]
 
 
+@dataclass(frozen=True)
+class McmcSample:
+    """Equally weighted draws from `NpePosterior.sample_mcmc`.
+
+    theta: (N, 2n) float64; weights: (N,) uniform (1 / N, for code reading weighted draws);
+    log_prob: (N,) combined log density (theta coordinates, unnormalised); acceptance: the
+    acceptance rate after burn-in; stuck_fraction: share of chains that never moved after
+    burn-in; chains, steps, burn_in: the run's size; step_scale: the adapted random-walk scale.
+    """
+
+    theta: np.ndarray
+    weights: np.ndarray
+    log_prob: np.ndarray
+    acceptance: float
+    stuck_fraction: float
+    chains: int
+    steps: int
+    burn_in: int
+    step_scale: float
+
+
 class NpePosterior:
     """p(theta | x_1..k) ∝ p(theta)^(1-k) ∏_i q_i(theta | x_i) from per-task flows.
 
@@ -359,10 +381,24 @@ class NpePosterior:
 
     @torch.no_grad()
     def task_log_probs(self, z: torch.Tensor) -> torch.Tensor:
-        """(k, N) log q_i(z | x_i) in flow coordinates (NaN mapped to -inf)."""
+        """(k, N) log q_i(z | x_i) in flow coordinates (NaN mapped to -inf).
+
+        When every task shares one flow (the amortized estimator), one call per chunk
+        evaluates all k conditions at once (input (n, k, d), condition (k, F)).
+        """
         z = torch.as_tensor(z, dtype=torch.float32)
         out = torch.empty(self.n_tasks, z.shape[0], dtype=torch.float64)
+        k = self.n_tasks
         with torch_threads(self.n_threads):
+            if k > 1 and all(e is self.estimators[0] for e in self.estimators) \
+                    and len({x.shape for x in self.x_obs}) == 1:
+                x = torch.cat(self.x_obs)
+                step = max(1, _CHUNK // k)
+                for s in range(0, z.shape[0], step):
+                    zc = z[s : s + step]
+                    lp = self.estimators[0].log_prob(zc.unsqueeze(1).expand(-1, k, -1), condition=x)
+                    out[:, s : s + zc.shape[0]] = lp.reshape(zc.shape[0], k).T.double()
+                return torch.nan_to_num(out, nan=-math.inf)
             for i, (est, x) in enumerate(zip(self.estimators, self.x_obs, strict=True)):
                 for s in range(0, z.shape[0], _CHUNK):
                     zc = z[s : s + _CHUNK]
@@ -505,6 +541,90 @@ class NpePosterior:
         return ImportanceSample(theta.numpy(), best["weights"], (best["log_t"] - logdet).numpy(),
                                 best["ess"], ess_rounds)
 
+    @torch.no_grad()
+    def sample_mcmc(self, n: int, seed: int, *, chains: int = 128, steps: int = 100, burn_in: int = 50,
+                    init_draws: int = 512, de_fraction: float = 0.2,
+                    target_acceptance: float = 0.25) -> McmcSample:
+        """``n`` equally weighted draws of the combined posterior by population MCMC in z.
+
+        Target: the log density of `log_prob` in flow coordinates z (`_log_target_z`). ``chains``
+        chains start from a Gaussian approximation of the product (`_product_gaussian` of
+        ``init_draws`` flow-mixture draws; from those draws themselves if it is degenerate) and
+        take ``steps`` sweeps. A sweep updates the two halves of the population in turn, each
+        half with ONE batched flow evaluation (chains / 2 x k conditions). A chain proposes a
+        random-walk Metropolis move z + s L eps (L L^T: the covariance of the OTHER half, which
+        stays fixed during the update, so each update leaves the product of the targets
+        invariant, as in emcee's split ensemble), or with probability ``de_fraction`` a
+        differential-evolution move z + g (z_a - z_b) + s L eps / 100 (a, b two distinct chains
+        of the other half, g = 2.38 / sqrt(2 d), g = 1 every tenth move). During the first
+        ``burn_in`` sweeps (discarded) the scale s is adapted toward ``target_acceptance``, then
+        frozen. The draws are the states of every chain at ``ceil(n / chains)`` sweeps spread
+        over the post-burn-in ones (at most ``n``). Deterministic given ``seed``; the global
+        torch RNG is restored afterwards.
+        """
+        n = check_positive_int(n, "n", minimum=2)
+        seed = check_positive_int(seed, "seed", minimum=0)
+        chains = check_positive_int(chains, "chains", minimum=8)
+        steps = check_positive_int(steps, "steps")
+        burn_in = check_positive_int(burn_in, "burn_in", minimum=0)
+        if burn_in >= steps:
+            raise ValueError(f"burn_in: must be < steps ({steps}), got {burn_in}")
+        k, d = self.n_tasks, self.n_free
+        gen = torch.Generator().manual_seed(seed)
+        with torch.random.fork_rng(devices=[]), torch_threads(self.n_threads):
+            torch.manual_seed(seed)
+            counts = self._mixture_counts(max(init_draws, k * (d + 2)), k)
+            pool = self._sample_flows(counts)
+            product = self._product_gaussian(pool, counts) if k > 1 else None
+            if product is not None:
+                mu, cov = product
+                z = mu + torch.randn(chains, d, generator=gen, dtype=torch.float64) @ _cholesky(cov).T
+            else:
+                z = pool[torch.randint(pool.shape[0], (chains,), generator=gen)]
+            lt = self._log_target_z(z, self.task_log_probs(z))
+            halves = (torch.arange(0, chains, 2), torch.arange(1, chains, 2))
+            log_s = math.log(2.38 / math.sqrt(d))
+            g_de = 2.38 / math.sqrt(2 * d)
+            n_keep = min(math.ceil(n / chains), steps - burn_in)
+            keep_at = set(torch.linspace(burn_in, steps - 1, n_keep).round().long().tolist())
+            kept, kept_lt = [], []
+            accepted = proposed = 0
+            moved = torch.zeros(chains, dtype=torch.bool)
+            for t in range(steps):
+                for h in (0, 1):
+                    idx, other = halves[h], halves[1 - h]
+                    zo, m, mo = z[other], idx.shape[0], other.shape[0]
+                    step = math.exp(log_s) * torch.randn(m, d, generator=gen, dtype=torch.float64) \
+                        @ _cholesky(torch.cov(zo.T).reshape(d, d)).T
+                    a = torch.randint(mo, (m,), generator=gen)
+                    b = (a + 1 + torch.randint(mo - 1, (m,), generator=gen)) % mo
+                    g = torch.where(torch.rand(m, generator=gen, dtype=torch.float64) < 0.1, 1.0, g_de)
+                    de = g[:, None] * (zo[a] - zo[b]) + 0.01 * step
+                    use_de = torch.rand(m, generator=gen, dtype=torch.float64) < de_fraction
+                    prop = z[idx] + torch.where(use_de[:, None], de, step)
+                    lt_prop = self._log_target_z(prop, self.task_log_probs(prop))
+                    log_u = torch.log(torch.rand(m, generator=gen, dtype=torch.float64))
+                    acc = torch.nan_to_num(lt_prop - lt[idx], nan=-math.inf) > log_u
+                    z[idx[acc]] = prop[acc]
+                    lt[idx[acc]] = lt_prop[acc]
+                    if t < burn_in:
+                        log_s += (float(acc.double().mean()) - target_acceptance) / math.sqrt(t + 1)
+                    else:
+                        accepted += int(acc.sum())
+                        proposed += m
+                        moved[idx[acc]] = True
+                if t in keep_at:
+                    kept.append(z.clone())
+                    kept_lt.append(lt.clone())
+        zs, lts = torch.cat(kept)[:n], torch.cat(kept_lt)[:n]
+        theta_free, logdet = self.from_unconstrained(zs)
+        theta = self.low.repeat(theta_free.shape[0], 1)
+        theta[:, self.free_mask] = theta_free
+        m = theta.shape[0]
+        return McmcSample(theta.numpy(), np.full(m, 1.0 / m), (lts - logdet).numpy(),
+                          acceptance=accepted / max(proposed, 1), stuck_fraction=float((~moved).double().mean()),
+                          chains=chains, steps=steps, burn_in=burn_in, step_scale=math.exp(log_s))
+
     # persistence -------------------------------------------------------------------------
 
     def save(self, path) -> Path:
@@ -522,6 +642,14 @@ class NpePosterior:
             "n_threads": self.n_threads,
         }, path)
         return path
+
+
+def _cholesky(cov: torch.Tensor) -> torch.Tensor:
+    """Lower Cholesky factor of a (jittered, symmetrised) covariance; its diagonal's root if not PD."""
+    d = cov.shape[0]
+    cov = 0.5 * (cov + cov.T) + 1e-9 * torch.eye(d, dtype=cov.dtype)
+    factor, info = torch.linalg.cholesky_ex(cov)
+    return factor if int(info) == 0 else torch.diag(cov.diagonal().clamp_min(1e-12).sqrt())
 
 
 def load_posterior(path) -> NpePosterior:
