@@ -447,3 +447,21 @@ def test_compare_trains_the_estimator_once_and_reuses_it(tmp_path, capsys):
     mtime = files[0].stat().st_mtime_ns
     assert main([*argv[:-2], "--workers", "2", "--out", str(tmp_path / "c")]) == 0
     assert "reused " in capsys.readouterr().out and files[0].stat().st_mtime_ns == mtime
+
+
+def test_a_file_from_before_a_controller_setting_existed_counts_it_at_its_default():
+    """Estimators written before ``derivative_gain``/``early_stop`` existed name neither; the
+    controller then behaved as those defaults do, so the file still matches a default model
+    and is refused for a model that uses the new setting."""
+    from camo_sbi.inference.amortized import _fingerprint_differences, model_fingerprint
+    from camo_sbi.simulators import panda
+
+    sim = panda()
+    now = model_fingerprint(sim)
+    old = {**now, "controller": {k: v for k, v in now["controller"].items()
+                                 if k not in ("derivative_gain", "early_stop")}}
+    assert _fingerprint_differences(old, now) == []
+    other = model_fingerprint(sim.with_config(derivative_gain=0.5))
+    assert _fingerprint_differences(old, other) == ["controller"]
+    other = model_fingerprint(sim.with_config(early_stop=False))
+    assert _fingerprint_differences(old, other) == ["controller"]

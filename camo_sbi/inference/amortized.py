@@ -304,11 +304,25 @@ def model_fingerprint(simulator) -> dict:
     }
 
 
+def _controller_defaults() -> dict:
+    from camo_sbi.simulators.controller import ControllerConfig
+
+    return {f.name: f.default for f in dataclasses.fields(ControllerConfig)
+            if f.default is not dataclasses.MISSING and isinstance(f.default, (int, float, str, bool))}
+
+
 def _fingerprint_differences(a: dict, b: dict) -> list[str]:
-    """Fields of the current fingerprint ``b`` on which the stored fingerprint ``a`` differs."""
+    """Fields of the current fingerprint ``b`` on which the stored fingerprint ``a`` differs.
+
+    A controller setting that a stored file does not name did not exist when the file was
+    written; it counts as that setting's default, which is the behaviour the controller had
+    before the setting was added (``derivative_gain=0``, ``early_stop=True``).
+    """
     out = []
     for k in sorted(b):
         va, vb = a.get(k), b.get(k)
+        if k == "controller" and isinstance(va, dict) and isinstance(vb, dict):
+            va = {**{n: d for n, d in _controller_defaults().items() if n in vb}, **va}
         if k in ("bounds", "start") and va is not None and vb is not None:
             ta, tb = torch.tensor(va, dtype=torch.float64), torch.tensor(vb, dtype=torch.float64)
             if ta.shape != tb.shape or not torch.allclose(ta, tb, atol=1e-9, rtol=0):
