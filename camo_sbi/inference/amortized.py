@@ -53,6 +53,11 @@ adapted step is 0.03-0.15 of the population's spread (a rugged product of flows)
 sweeps do not mix fully and the draws stay somewhat under-confident (calibration 0.047
 with 300 sweeps, 0.079 with 100; see `AmortizedConfig` for the measured numbers).
 
+Why one module of ~900 lines: training, the file format and its fingerprint check, and
+inference are one estimator's life cycle; they share the metadata schema (a change to the
+training settings changes what a file stores and what inference checks), so they change
+together. The sampler itself lives in `npe` beside the importance sampler it replaces.
+
 **Files**: one ``torch.save`` dict {"format", "metadata" (JSON text), "state_dict"} read with
 ``torch.load(weights_only=True)``; the metadata (format version, model name and fingerprint:
 joint names, bounds, start, URDF and controller; prior box; spaces; summary settings; noise;

@@ -2,10 +2,11 @@
 
 sbi is used only through `camo_sbi.inference.sbi_adapter` (the one module importing sbi).
 
-Why one module of ~730 lines: training data, summaries, the combination rule and its
-importance sampler are one method whose pieces share one coordinate system (logit z of the
-prior box) and one feature mask; `amortized` reuses the summary and the sampler from here,
-so splitting them would make two modules that must change together.
+Why one module of ~870 lines: training data, summaries, the combination rule and its two
+samplers (importance sampling, population MCMC) are one method whose pieces share one
+coordinate system (logit z of the prior box) and one feature mask; `amortized` reuses the
+summary and the samplers from here, so splitting them would make modules that must change
+together.
 
 Design (same simulation design as CAMO, so budgets are equal):
 
