@@ -20,16 +20,13 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
-BASELINES = ("nominal", "naive", "oracle", "majority")
+from camo_sbi.diagnostics.style import mean_ci, method_order
 
 
-def _ci(v: np.ndarray) -> float:
-    v = v[np.isfinite(v)]
-    if v.size < 2:
-        return float("nan")
-    return float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size))
+def _fmt_values(v, digits: int) -> str:
+    """mean ± 95% CI half-width of ``v`` (`mean_ci`, the figures' statistic)."""
+    return _fmt(*mean_ci(v), digits)
 
 
 def _fmt(mean: float, ci: float, digits: int) -> str:
@@ -38,11 +35,6 @@ def _fmt(mean: float, ci: float, digits: int) -> str:
     if not np.isfinite(ci) or ci <= 1e-9 * max(1.0, abs(mean)):  # identical over runs
         return f"{mean:.{digits}f}"
     return f"{mean:.{digits}f} ± {ci:.{digits}f}"
-
-
-def _order(methods) -> list[str]:
-    methods = list(dict.fromkeys(methods))
-    return [m for m in methods if m not in BASELINES] + [m for m in BASELINES if m in methods]
 
 
 def _marks(df: pd.DataFrame, by: list[str]) -> tuple[dict, list[str]]:
@@ -86,21 +78,21 @@ def manipulator(d: Path) -> str:
                               ("limit_error_binding_deg", "deg", 1), ("limit_error_free_deg", "deg", 1)):
         sub = df[df.metric == metric]
         rows = []
-        for m in _order(sub.method):
+        for m in method_order(sub.method):
             cells = []
             for k in show:
                 v = sub[(sub.method == m) & (sub.n_tasks == k)].value.to_numpy(float)
-                cells.append(_fmt(v.mean(), _ci(v), dig))
+                cells.append(_fmt_values(v, dig))
             rows.append([m + marks.get(m, "")] + cells)
         parts.append(f"**{metric}** [{unit}], mean ± 95% CI over {df.run.nunique()} runs, by observed tasks:\n\n"
                      + _table(["method"] + [str(k) for k in show], rows))
     last = df[df.n_tasks == max(ks)]
     rows = []
-    for m in _order(last.method):
+    for m in method_order(last.method):
         r = [m + marks.get(m, "")]
         for metric in ("eq2_cartesian", "eq2_joint", "reference_cartesian", "reference_joint"):
             v = last[(last.method == m) & (last.metric == metric)].value.to_numpy(float)
-            r.append(_fmt(v.mean(), _ci(v), 3))
+            r.append(_fmt_values(v, 3))
         rows.append(r)
     parts.append(f"The paper's Eq. 2 and the authors' code's metric after {max(ks)} tasks (summed over the test goals):\n\n"
                  + _table(["method", "eq2_cartesian [m]", "eq2_joint [rad]", "reference_cartesian [m]",
@@ -119,11 +111,11 @@ def hrc(d: Path) -> str:
     last = df[df.n_tasks == df.n_tasks.max()]
     rows = []
     for prior in last.prior.unique():
-        for m in _order(last[last.prior == prior].method):
+        for m in method_order(last[last.prior == prior].method):
             r = [prior, m + marks.get(m, "")]
             for metric, dig in (("precision", 3), ("recall", 3), ("f1", 3), ("limit_error_free_deg", 1)):
                 v = last[(last.prior == prior) & (last.method == m) & (last.metric == metric)].value.to_numpy(float)
-                r.append(_fmt(v.mean(), _ci(v), dig) if v.size else "–")
+                r.append(_fmt_values(v, dig) if v.size else "–")
             rows.append(r)
     out = (f"After {df.n_tasks.max()} tasks, mean ± 95% CI over {df.run.nunique()} runs:\n\n"
            + _table(["prior", "method", "precision", "recall", "F1", "free-limit error [deg]"], rows))
@@ -144,13 +136,13 @@ def compare(d: Path) -> str:
                ("wall_time", "wall time [s]", 2)]
     metrics = [m for m in metrics if m[0] in set(last.metric)]
     rows = []
-    for m in _order(last.method):
+    for m in method_order(last.method):
         for b in sorted(last[last.method == m].budget.unique()):
             sub = last[(last.method == m) & (last.budget == b)]
             r = [m + marks.get((m, b), ""), str(b)]
             for metric, _, dig in metrics:
                 v = sub[sub.metric == metric].value.to_numpy(float)
-                r.append(_fmt(v.mean(), _ci(v), dig) if v.size else "–")
+                r.append(_fmt_values(v, dig) if v.size else "–")
             rows.append(r)
     out = (f"After {df.n_tasks.max()} observed tasks, mean ± 95% CI over {df.seed.nunique()} seeds:\n\n"
            + _table(["method", "budget"] + [m[1] for m in metrics], rows))
