@@ -70,6 +70,7 @@ from camo_sbi.diagnostics.calibration import (
     sbc_uniformity,
 )
 from camo_sbi.experiments.compare import run_in_processes
+from camo_sbi.experiments.method_configs import parse_configs
 from camo_sbi.experiments.models import add_model_arguments, model_from_args
 from camo_sbi.experiments.plots import save_figure
 from camo_sbi.experiments.rundir import RunDirectory, run_settings
@@ -115,33 +116,6 @@ def _parse_methods(text: str) -> list[str]:
     if len(set(items)) != len(items):
         raise ValueError(f"--methods: duplicate method in {items}")
     return items
-
-
-def parse_configs(entries, methods: list[str]) -> dict[str, dict]:
-    """``--config METHOD=JSON`` (repeatable) -> {method: overrides}, validated against the config class."""
-    from camo_sbi.inference.registry import make_config
-
-    out: dict[str, dict] = {}
-    for entry in entries or []:
-        name, sep, text = str(entry).partition("=")
-        name = name.strip()
-        if not sep:
-            raise ValueError(f"--config: expected METHOD=JSON, got {entry!r}")
-        if name not in methods:
-            raise ValueError(f"--config: method {name!r} is not in --methods ({', '.join(methods)})")
-        try:
-            cfg = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"--config: {name}: invalid JSON ({exc})") from exc
-        if not isinstance(cfg, dict):
-            raise ValueError(f"--config: {name}: expected a JSON object, got {text!r}")
-        out[name] = {**out.get(name, {}), **cfg}
-    for name, cfg in out.items():
-        try:
-            make_config(name, dict(cfg))
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"--config: {name}: {exc}") from exc
-    return out
 
 
 def method_config(method: str, budget: int, overrides: dict | None = None) -> dict:

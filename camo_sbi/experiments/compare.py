@@ -80,6 +80,7 @@ def cell_specs(args) -> list[dict]:
     if amortized and amortized_path is None:
         raise ValueError("--amortized: npe-amortized needs an estimator file (main() trains one when none is given)")
     amortized_path = None if amortized_path is None else str(amortized_path)
+    overrides = method_overrides(args, methods)
     specs = []
     for subject in subjects:
         for method in methods:
@@ -90,10 +91,19 @@ def cell_specs(args) -> list[dict]:
                             "space": args.space, "base_seed": args.seed}
                     if method in amortized:
                         spec["estimator"] = amortized_path
+                    if method in overrides:  # only then part of the key: runs without --config keep theirs
+                        spec["config"] = json.dumps(overrides[method], sort_keys=True)
                     spec["key"] = cell_key({**spec, **model_key})
                     spec["model"] = model  # a picklable ModelSpec: workers rebuild the simulator from it
                     specs.append(spec)
     return specs
+
+
+def method_overrides(args, methods: list[str]) -> dict[str, dict]:
+    """``--config METHOD=JSON`` entries -> {method: overrides} (validated by `method_configs.parse_configs`)."""
+    from camo_sbi.experiments.method_configs import parse_configs
+
+    return parse_configs(getattr(args, "config", None), methods)
 
 
 def method_config(method: str, space: str, workdir: Path, estimator: str | None = None) -> dict:
@@ -138,8 +148,9 @@ def run_cell(spec: dict, out: str) -> str:
     workdir = out / "work" / spec["key"]
     results = run_method_sequence(spec["method"], task, budget=spec["budget"],
                                   seed=derive_seed(spec["base_seed"], spec["seed"], 7),
-                                  config=method_config(spec["method"], spec["space"], workdir,
-                                                       spec.get("estimator")))
+                                  config={**method_config(spec["method"], spec["space"], workdir,
+                                                          spec.get("estimator")),
+                                          **json.loads(spec.get("config", "{}"))})
     rows = []
     base = {k: spec[k] for k in ("task", "subject", "method", "budget", "seed")}
     for res in results:
@@ -283,6 +294,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "under OUT/work/amortized once, before the cells, and reuse it")
     p.add_argument("--amortize-simulations", type=int, default=200_000,
                    help="training simulations when compare trains the amortized estimator itself")
+    p.add_argument("--config", action="append", default=[], metavar="METHOD=JSON",
+                   help='per-method config overrides, e.g. --config \'npe-amortized={"combine": "smc"}\' '
+                        '(repeatable)')
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--out", type=Path, default=Path("runs/compare"))
@@ -300,7 +314,10 @@ def main(args) -> int:
     except ValueError as exc:
         raise ValueError(f"--{exc}") from exc
     out = Path(args.out)
-    settings = run_settings(args, methods=_parse_list(args.methods, "methods"),
+    overrides = method_overrides(args, grid_methods(args.methods))
+    # without --config the settings are those of runs made before the flag existed
+    settings = run_settings(args, ignore=() if overrides else ("config",), **({"config": overrides} if overrides else {}),
+                            methods=_parse_list(args.methods, "methods"),
                             budgets=_parse_list(args.budgets, "budgets", int),
                             subjects=list(dict.fromkeys(s["subject"] for s in specs)),
                             model=_model_setting(specs[0]["model"]) if specs else None)

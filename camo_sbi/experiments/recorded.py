@@ -306,8 +306,8 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
 
 def infer_main(args) -> int:
     from camo_sbi.diagnostics.arviz_io import save_netcdf, to_inference_data
-    from camo_sbi.experiments.calibrate import parse_configs
     from camo_sbi.experiments.compare import grid_methods
+    from camo_sbi.experiments.method_configs import parse_configs
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import load_goals, load_recordings, save_recordings
     from camo_sbi.task import Observation, predict
