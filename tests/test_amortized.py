@@ -220,22 +220,36 @@ def test_degenerate_importance_weights_set_a_fallback_status(paths, task):
     assert res.weights is not None and res.extras["sampler"] == "is" and res.extras["ess"] > 0
 
 
+def test_smc_on_request_and_an_unfinished_tempering_is_a_fallback(paths, task):
+    res = _run(task, paths["per-reach"], combine="smc")
+    assert res.extras["sampler"] == "smc" and res.status == "ok" and res.extras["stages"] >= 1
+    assert res.weights is not None and res.weights.shape == (AmortizedConfig().smc_particles,)
+    assert res.extras["ess"] >= AmortizedConfig().smc_target_ess * AmortizedConfig().smc_particles
+    with pytest.warns(RuntimeWarning, match="fallback: SMC combining 3 reaches did not reach the posterior"):
+        cut = _run(task, paths["per-reach"], combine="smc", smc_max_stages=1, smc_target_ess=0.99)
+    assert cut.status.startswith("fallback: SMC") and cut.extras["stages"] == 1
+
+
 def test_mcmc_is_the_default_and_a_stuck_sampler_is_a_fallback(paths, task):
     res = _run(task, paths["per-reach"])
     assert res.weights is None and res.extras["sampler"] == "mcmc" and res.status == "ok"
     assert 0.01 <= res.extras["acceptance"] <= 1 and res.extras["steps"] == AmortizedConfig().mcmc_steps
     with pytest.warns(RuntimeWarning, match="fallback: MCMC combining 3 reaches barely moved"):
-        stuck = _run(task, paths["per-reach"], min_acceptance=1.0)
+        stuck = _run(task, paths["per-reach"], combine="mcmc", min_acceptance=1.0)
     assert stuck.status.startswith("fallback: MCMC")
 
 
 def test_combine_is_checked():
     with pytest.raises(ValueError, match="^combine:"):
-        AmortizedConfig(combine="smc")
+        AmortizedConfig(combine="gibbs")
     with pytest.raises(ValueError, match="^mcmc_burn_in:"):
         AmortizedConfig(mcmc_steps=10, mcmc_burn_in=10)
     with pytest.raises(ValueError, match="^mcmc_de_fraction:"):
         AmortizedConfig(mcmc_de_fraction=1.5)
+    for field, bad in [("smc_particles", 4), ("smc_moves", 0), ("smc_target_ess", 1.0), ("smc_base", "prior"),
+                       ("smc_independent_fraction", 1.5), ("smc_max_stages", 0), ("smc_inflate", 0.0)]:
+        with pytest.raises(ValueError, match=f"^{field}:"):
+            AmortizedConfig(**{field: bad})
 
 
 class _GaussianFlow(torch.nn.Module):
@@ -255,31 +269,77 @@ class _GaussianFlow(torch.nn.Module):
         return self._dist(condition).sample(torch.Size(sample_shape)).float()
 
 
-def _gaussian_product(seed_means: int = 0):
-    """Three reaches, d = 3: the target prod_i N(z; m_i, S) / p_z(z)^2 (p_z standard logistic)."""
+def _gaussian_product(seed_means: int = 0, transform: str = "logit"):
+    """Three reaches, d = 3: the target prod_i N(z; m_i, S) / p_z(z)^2 (p_z: the prior in z,
+    standard logistic for "logit"; for "none" uniform on the box [-1, 1]^3, whose edges cut the product)."""
     sd = torch.tensor([0.3, 0.5, 0.2], dtype=torch.float64)
     means = torch.tensor([[0.2, -0.4, 1.0], [0.4, -0.1, 0.9], [0.0, -0.3, 1.2]], dtype=torch.float64)
     flow = _GaussianFlow(sd)
-    post = npe.NpePosterior([flow] * 3, list(means), torch.full((3,), -1.0), torch.full((3,), 1.0))
+    post = npe.NpePosterior([flow] * 3, list(means), torch.full((3,), -1.0), torch.full((3,), 1.0),
+                            theta_transform=transform)
     return post, means, sd
 
 
-def test_mcmc_recovers_a_known_product_posterior():
-    """The exact target on a fine 1-D grid per coordinate (it factorises), against 128 chains."""
-    post, means, sd = _gaussian_product()
-    draws = post.sample_mcmc(20000, 3, chains=128, steps=400, burn_in=100)
-    assert draws.weights.shape == (draws.theta.shape[0],) and 0.1 < draws.acceptance < 0.9
+def _prior_z(grid, transform):
+    if transform == "none":
+        return torch.where(grid.abs() <= 1, 0.0, -math.inf)
+    return torch.nn.functional.logsigmoid(grid) + torch.nn.functional.logsigmoid(-grid)
+
+
+@pytest.mark.parametrize("sampler, transform", [("mcmc", "logit"), ("smc", "logit"), ("smc", "none")])
+def test_samplers_recover_a_known_product_posterior(sampler, transform):
+    """The exact target on a fine 1-D grid per coordinate (it factorises), against each sampler:
+    MCMC with 128 chains x 300 kept sweeps; SMC with 4096 weighted particles (ESS >= 2048)."""
+    post, means, sd = _gaussian_product(transform=transform)
+    if sampler == "mcmc":
+        draws = post.sample_mcmc(20000, 3, chains=128, steps=400, burn_in=100)
+        assert draws.weights.shape == (draws.theta.shape[0],) and 0.1 < draws.acceptance < 0.9
+    else:
+        draws = post.sample_smc(3, particles=4096)
+        assert draws.reached and draws.ess >= 0.5 * 4096 and len(draws.betas) > 2  # it had to temper
     z = post.to_unconstrained(torch.from_numpy(draws.theta))
+    w_draws = torch.from_numpy(draws.weights)
     grid = torch.linspace(-6, 6, 24001, dtype=torch.float64)[:, None]
     for j in range(3):
         lq = sum(torch.distributions.Normal(means[i, j], sd[j]).log_prob(grid[:, 0]) for i in range(3))
-        lp = (torch.nn.functional.logsigmoid(grid[:, 0]) + torch.nn.functional.logsigmoid(-grid[:, 0]))
-        w = torch.softmax(lq - 2 * lp, 0)
+        lp = _prior_z(grid[:, 0], transform)  # -inf outside the box for "none": the target is 0 there
+        w = torch.softmax(torch.where(torch.isfinite(lp), lq - 2 * lp, -math.inf), 0)
         mu = float(w @ grid[:, 0])
         s = float((w @ (grid[:, 0] - mu) ** 2).sqrt())
-        # Monte Carlo error: ~19 000 correlated draws, effective ~1 000+: sd / 30; tolerance 0.1 sd
-        assert abs(float(z[:, j].mean()) - mu) < 0.1 * s, (j, float(z[:, j].mean()), mu, s)
-        assert abs(float(z[:, j].std()) / s - 1) < 0.1, (j, float(z[:, j].std()), s)
+        m_hat = float(w_draws @ z[:, j])
+        s_hat = float((w_draws @ (z[:, j] - m_hat) ** 2).sqrt())
+        # Monte Carlo error: effective sample ~1 000+ (MCMC) / >= 2048 (SMC): sd / 30; tolerance 0.1 sd
+        assert abs(m_hat - mu) < 0.1 * s, (j, m_hat, mu, s)
+        assert abs(s_hat / s - 1) < 0.1, (j, s_hat, s)
+
+
+def test_smc_is_deterministic_and_checks_its_arguments():
+    post, _, _ = _gaussian_product()
+    torch.manual_seed(0)
+    before = torch.random.get_rng_state()
+    a = post.sample_smc(1, particles=64)
+    assert torch.equal(torch.random.get_rng_state(), before)
+    b = post.sample_smc(1, particles=64)
+    np.testing.assert_array_equal(a.theta, b.theta)
+    np.testing.assert_array_equal(a.weights, b.weights)
+    assert not np.array_equal(a.theta, post.sample_smc(2, particles=64).theta)
+    assert a.theta.shape == (64, 3) and abs(a.weights.sum() - 1) < 1e-9
+    for kwargs, needle in [({"particles": 4}, "particles"), ({"target_ess": 1.0}, "target_ess"),
+                           ({"base": "prior"}, "base"), ({"independent_fraction": 2.0}, "independent_fraction")]:
+        with pytest.raises(ValueError, match=f"^{needle}:"):
+            post.sample_smc(1, **kwargs)
+
+
+def test_logit_coordinates_round_trip_with_the_jacobian_of_the_prior():
+    """z = logit(u): the uniform box prior is a standard logistic in z, and the Jacobian is exact."""
+    lo, w = torch.tensor([-1.0, 0.5]), torch.tensor([2.0, 1.5])
+    theta = lo + w * torch.rand(1000, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    z = npe.to_unconstrained(theta, lo, w, "logit")
+    back, logdet = npe.from_unconstrained(z, lo, w, "logit")
+    torch.testing.assert_close(back, theta.double(), rtol=0, atol=1e-9)
+    prior_z = (torch.nn.functional.logsigmoid(z) + torch.nn.functional.logsigmoid(-z)).sum(-1)
+    # uniform density 1/prod(w) in theta = logistic(z) / |d theta / d z|
+    torch.testing.assert_close(prior_z - logdet, torch.full((1000,), -float(torch.log(w).sum()), dtype=torch.float64))
 
 
 def test_mcmc_is_deterministic_given_its_seed_and_leaves_the_global_rng_alone():
@@ -433,6 +493,23 @@ def test_amortize_then_compare_with_the_file(tmp_path):
     camo = cost[cost["method"] == "camo"].iloc[0]
     assert camo["simulations_per_person"] == 40 and camo["training_simulations"] == 300
     assert camo["break_even_persons_simulations"] == math.ceil(300 / 40)
+    # --config reaches the method: the SMC sampler gives other estimates than the default MCMC
+    smc = tmp_path / "c2"
+    args = ["compare", "--methods", "npe-amortized", "--budgets", "20", "--seeds", "1", "--tasks", "2",
+            "--test-goals", "2", "--amortized", str(clean), "--no-report"]
+    assert main([*args, "--config", 'npe-amortized={"combine": "smc"}', "--out", str(smc)]) == 0
+    ds = pd.read_csv(smc / "results.csv")
+    err = "cartesian_error_mm"
+    a = am[am["metric"] == err].sort_values("n_tasks")["value"].to_numpy()
+    b = ds[(ds["method"] == "npe-amortized") & (ds["metric"] == err)].sort_values("n_tasks")["value"].to_numpy()
+    assert a.shape == b.shape == (2,) and not np.allclose(a, b)
+    # a folder never mixes settings: the same folder without the override is refused
+    with pytest.raises(SystemExit) as exc:
+        main([*args, "--out", str(smc)])
+    assert exc.value.code == 2
+    with pytest.raises(SystemExit) as exc:
+        main([*args, "--config", 'npe-amortized={"combine": "gibbs"}', "--out", str(tmp_path / "c3")])
+    assert exc.value.code == 2
 
 
 def test_compare_trains_the_estimator_once_and_reuses_it(tmp_path, capsys):
@@ -465,3 +542,39 @@ def test_a_file_from_before_a_controller_setting_existed_counts_it_at_its_defaul
     assert _fingerprint_differences(old, other) == ["controller"]
     other = model_fingerprint(sim.with_config(early_stop=False))
     assert _fingerprint_differences(old, other) == ["controller"]
+
+
+def _balance_gap(flow, z, x, prior):
+    with torch.no_grad():
+        d_joint = -flow.loss(z, condition=x) - prior(z)
+        shuffled = z[torch.randperm(z.shape[0], generator=torch.Generator().manual_seed(1))]
+        d_marg = -flow.loss(shuffled, condition=x) - prior(shuffled)
+        return float(torch.sigmoid(d_joint).mean() + torch.sigmoid(d_marg).mean() - 1.0)
+
+
+def test_balanced_training_shrinks_the_balance_gap():
+    """Balanced NPE's penalty drives E_joint[s(d)] + E_marg[s(d)] toward 1 on held-out pairs.
+
+    Toy: z ~ N(0, I_2) (prior), x = z + N(0, 0.3^2) (informative). Plain maximum likelihood on
+    few pairs leaves a gap away from 0; with the penalty (weight 100) the gap must be at least
+    halved in magnitude. Both runs use the same seed and pairs."""
+    from camo_sbi.inference import sbi_adapter
+
+    gen = torch.Generator().manual_seed(0)
+    z = torch.randn(600, 2, generator=gen)
+    x = z + 0.3 * torch.randn(600, 2, generator=gen)
+    zt = torch.randn(4000, 2, generator=gen)
+    xt = zt + 0.3 * torch.randn(4000, 2, generator=gen)
+    prior = lambda v: torch.distributions.Normal(0.0, 1.0).log_prob(v).sum(-1)  # noqa: E731
+    gaps = {}
+    for lam in (0.0, 100.0):
+        flow = sbi_adapter.build_flow("maf", 2, 2, hidden_features=32, num_transforms=2, seed=3)
+        sbi_adapter.fit_density_estimator(flow, z, x, seed=4, batch_size=64, max_epochs=25, stop_after_epochs=25,
+                                          balance=lam, prior_log_prob=prior)
+        gaps[lam] = _balance_gap(flow, zt, xt, prior)
+    # measured: plain -0.042, balanced -0.009
+    assert abs(gaps[100.0]) < 0.5 * abs(gaps[0.0]), gaps
+    with pytest.raises(TypeError, match="^prior_log_prob:"):
+        sbi_adapter.fit_density_estimator(flow, z, x, seed=4, balance=1.0)
+    with pytest.raises(ValueError, match="^balance:"):
+        TrainConfig(balance=-1.0)

@@ -36,22 +36,43 @@ paid once) is trained by maximum likelihood in the logit coordinates z of the pr
 p(theta | x_1..N) ∝ p(theta)^(1-N) ∏_i q(theta | x_i) (sbi's i.i.d. NPE rule, exact when q
 is the exact per-reach posterior), held by `npe.NpePosterior` (the same flow with N
 conditions; its log target in the logit coordinates z, with the prior pushed to z as
-standard logistic densities, serves both samplers). ``combine="mcmc"`` (default):
+standard logistic densities, serves every sampler). ``combine="mcmc"`` (default):
 `npe.NpePosterior.sample_mcmc`, a population MCMC in z: 128 chains started from a Gaussian
 approximation of the product, 300 sweeps (150 of adaptation, discarded), each half of the
 population moved by random-walk Metropolis with the other half's covariance (or a
 differential-evolution move), one batched flow call over half the chains x N reaches per
 half-sweep; equally weighted draws (``weights`` None). An acceptance rate below
 ``min_acceptance`` or more than half of the chains never moving sets ``status =
-"fallback: ..."``. ``combine="is"``: the importance sampler of per-task NPE
-(`npe.NpePosterior.sample`); an effective sample size below ``min_ess`` sets the fallback
-status (both warned about by the registry). Why MCMC (Panda, 5 reaches, the 200k-simulation
-estimator): the importance weights were degenerate (ESS 1-27 of 10 000), so IS draws were a
-handful of points: over-confident (calibration mean |coverage - alpha| 0.183 over 50
-subjects) and slow (~6 s per person). The target itself is hard for a random walk: the
-adapted step is 0.03-0.15 of the population's spread (a rugged product of flows), so 300
-sweeps do not mix fully and the draws stay somewhat under-confident (calibration 0.047
-with 300 sweeps, 0.079 with 100; see `AmortizedConfig` for the measured numbers).
+"fallback: ..."``. ``combine="smc"``: `npe.NpePosterior.sample_smc`, tempered SMC from the
+mixture of the N flows to the product (512 weighted particles, 2 Metropolis moves per
+stage); a run that does not reach the product within its stage limit is a fallback.
+``combine="is"``: the importance sampler of per-task NPE (`npe.NpePosterior.sample`); an
+effective sample size below ``min_ess`` sets the fallback status (every fallback is warned
+about by the registry).
+
+What was measured (Panda, 5 reaches, the 200k-simulation estimator, 50 subjects of
+``camo-sbi calibrate``): no sampler converges on this target within seconds, and the
+numbers must be read with that in mind.
+
+- IS: degenerate weights (ESS 1-27 of 10 000), over-confident (mean |coverage - alpha|
+  0.183), ~6 s per person.
+- MCMC (default): 0.047 (under-confident), ~5 s per person. Its draws are NOT converged:
+  on the subjects checked, their mean log density was 100+ nats below that of the SMC
+  particles (a 14-D typical set lies ~7 nats below its mode), so their width is the
+  start's, not the posterior's. The chains stay far from the typical set even after 3000
+  sweeps; the 0.047 says the draws are wide, not that the product is calibrated.
+- SMC: 0.285 (over-confident) at ~0.6 s per person; with more moves per stage the
+  particles spread and climb in density, and the calibration moves toward ~0.2 (3 moves
+  0.266, 40 moves 0.229 at ~15 s). So the exact i.i.d. product of this flow is itself
+  over-confident on 5 reaches, by roughly 0.2: the per-reach flow's small systematic
+  errors add up over the reaches (a single reach, sampled exactly from the flow: 0.036,
+  under-confident).
+
+Retraining for up to 100 epochs (early-stopped at 79; validation loss 15.5 vs 17.2) or with balanced NPE's penalty
+(``TrainConfig(balance=100)``, 16.8) left both numbers about unchanged (SMC 0.285 / 0.282,
+MCMC 0.058 / 0.079). The default stays MCMC because it is the conservative choice and had
+the lower Panda error (6.9 vs 23.4 mm); ``combine="smc"`` is the fast option (0.79 s mean,
+1.27 s max per Panda person; 1.6 s mean on the human), with over-confident draws.
 
 Why one module of ~900 lines: training, the file format and its fingerprint check, and
 inference are one estimator's life cycle; they share the metadata schema (a change to the
@@ -109,7 +130,7 @@ __all__ = [
 FORMAT = "camo_sbi.amortized/1"
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 FORMS = ("set", "per-reach")
-COMBINE = ("mcmc", "is")  # samplers of the per-reach form's product posterior
+COMBINE = ("mcmc", "is", "smc")  # samplers of the per-reach form's product posterior
 _START_TOL = 1e-6  # radians: an observed start this close to the estimator's counts as the same
 _BOX_TOL = 1e-9
 
@@ -146,6 +167,9 @@ class TrainConfig:
         simulation_batch_size: trajectories per ``simulate`` call.
         sim_dtype: "float32" or "float64" for the simulations.
         n_threads: torch intra-op threads while training (None: unchanged).
+        balance: > 0 adds balanced NPE's penalty (Delaunoy et al. 2023) with this weight to
+            the training loss (`sbi_adapter.fit_density_estimator`); 0 (default): plain
+            maximum likelihood.
     """
 
     simulations: int = 200_000
@@ -169,9 +193,11 @@ class TrainConfig:
     simulation_batch_size: int = 10_000
     sim_dtype: str = "float32"
     n_threads: int | None = 1
+    balance: float = 0.0
 
     def __post_init__(self):
         check_positive_int(self.simulations, "simulations", minimum=10)
+        check_positive_float(self.balance, "balance", allow_zero=True)
         check_choice(self.form, FORMS, "form")
         check_positive_int(self.max_set, "max_set", minimum=2)
         if self.form == "set" and self.simulations < 10 * self.max_set:
@@ -211,6 +237,7 @@ class TrainConfig:
         d = dict(d)
         d["noise"] = NoiseModel(**d["noise"])
         d["spaces"] = tuple(d["spaces"])
+        d.setdefault("balance", 0.0)  # files written before the setting existed
         return cls(**d)
 
 
@@ -224,19 +251,28 @@ class AmortizedConfig:
         space: the observation space read ("joint" or "cartesian"); the file must hold a flow
             for it.
         combine: how the per-reach form's product posterior is sampled: "mcmc" (default:
-            population MCMC, `npe.NpePosterior.sample_mcmc`, equally weighted draws) or "is"
-            (the importance sampler of `npe.NpePosterior.sample`, weighted draws). Measured on
-            the Panda (200k-simulation estimator, 5 reaches): IS had ESS 1-27 of 10 000 and
-            calibration mean |coverage - alpha| 0.183 (50 subjects); see the module docstring.
-        n_posterior_samples: draws returned (MCMC: at most this many, mcmc_chains per kept sweep).
+            population MCMC, `npe.NpePosterior.sample_mcmc`, equally weighted draws), "smc"
+            (tempered SMC, `npe.NpePosterior.sample_smc`, ``smc_particles`` weighted draws) or
+            "is" (the importance sampler of `npe.NpePosterior.sample`, weighted draws). None of
+            them converges on the Panda's 5-reach target within seconds; see the module
+            docstring for what was measured and why MCMC stays the default.
+        n_posterior_samples: draws returned by MCMC (at most this many, mcmc_chains per kept
+            sweep) and IS; SMC returns ``smc_particles``.
         is_rounds, defensive_fraction: the importance sampler (combine="is").
         mcmc_chains, mcmc_steps, mcmc_burn_in, mcmc_de_fraction: the population MCMC
             (combine="mcmc"): chains, sweeps, discarded adaptation sweeps, share of
             differential-evolution moves. Measured (Panda, `camo-sbi calibrate --subjects 50
             --tasks 5`, 2 loaded cores): 300 / 150 sweeps: mean |coverage - alpha| 0.047
             (under-confident), 5.5 s per subject; 100 / 50 sweeps: 0.079 (under-confident),
-            2.0 s. The chains are still contracting from their start at 300 sweeps: more
-            sweeps buy calibration at a linear cost in time.
+            2.0 s. The chains have not reached the target's typical set at 300 sweeps (see the
+            module docstring): the draws are wide because they are unconverged.
+        smc_particles, smc_moves, smc_target_ess, smc_inflate, smc_base,
+            smc_independent_fraction, smc_max_stages: the tempered SMC (combine="smc"):
+            particles; Metropolis moves per stage; the ESS share kept per stage; covariance
+            inflation of the Gaussian proposals; base "mixture" (the N flows) or "gaussian"
+            (the Gaussian product); share of independent Gaussian proposals among the moves;
+            stages before the fallback. Measured (same setting): 2 moves 0.285
+            (over-confident), ~0.6 s per person; 3 moves 0.266; 40 moves 0.229, ~15 s.
         min_acceptance: an MCMC acceptance rate below it (or more than half of the chains never
             moving after burn-in) sets ``status = "fallback: ..."``.
         point_estimate: "mean", "median" or "map" (`npe.point_estimate`).
@@ -255,6 +291,13 @@ class AmortizedConfig:
     mcmc_steps: int = 300
     mcmc_burn_in: int = 150
     mcmc_de_fraction: float = 0.2
+    smc_particles: int = 512
+    smc_moves: int = 2
+    smc_target_ess: float = 0.5
+    smc_inflate: float = 2.0
+    smc_base: str = "mixture"
+    smc_independent_fraction: float = 0.5
+    smc_max_stages: int = 50
     point_estimate: str = "mean"
     min_ess: float = 20.0
     min_acceptance: float = 0.01
@@ -275,6 +318,17 @@ class AmortizedConfig:
         if self.mcmc_de_fraction > 1:
             raise ValueError(f"mcmc_de_fraction: must be in [0, 1], got {self.mcmc_de_fraction}")
         check_positive_float(self.min_acceptance, "min_acceptance", allow_zero=True)
+        check_positive_int(self.smc_particles, "smc_particles", minimum=16)
+        check_positive_int(self.smc_moves, "smc_moves")
+        check_positive_float(self.smc_target_ess, "smc_target_ess")
+        if self.smc_target_ess >= 1:
+            raise ValueError(f"smc_target_ess: must be in (0, 1), got {self.smc_target_ess}")
+        check_positive_float(self.smc_inflate, "smc_inflate")
+        check_choice(self.smc_base, ("mixture", "gaussian"), "smc_base")
+        check_positive_float(self.smc_independent_fraction, "smc_independent_fraction", allow_zero=True)
+        if self.smc_independent_fraction > 1:
+            raise ValueError(f"smc_independent_fraction: must be in [0, 1], got {self.smc_independent_fraction}")
+        check_positive_int(self.smc_max_stages, "smc_max_stages")
         check_positive_int(self.is_rounds, "is_rounds", minimum=0)
         check_positive_float(self.defensive_fraction, "defensive_fraction")
         if self.defensive_fraction >= 1:
@@ -461,6 +515,11 @@ def _conditions(traj: torch.Tensor, lengths: torch.Tensor, goals: torch.Tensor, 
     return torch.cat([torch.as_tensor(goals, dtype=torch.float64).reshape(-1, 3), s], dim=1)
 
 
+def _logistic_log_prob(z: torch.Tensor) -> torch.Tensor:
+    """(B,) log density of the box prior in logit coordinates (standard logistic per coordinate)."""
+    return (nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
+
+
 def _seed(seed: int, *key: int) -> int:
     return int(np.random.SeedSequence(seed, spawn_key=key).generate_state(1, np.uint64)[0] >> np.uint64(1))
 
@@ -613,9 +672,7 @@ class AmortizedEstimator:
             torch.manual_seed(seed)
             z = flow.sample((n,), cond).reshape(n, -1)
             lp = flow.log_prob(z.unsqueeze(1), cond).reshape(-1).double()
-        z = z.double()
-        free = lo + w * torch.sigmoid(z)
-        logdet = (torch.log(w) + nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
+        free, logdet = npe.from_unconstrained(z, lo, w, "logit")
         theta = self.low.repeat(n, 1)
         theta[:, self.free_mask] = free
         return theta, lp - logdet
@@ -624,7 +681,8 @@ class AmortizedEstimator:
         """The combined posterior of the reaches (`npe.NpePosterior`, the same flow N times)."""
         x = self.conditions(observations, space)
         flow = self.flows[space]
-        return npe.NpePosterior([flow] * x.shape[0], list(x), self.low, self.high, theta_transform="logit",
+        return npe.NpePosterior([flow] * x.shape[0], list(x), self.low, self.high,
+                                theta_transform="logit",
                                 n_threads=n_threads, info={"estimator": self.path, "space": space})
 
     def single_reach_posterior(self, space: str, *, chunk: int = 256) -> _SingleReach:
@@ -676,7 +734,8 @@ class _SingleReach:
         out = []
         for s in range(0, x.shape[0], self._chunk):
             z = self._flow.sample((n,), x[s : s + self._chunk]).to(torch.float64)
-            out.append(self._lo + self._w * torch.sigmoid(z))
+            out.append(npe.from_unconstrained(z.reshape(-1, z.shape[-1]), self._lo, self._w,
+                                              "logit")[0].reshape(z.shape))
         return torch.cat(out, dim=1).float()
 
 
@@ -726,7 +785,8 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
                 batch_size=max(2, config.training_batch_size // (config.max_set if config.form == "set" else 1)),
                 learning_rate=config.learning_rate, validation_fraction=config.validation_fraction,
                 stop_after_epochs=config.stop_after_epochs, max_epochs=config.max_epochs,
-                max_seconds=config.max_train_seconds, progress=progress, desc=f"training {space}")
+                max_seconds=config.max_train_seconds, progress=progress, desc=f"training {space}",
+                balance=config.balance, prior_log_prob=_logistic_log_prob)
         info.pop("training_loss")
         info["n_invalid"] = int((~finite).sum())
         flows[space] = flow
@@ -835,6 +895,12 @@ def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig |
             draws = posterior.sample_mcmc(config.n_posterior_samples, _seed(seed, 5) % (2**32),
                                           chains=config.mcmc_chains, steps=config.mcmc_steps,
                                           burn_in=config.mcmc_burn_in, de_fraction=config.mcmc_de_fraction)
+        elif config.combine == "smc":
+            draws = posterior.sample_smc(_seed(seed, 5) % (2**32), particles=config.smc_particles,
+                                         moves=config.smc_moves, target_ess=config.smc_target_ess,
+                                         inflate=config.smc_inflate, base=config.smc_base,
+                                         independent_fraction=config.smc_independent_fraction,
+                                         max_stages=config.smc_max_stages)
         else:
             draws = posterior.sample(config.n_posterior_samples, _seed(seed, 5) % (2**32),
                                      is_rounds=config.is_rounds, defensive_fraction=config.defensive_fraction)
@@ -854,6 +920,13 @@ def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig |
             status = (f"fallback: MCMC combining {len(observations)} reaches barely moved (acceptance "
                       f"{draws.acceptance:.4f}, min_acceptance {config.min_acceptance:g}; "
                       f"{draws.stuck_fraction:.0%} of {draws.chains} chains never moved after burn-in)")
+    elif config.combine == "smc":
+        extras.update(sampler="smc", ess=draws.ess, stages=len(draws.betas) - 1, acceptance=draws.acceptance,
+                      particles=draws.particles, flow_calls=draws.flow_calls)
+        weights = draws.weights
+        if not draws.reached or not draws.ess >= config.min_ess:
+            status = (f"fallback: SMC combining {len(observations)} reaches did not reach the posterior "
+                      f"({len(draws.betas) - 1} stages, final ESS {draws.ess:.1f} of {draws.particles})")
     else:
         extras.update(sampler="is", ess=draws.ess, ess_rounds=draws.ess_rounds)
         weights = draws.weights

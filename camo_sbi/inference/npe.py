@@ -44,8 +44,10 @@ Design (same simulation design as CAMO, so budgets are equal):
 Continual use: task i's simulations and training are seeded by (seed, i) only, so
 `run_sequence` trains each task once and its k-th result equals `run` on the first k tasks.
 
-`NpePosterior` holds the trained flows and observed summaries: ``log_prob``, ``sample``,
-``save``; `load_posterior` reloads it without retraining.
+`NpePosterior` holds the trained flows and observed summaries: ``log_prob``, ``sample``
+(importance sampling, the per-task default), ``sample_mcmc`` (population MCMC) and
+``sample_smc`` (tempered SMC; both used by `amortized`), ``save``; `load_posterior` reloads
+it without retraining.
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ from camo_sbi.task import NoiseModel, contain
 __all__ = [
     "ImportanceSample",
     "McmcSample",
+    "SmcSample",
     "check_training_settings",
     "NpeConfig",
     "NpePosterior",
@@ -86,6 +89,7 @@ __all__ = [
     "point_estimate",
     "run",
     "run_sequence",
+    "from_unconstrained",
     "summarize",
     "to_unconstrained",
     "torch_threads",
@@ -259,6 +263,17 @@ def to_unconstrained(theta_free: torch.Tensor, lo: torch.Tensor, width: torch.Te
     return torch.logit(((theta_free - lo) / width).clamp(_U_EPS, 1 - _U_EPS))
 
 
+def from_unconstrained(z: torch.Tensor, lo: torch.Tensor, width: torch.Tensor,
+                       transform: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverse of `to_unconstrained`: z (N, d) -> (free coordinates (N, d), log |d theta / d z| (N,))."""
+    z = z.to(torch.float64)
+    if transform == "none":
+        return z, torch.zeros(z.shape[0], dtype=torch.float64)
+    theta = lo + width * torch.sigmoid(z)
+    logdet = (torch.log(width) + nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
+    return theta, logdet
+
+
 @contextlib.contextmanager
 def torch_threads(n: int | None):
     """torch's intra-op thread count set to ``n`` for the block (None: unchanged)."""
@@ -314,6 +329,28 @@ class McmcSample:
     step_scale: float
 
 
+@dataclass(frozen=True)
+class SmcSample:
+    """Weighted draws from `NpePosterior.sample_smc`.
+
+    theta: (N, 2n) float64; weights: (N,) normalised; log_prob: (N,) combined log density
+    (theta coordinates, unnormalised); ess: effective sample size of the weights; betas: the
+    tempering schedule (0 ... 1); reached: whether b = 1 was reached within the stage limit
+    with the target ESS; acceptance: mean Metropolis acceptance over the moves; particles;
+    flow_calls: batched flow evaluations (each particles x k rows).
+    """
+
+    theta: np.ndarray
+    weights: np.ndarray
+    log_prob: np.ndarray
+    ess: float
+    betas: list[float]
+    reached: bool
+    acceptance: float
+    particles: int
+    flow_calls: int
+
+
 class NpePosterior:
     """p(theta | x_1..k) ∝ p(theta)^(1-k) ∏_i q_i(theta | x_i) from per-task flows.
 
@@ -363,12 +400,7 @@ class NpePosterior:
 
     def from_unconstrained(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """z (N, n_free) -> (free coordinates (N, n_free), log |d theta / d z| (N,))."""
-        z = z.to(torch.float64)
-        if self.theta_transform == "none":
-            return z, torch.zeros(z.shape[0], dtype=torch.float64)
-        theta = self._lo + self._w * torch.sigmoid(z)
-        logdet = (torch.log(self._w) + nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
-        return theta, logdet
+        return from_unconstrained(z, self._lo, self._w, self.theta_transform)
 
     def _prior_log_prob_z(self, z: torch.Tensor) -> torch.Tensor:
         if self.theta_transform == "none":
@@ -625,6 +657,133 @@ class NpePosterior:
         return McmcSample(theta.numpy(), np.full(m, 1.0 / m), (lts - logdet).numpy(),
                           acceptance=accepted / max(proposed, 1), stuck_fraction=float((~moved).double().mean()),
                           chains=chains, steps=steps, burn_in=burn_in, step_scale=math.exp(log_s))
+
+    @torch.no_grad()
+    def sample_smc(self, seed: int, *, particles: int = 512, base: str = "mixture", init_draws: int = 512,
+                   inflate: float = 2.0, target_ess: float = 0.5, moves: int = 3, independent_fraction: float = 0.5,
+                   max_stages: int = 50, target_acceptance: float = 0.3) -> SmcSample:
+        """Weighted draws of the combined posterior by tempered sequential Monte Carlo in z.
+
+        Base r: ``"mixture"`` (default), the equal mixture of the k flows, sampled exactly
+        (``particles`` stratified draws) and evaluated from the same k flow densities the
+        target needs (no extra flow call); or ``"gaussian"``, the Gaussian approximation of the
+        product (`_product_gaussian` of ``init_draws`` flow draws), covariance x ``inflate``.
+        Bridge: pi_b(z) ∝ r(z)^(1-b) t(z)^b, b from 0 to 1 (t: the target of `log_prob` in z,
+        `_log_target_z`). Each stage picks the next b by bisection so that the incremental
+        weights keep an effective sample size of ``target_ess`` x ``particles``; if b = 1 keeps
+        it, the run ends with those weighted particles. Otherwise the particles are resampled
+        (systematic) and take ``moves`` Metropolis-Hastings steps targeting pi_b; each particle
+        proposes, with probability ``independent_fraction``, an independent draw from a
+        Gaussian fitted to the weighted particles (covariance x ``inflate``), else a random-walk
+        step (covariance s^2 x the weighted particle covariance, s adapted toward
+        ``target_acceptance`` between moves). One batched flow call (particles x k
+        conditions) per move. If ``max_stages`` stages do not reach b = 1, the last stage jumps
+        to b = 1 and ``reached`` is False (the caller reports a fallback). Deterministic given
+        ``seed``; the global torch RNG is restored afterwards.
+        """
+        seed = check_positive_int(seed, "seed", minimum=0)
+        particles = check_positive_int(particles, "particles", minimum=16)
+        check_choice(base, ("mixture", "gaussian"), "base")
+        init_draws = check_positive_int(init_draws, "init_draws", minimum=2)
+        inflate = check_positive_float(inflate, "inflate")
+        target_ess = check_positive_float(target_ess, "target_ess")
+        if target_ess >= 1:
+            raise ValueError(f"target_ess: must be in (0, 1), got {target_ess}")
+        moves = check_positive_int(moves, "moves")
+        independent_fraction = check_positive_float(independent_fraction, "independent_fraction", allow_zero=True)
+        if independent_fraction > 1:
+            raise ValueError(f"independent_fraction: must be in [0, 1], got {independent_fraction}")
+        max_stages = check_positive_int(max_stages, "max_stages")
+        k, d = self.n_tasks, self.n_free
+        gen = torch.Generator().manual_seed(seed)
+        eye = torch.eye(d, dtype=torch.float64)
+        log_mix = torch.tensor([-math.log(k)] * k, dtype=torch.float64)[:, None]
+        n_evals = 0
+        with torch.random.fork_rng(devices=[]), torch_threads(self.n_threads):
+            torch.manual_seed(seed)
+            if base == "mixture":
+                gauss = None
+                z = self._sample_flows(self._mixture_counts(particles, k))
+            else:
+                counts = self._mixture_counts(max(init_draws, k * (d + 2)), k)
+                pool = self._sample_flows(counts)
+                product = self._product_gaussian(pool, counts) if k > 1 else None
+                if product is None:
+                    product = pool.mean(0), torch.cov(pool.T).reshape(d, d)
+                mu, cov = product
+                gauss = torch.distributions.MultivariateNormal(mu, scale_tril=_cholesky(inflate * cov))
+                z = mu + torch.randn(particles, d, generator=gen, dtype=torch.float64) @ gauss.scale_tril.T
+
+            def densities(zz):
+                lq = self.task_log_probs(zz)
+                lr = torch.logsumexp(lq + log_mix, dim=0) if gauss is None else gauss.log_prob(zz)
+                return lr, self._log_target_z(zz, lq)
+
+            log_r, lt = densities(z)
+            n_evals += 1
+            beta, betas, acc_rates, log_s = 0.0, [0.0], [], math.log(2.38 / math.sqrt(d))
+            log_w = torch.zeros(particles, dtype=torch.float64)
+            reached = False
+            for stage in range(max_stages):
+                delta = torch.nan_to_num(lt - log_r, nan=-math.inf, posinf=-math.inf)
+                delta = torch.where(torch.isfinite(log_r), delta, torch.full_like(delta, -math.inf))
+
+                def ess_at(b, log_w=log_w, beta=beta, delta=delta):
+                    w = torch.softmax(log_w + (b - beta) * delta, dim=0)
+                    return float(1.0 / (w**2).sum()) if bool(torch.isfinite(w).all()) else 0.0
+
+                if ess_at(1.0) >= target_ess * particles or stage == max_stages - 1:
+                    reached = ess_at(1.0) >= target_ess * particles
+                    log_w = log_w + (1.0 - beta) * delta
+                    beta = 1.0
+                    betas.append(beta)
+                    break
+                lo_b, hi_b = beta, 1.0
+                for _ in range(40):
+                    mid = 0.5 * (lo_b + hi_b)
+                    lo_b, hi_b = (mid, hi_b) if ess_at(mid) >= target_ess * particles else (lo_b, mid)
+                new_beta = max(lo_b, beta + 1e-6)
+                log_w = log_w + (new_beta - beta) * delta
+                beta = new_beta
+                betas.append(beta)
+                w = torch.softmax(log_w, dim=0)
+                mean = w @ z
+                zc = z - mean
+                pcov = (zc * w[:, None]).T @ zc + 1e-9 * eye
+                scale = _cholesky(pcov)
+                fit = torch.distributions.MultivariateNormal(mean, scale_tril=_cholesky(inflate * pcov))
+                u = (torch.arange(particles, dtype=torch.float64)
+                     + torch.rand(1, generator=gen, dtype=torch.float64)) / particles
+                idx = torch.searchsorted(torch.cumsum(w, 0), u).clamp_max(particles - 1)
+                z, log_r, lt = z[idx], log_r[idx], lt[idx]
+                log_w = torch.zeros(particles, dtype=torch.float64)
+                for _ in range(moves):
+                    indep = torch.rand(particles, generator=gen, dtype=torch.float64) < independent_fraction
+                    rw = z + math.exp(log_s) * torch.randn(particles, d, generator=gen, dtype=torch.float64) @ scale.T
+                    ind = mean + torch.randn(particles, d, generator=gen, dtype=torch.float64) @ fit.scale_tril.T
+                    prop = torch.where(indep[:, None], ind, rw)
+                    lr_p, lt_p = densities(prop)
+                    n_evals += 1
+                    cur = (1 - beta) * log_r + beta * lt
+                    new = (1 - beta) * lr_p + beta * lt_p
+                    # independence proposals: Hastings correction fit(z) / fit(z')
+                    corr = torch.where(indep, fit.log_prob(z) - fit.log_prob(prop), torch.zeros_like(cur))
+                    log_u = torch.log(torch.rand(particles, generator=gen, dtype=torch.float64))
+                    acc = torch.nan_to_num(new - cur + corr, nan=-math.inf) > log_u
+                    z = torch.where(acc[:, None], prop, z)
+                    log_r = torch.where(acc, lr_p, log_r)
+                    lt = torch.where(acc, lt_p, lt)
+                    acc_rates.append(float(acc.double().mean()))
+                    if bool((~indep).any()):
+                        log_s += float(acc[~indep].double().mean()) - target_acceptance
+        w = torch.softmax(log_w, dim=0)
+        ess = float(1.0 / (w**2).sum()) if bool(torch.isfinite(w).all()) else 0.0
+        theta_free, logdet = self.from_unconstrained(z)
+        theta = self.low.repeat(theta_free.shape[0], 1)
+        theta[:, self.free_mask] = theta_free
+        return SmcSample(theta.numpy(), w.numpy(), (lt - logdet).numpy(), ess=ess, betas=betas, reached=reached,
+                         acceptance=float(np.mean(acc_rates)) if acc_rates else float("nan"),
+                         particles=particles, flow_calls=n_evals)
 
     # persistence -------------------------------------------------------------------------
 

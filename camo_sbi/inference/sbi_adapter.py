@@ -138,13 +138,17 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
                           validation_fraction: float = 0.05, stop_after_epochs: int = 10,
                           max_epochs: int = 100, max_seconds: float | None = None,
                           clip_max_norm: float = 5.0, progress: bool = False,
-                          desc: str = "training") -> dict:
+                          desc: str = "training", balance: float = 0.0, prior_log_prob=None) -> dict:
     """Maximum-likelihood training of ``estimator`` on (input, condition) pairs, in place.
 
     Adam on ``estimator.loss`` (sbi's negative log-likelihood), gradient norms clipped at
     ``clip_max_norm``, a held-out ``validation_fraction`` for early stopping after
     ``stop_after_epochs`` epochs without improvement; the best validation state is restored.
-    ``max_seconds`` stops after the epoch that crosses it (None: no limit). Seeded: the split,
+    ``max_seconds`` stops after the epoch that crosses it (None: no limit). ``balance`` > 0 adds
+    the balancing penalty of balanced NPE (Delaunoy et al. 2023), balance x (E_joint[s(d)] +
+    E_marginal[s(d)] - 1)^2 with d = log q(input | condition) - ``prior_log_prob(input)``, s the
+    logistic sigmoid, marginal pairs made by shuffling the inputs within the batch; it pushes
+    the estimator toward conservative (not over-confident) posteriors. Seeded: the split,
     the batch order and any dropout come from ``seed`` inside ``fork_rng``. ``progress``: a tqdm
     bar over epochs.
 
@@ -165,6 +169,9 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
     max_epochs = check_positive_int(max_epochs, "max_epochs")
     if max_seconds is not None:
         check_positive_float(max_seconds, "max_seconds")
+    check_positive_float(balance, "balance", allow_zero=True)
+    if balance > 0 and not callable(prior_log_prob):
+        raise TypeError("prior_log_prob: balance > 0 needs a callable prior log density of the inputs")
     n = x.shape[0]
     n_val = max(1, int(round(validation_fraction * n)))
     if n - n_val < 2:
@@ -186,7 +193,14 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
             for s in range(0, order.shape[0], batch_size):
                 idx = order[s : s + batch_size]
                 opt.zero_grad()
-                loss = estimator.loss(x[idx], condition=c[idx]).mean()
+                nll = estimator.loss(x[idx], condition=c[idx])
+                loss = nll.mean()
+                if balance > 0:
+                    shuffled = x[idx][torch.randperm(idx.shape[0], generator=gen)]
+                    d_joint = -nll - prior_log_prob(x[idx])
+                    d_marg = -estimator.loss(shuffled, condition=c[idx]) - prior_log_prob(shuffled)
+                    gap = torch.sigmoid(d_joint).mean() + torch.sigmoid(d_marg).mean() - 1.0
+                    loss = loss + balance * gap**2
                 loss.backward()
                 nn.utils.clip_grad_norm_(estimator.parameters(), max_norm=clip_max_norm)
                 opt.step()
