@@ -1,11 +1,14 @@
 """Inference time of npe-amortized for one new person (5 reaches) vs per-task NPE, timed in the same run.
 
     python benchmarks/bench_amortized.py ESTIMATOR.pt [--model panda] [--repeats 5] [--npe-budget 500]
+        [--combine smc,mcmc]
 
-Prints the load average, the estimator's one-off load time, then per inference (mean over
-``--repeats`` persons): wall and CPU seconds, the simulations counted by the budget wrapper
-(0 for npe-amortized) and the effective sample size; the reference is per-task NPE on the
-same persons at ``--npe-budget`` simulations per reach; the ratio is reference / amortized.
+Prints the load average, the estimator's one-off load time, then per inference (mean and
+max over ``--repeats`` persons): wall and CPU seconds, the simulations counted by the budget
+wrapper (0 for npe-amortized) and the effective sample size, for each sampler of
+``--combine`` (the default SMC, and the population MCMC that was the default before); the
+reference is per-task NPE on the same persons at ``--npe-budget`` simulations per reach
+(``--npe-budget 0`` skips it); the ratios are reference / each sampler, and MCMC / SMC.
 """
 
 from __future__ import annotations
@@ -24,7 +27,9 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--npe-budget", type=int, default=500)
     p.add_argument("--tasks", type=int, default=5)
+    p.add_argument("--combine", default="smc,mcmc", help="npe-amortized samplers to time (comma-separated)")
     args = p.parse_args()
+    samplers = [c for c in args.combine.split(",") if c]
 
     from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
     from camo_sbi.inference.amortized import load_estimator
@@ -40,8 +45,11 @@ def main() -> None:
     tasks = [make_reaching_task(sim, subject_theta(sim, args.model, names[i % len(names)]), n_train=args.tasks,
                                 n_test=1, seed=i) for i in range(args.repeats)]
     rows = {}
-    for label, method, budget, cfg in (("npe-amortized", "npe-amortized", 1, {"estimator": args.estimator}),
-                                       (f"npe (per task, b={args.npe_budget})", "npe", args.npe_budget, {})):
+    runs = [(f"npe-amortized ({c})", "npe-amortized", 1, {"estimator": args.estimator, "combine": c}) for c in samplers]
+    ref = f"npe (per task, b={args.npe_budget})"
+    if args.npe_budget > 0:
+        runs.append((ref, "npe", args.npe_budget, {}))
+    for label, method, budget, cfg in runs:
         wall, cpu, sims, ess = [], [], [], []
         for i, task in enumerate(tasks):
             c0, w0 = time.process_time(), time.perf_counter()
@@ -50,11 +58,15 @@ def main() -> None:
             cpu.append(time.process_time() - c0)
             sims.append(res.n_simulations)
             ess.append(res.ess)
-        rows[label] = (np.mean(wall), np.mean(cpu), np.mean(sims), np.mean(ess))
-        print(f"{label:28s} wall {np.mean(wall):7.2f} s  cpu {np.mean(cpu):7.2f} s  simulations {np.mean(sims):7.0f}"
-              f"  ESS {np.mean(ess):8.1f}  ({args.tasks} reaches, mean of {len(tasks)})")
-    a, r = rows["npe-amortized"], rows[f"npe (per task, b={args.npe_budget})"]
-    print(f"ratio per-task NPE / npe-amortized: wall {r[0] / a[0]:.1f}x  cpu {r[1] / a[1]:.1f}x")
+        rows[label] = (np.mean(wall), np.mean(cpu), np.mean(sims), np.mean(ess), np.max(wall))
+        print(f"{label:28s} wall {np.mean(wall):7.2f} s (max {np.max(wall):.2f})  cpu {np.mean(cpu):7.2f} s  "
+              f"simulations {np.mean(sims):7.0f}  ESS {np.mean(ess):8.1f}  ({args.tasks} reaches, {len(tasks)} persons)")
+    for label in rows:
+        if label.startswith("npe-amortized") and ref in rows:
+            a, r = rows[label], rows[ref]
+            print(f"ratio per-task NPE / {label}: wall {r[0] / a[0]:.1f}x  cpu {r[1] / a[1]:.1f}x")
+    if "npe-amortized (smc)" in rows and "npe-amortized (mcmc)" in rows:
+        print(f"ratio MCMC / SMC: wall {rows['npe-amortized (mcmc)'][0] / rows['npe-amortized (smc)'][0]:.1f}x")
     print(f"load average after: {os.getloadavg()}")
 
 
