@@ -578,3 +578,19 @@ def test_balanced_training_shrinks_the_balance_gap():
         sbi_adapter.fit_density_estimator(flow, z, x, seed=4, balance=1.0)
     with pytest.raises(ValueError, match="^balance:"):
         TrainConfig(balance=-1.0)
+
+
+class _NanFlow(_GaussianFlow):
+    def log_prob(self, input, condition):  # noqa: A002
+        return torch.full(input.shape[:-1], float("nan"))
+
+
+def test_smc_with_no_finite_density_reports_it_instead_of_nan_weights():
+    """A flow with NaN density everywhere: no NaN leaves the sampler; it says it did not reach the posterior."""
+    flow = _NanFlow(torch.tensor([0.3, 0.5, 0.2]))
+    post = npe.NpePosterior([flow] * 2, [torch.zeros(3), torch.ones(3)], torch.full((3,), -1.0),
+                            torch.full((3,), 1.0))
+    draws = post.sample_smc(0, particles=32, max_stages=3)
+    assert not draws.reached and draws.ess == 0.0
+    assert np.isfinite(draws.weights).all() and abs(draws.weights.sum() - 1) < 1e-12
+    assert np.isfinite(draws.theta).all()

@@ -747,6 +747,8 @@ class NpePosterior:
                 beta = new_beta
                 betas.append(beta)
                 w = torch.softmax(log_w, dim=0)
+                if not bool(torch.isfinite(w).all()):
+                    break  # no particle has a finite target density: reported below, never NaN
                 mean = w @ z
                 zc = z - mean
                 pcov = (zc * w[:, None]).T @ zc + 1e-9 * eye
@@ -777,7 +779,10 @@ class NpePosterior:
                     if bool((~indep).any()):
                         log_s += float(acc[~indep].double().mean()) - target_acceptance
         w = torch.softmax(log_w, dim=0)
-        ess = float(1.0 / (w**2).sum()) if bool(torch.isfinite(w).all()) else 0.0
+        if bool(torch.isfinite(w).all()):
+            ess = float(1.0 / (w**2).sum())
+        else:  # every weight zero: no posterior reached; the last particles, equally weighted
+            w, ess, reached = torch.full((particles,), 1.0 / particles, dtype=torch.float64), 0.0, False
         theta_free, logdet = self.from_unconstrained(z)
         theta = self.low.repeat(theta_free.shape[0], 1)
         theta[:, self.free_mask] = theta_free
