@@ -77,7 +77,8 @@ the lower Panda error (6.9 vs 23.4 mm); ``combine="smc"`` is the fast option (0.
 Why one module of ~900 lines: training, the file format and its fingerprint check, and
 inference are one estimator's life cycle; they share the metadata schema (a change to the
 training settings changes what a file stores and what inference checks), so they change
-together. The sampler itself lives in `npe` beside the importance sampler it replaces.
+together. The samplers themselves live in `npe` (`NpePosterior`), beside per-task NPE's
+importance sampler.
 
 **Files**: one ``torch.save`` dict {"format", "metadata" (JSON text), "state_dict"} read with
 ``torch.load(weights_only=True)``; the metadata (format version, model name and fingerprint:
@@ -515,11 +516,6 @@ def _conditions(traj: torch.Tensor, lengths: torch.Tensor, goals: torch.Tensor, 
     return torch.cat([torch.as_tensor(goals, dtype=torch.float64).reshape(-1, 3), s], dim=1)
 
 
-def _logistic_log_prob(z: torch.Tensor) -> torch.Tensor:
-    """(B,) log density of the box prior in logit coordinates (standard logistic per coordinate)."""
-    return (nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
-
-
 def _seed(seed: int, *key: int) -> int:
     return int(np.random.SeedSequence(seed, spawn_key=key).generate_state(1, np.uint64)[0] >> np.uint64(1))
 
@@ -786,7 +782,7 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
                 learning_rate=config.learning_rate, validation_fraction=config.validation_fraction,
                 stop_after_epochs=config.stop_after_epochs, max_epochs=config.max_epochs,
                 max_seconds=config.max_train_seconds, progress=progress, desc=f"training {space}",
-                balance=config.balance, prior_log_prob=_logistic_log_prob)
+                balance=config.balance, prior_log_prob=npe.logistic_log_prob)
         info.pop("training_loss")
         info["n_invalid"] = int((~finite).sum())
         flows[space] = flow
@@ -870,9 +866,10 @@ def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig |
 
     ``budget`` is accepted for the common contract and unused (the cost was paid in training:
     ``extras["training_simulations"]``, ``extras["training_time"]``). extras also hold
-    ``sampler`` ("mcmc", "is" or "flow" for the set form), ``time_load``, ``time_sample``,
-    ``estimator_path``; with MCMC ``acceptance``, ``stuck_fraction``, ``chains``, ``steps``,
-    ``burn_in``, ``step_scale``; with IS ``ess``, ``ess_rounds``.
+    ``sampler`` ("mcmc", "smc", "is" or "flow" for the set form), ``time_load``,
+    ``time_sample``, ``estimator_path``; with MCMC ``acceptance``, ``stuck_fraction``,
+    ``chains``, ``steps``, ``burn_in``, ``step_scale``; with SMC ``ess``, ``stages``,
+    ``acceptance``, ``particles``, ``flow_calls``; with IS ``ess``, ``ess_rounds``.
     """
     config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
                                                                AmortizedConfig)

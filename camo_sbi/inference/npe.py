@@ -90,6 +90,7 @@ __all__ = [
     "run",
     "run_sequence",
     "from_unconstrained",
+    "logistic_log_prob",
     "summarize",
     "to_unconstrained",
     "torch_threads",
@@ -274,6 +275,12 @@ def from_unconstrained(z: torch.Tensor, lo: torch.Tensor, width: torch.Tensor,
     return theta, logdet
 
 
+def logistic_log_prob(z: torch.Tensor) -> torch.Tensor:
+    """(N,) log density in logit coordinates z of the uniform box prior: z = logit(u), u ~ U(0, 1),
+    a standard logistic per coordinate."""
+    return (nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
+
+
 @contextlib.contextmanager
 def torch_threads(n: int | None):
     """torch's intra-op thread count set to ``n`` for the block (None: unchanged)."""
@@ -402,13 +409,19 @@ class NpePosterior:
         """z (N, n_free) -> (free coordinates (N, n_free), log |d theta / d z| (N,))."""
         return from_unconstrained(z, self._lo, self._w, self.theta_transform)
 
+    def _theta(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """z (N, n_free) -> (full theta (N, 2n) with the fixed coordinates set, log |d theta / d z| (N,))."""
+        theta_free, logdet = self.from_unconstrained(z)
+        theta = self.low.repeat(theta_free.shape[0], 1)
+        theta[:, self.free_mask] = theta_free
+        return theta, logdet
+
     def _prior_log_prob_z(self, z: torch.Tensor) -> torch.Tensor:
         if self.theta_transform == "none":
             inside = ((z >= self._lo) & (z <= self._lo + self._w)).all(-1)
             lp = torch.full((z.shape[0],), -float(torch.log(self._w).sum()), dtype=torch.float64)
             return torch.where(inside, lp, torch.full_like(lp, -math.inf))
-        # z = logit(u), u ~ U(0, 1): standard logistic density
-        return (nn.functional.logsigmoid(z) + nn.functional.logsigmoid(-z)).sum(-1)
+        return logistic_log_prob(z)
 
     # densities ---------------------------------------------------------------------------
 
@@ -503,6 +516,14 @@ class NpePosterior:
         except RuntimeError:
             return None
 
+    def _pool_and_product(self, init_draws: int):
+        """Stratified flow-mixture draws (at least d + 2 per flow) and the Gaussian product of
+        them (`_product_gaussian`; None if k = 1 or degenerate): the start of MCMC and SMC."""
+        k, d = self.n_tasks, self.n_free
+        counts = self._mixture_counts(max(init_draws, k * (d + 2)), k)
+        pool = self._sample_flows(counts)
+        return pool, (self._product_gaussian(pool, counts) if k > 1 else None)
+
     @torch.no_grad()
     def sample(self, n: int, seed: int, *, is_rounds: int = 2, defensive_fraction: float = 0.2) -> ImportanceSample:
         """``n`` weighted draws per round by importance sampling (see the module docstring).
@@ -568,9 +589,7 @@ class NpePosterior:
                     best = {"z": z, "weights": w.numpy(), "log_t": log_t, "ess": ess}
         if best is None:
             raise RuntimeError("sample: every importance weight is zero (the flows put no mass in the box)")
-        theta_free, logdet = self.from_unconstrained(best["z"])
-        theta = self.low.repeat(theta_free.shape[0], 1)
-        theta[:, self.free_mask] = theta_free
+        theta, logdet = self._theta(best["z"])
         return ImportanceSample(theta.numpy(), best["weights"], (best["log_t"] - logdet).numpy(),
                                 best["ess"], ess_rounds)
 
@@ -602,13 +621,11 @@ class NpePosterior:
         burn_in = check_positive_int(burn_in, "burn_in", minimum=0)
         if burn_in >= steps:
             raise ValueError(f"burn_in: must be < steps ({steps}), got {burn_in}")
-        k, d = self.n_tasks, self.n_free
+        d = self.n_free
         gen = torch.Generator().manual_seed(seed)
         with torch.random.fork_rng(devices=[]), torch_threads(self.n_threads):
             torch.manual_seed(seed)
-            counts = self._mixture_counts(max(init_draws, k * (d + 2)), k)
-            pool = self._sample_flows(counts)
-            product = self._product_gaussian(pool, counts) if k > 1 else None
+            pool, product = self._pool_and_product(init_draws)
             if product is not None:
                 mu, cov = product
                 z = mu + torch.randn(chains, d, generator=gen, dtype=torch.float64) @ _cholesky(cov).T
@@ -650,9 +667,7 @@ class NpePosterior:
                     kept.append(z.clone())
                     kept_lt.append(lt.clone())
         zs, lts = torch.cat(kept)[:n], torch.cat(kept_lt)[:n]
-        theta_free, logdet = self.from_unconstrained(zs)
-        theta = self.low.repeat(theta_free.shape[0], 1)
-        theta[:, self.free_mask] = theta_free
+        theta, logdet = self._theta(zs)
         m = theta.shape[0]
         return McmcSample(theta.numpy(), np.full(m, 1.0 / m), (lts - logdet).numpy(),
                           acceptance=accepted / max(proposed, 1), stuck_fraction=float((~moved).double().mean()),
@@ -705,9 +720,7 @@ class NpePosterior:
                 gauss = None
                 z = self._sample_flows(self._mixture_counts(particles, k))
             else:
-                counts = self._mixture_counts(max(init_draws, k * (d + 2)), k)
-                pool = self._sample_flows(counts)
-                product = self._product_gaussian(pool, counts) if k > 1 else None
+                pool, product = self._pool_and_product(init_draws)
                 if product is None:
                     product = pool.mean(0), torch.cov(pool.T).reshape(d, d)
                 mu, cov = product
@@ -723,7 +736,6 @@ class NpePosterior:
             n_evals += 1
             beta, betas, acc_rates, log_s = 0.0, [0.0], [], math.log(2.38 / math.sqrt(d))
             log_w = torch.zeros(particles, dtype=torch.float64)
-            reached = False
             for stage in range(max_stages):
                 delta = torch.nan_to_num(lt - log_r, nan=-math.inf, posinf=-math.inf)
                 delta = torch.where(torch.isfinite(log_r), delta, torch.full_like(delta, -math.inf))
@@ -732,8 +744,8 @@ class NpePosterior:
                     w = torch.softmax(log_w + (b - beta) * delta, dim=0)
                     return float(1.0 / (w**2).sum()) if bool(torch.isfinite(w).all()) else 0.0
 
-                if ess_at(1.0) >= target_ess * particles or stage == max_stages - 1:
-                    reached = ess_at(1.0) >= target_ess * particles
+                reached = ess_at(1.0) >= target_ess * particles
+                if reached or stage == max_stages - 1:
                     log_w = log_w + (1.0 - beta) * delta
                     beta = 1.0
                     betas.append(beta)
@@ -783,9 +795,7 @@ class NpePosterior:
             ess = float(1.0 / (w**2).sum())
         else:  # every weight zero: no posterior reached; the last particles, equally weighted
             w, ess, reached = torch.full((particles,), 1.0 / particles, dtype=torch.float64), 0.0, False
-        theta_free, logdet = self.from_unconstrained(z)
-        theta = self.low.repeat(theta_free.shape[0], 1)
-        theta[:, self.free_mask] = theta_free
+        theta, logdet = self._theta(z)
         return SmcSample(theta.numpy(), w.numpy(), (lt - logdet).numpy(), ess=ess, betas=betas, reached=reached,
                          acceptance=float(np.mean(acc_rates)) if acc_rates else float("nan"),
                          particles=particles, flow_calls=n_evals)
