@@ -808,7 +808,8 @@ def test_sigint_still_exits_130(tmp_path):
     out = tmp_path / "run"
     # a grid far longer than the time to the first cell (it is interrupted, so its size costs
     # nothing): with --seeds 8 a loaded machine sometimes finished every cell before the signal
-    busy = [("40" if a == "8" and prev == "--seeds" else a) for prev, a in zip(["", *COMPARE_BUSY[:-1]], COMPARE_BUSY, strict=True)]
+    busy = list(COMPARE_BUSY)
+    busy[busy.index("--seeds") + 1] = "40"
     cmd = [sys.executable, "-m", "camo_sbi.experiments.cli", *busy, "--out", str(out)]
     proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     with proc.stderr, _reaped(proc):

@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import DEFAULT_RETRIES, dask_client, map_unordered, parse_scheduler
+from camo_sbi.experiments.method_configs import parse_configs
 from camo_sbi.experiments.models import (
     add_model_arguments,
     model_from_args,
@@ -80,7 +81,7 @@ def cell_specs(args) -> list[dict]:
     if amortized and amortized_path is None:
         raise ValueError("--amortized: npe-amortized needs an estimator file (main() trains one when none is given)")
     amortized_path = None if amortized_path is None else str(amortized_path)
-    overrides = method_overrides(args, methods)
+    overrides = parse_configs(getattr(args, "config", None), methods)
     specs = []
     for subject in subjects:
         for method in methods:
@@ -97,13 +98,6 @@ def cell_specs(args) -> list[dict]:
                     spec["model"] = model  # a picklable ModelSpec: workers rebuild the simulator from it
                     specs.append(spec)
     return specs
-
-
-def method_overrides(args, methods: list[str]) -> dict[str, dict]:
-    """``--config METHOD=JSON`` entries -> {method: overrides} (validated by `method_configs.parse_configs`)."""
-    from camo_sbi.experiments.method_configs import parse_configs
-
-    return parse_configs(getattr(args, "config", None), methods)
 
 
 def method_config(method: str, space: str, workdir: Path, estimator: str | None = None) -> dict:
@@ -314,7 +308,7 @@ def main(args) -> int:
     except ValueError as exc:
         raise ValueError(f"--{exc}") from exc
     out = Path(args.out)
-    overrides = method_overrides(args, grid_methods(args.methods))
+    overrides = {s["method"]: json.loads(s["config"]) for s in specs if "config" in s}
     # without --config the settings are those of runs made before the flag existed
     settings = run_settings(args, ignore=() if overrides else ("config",), **({"config": overrides} if overrides else {}),
                             methods=_parse_list(args.methods, "methods"),
