@@ -3,6 +3,9 @@
     python benchmarks/bench_amortized.py ESTIMATOR.pt [--model panda] [--repeats 5] [--npe-budget 500]
         [--combine smc,mcmc]
 
+A set-form estimator has no combining sampler (one flow sample): ``--combine`` is ignored
+and its one row is "npe-amortized (set flow)".
+
 Prints the load average, the estimator's one-off load time, then per inference (mean and
 max over ``--repeats`` persons): wall and CPU seconds, the simulations counted by the budget
 wrapper (0 for npe-amortized) and the effective sample size, for each sampler of
@@ -39,13 +42,16 @@ def main() -> None:
     print(f"load average before: {os.getloadavg()}")
     sim = build_model(args.model)
     t0 = time.perf_counter()
-    load_estimator(args.estimator)
-    print(f"estimator load (once per process): {time.perf_counter() - t0:.2f} s")
+    est = load_estimator(args.estimator)
+    print(f"estimator load (once per process): {time.perf_counter() - t0:.2f} s  ({est.form} form)")
+    if est.form == "set":  # one flow sample, no combining sampler: --combine does not apply
+        samplers = ["set flow"]
     names = subject_names(args.model)
     tasks = [make_reaching_task(sim, subject_theta(sim, args.model, names[i % len(names)]), n_train=args.tasks,
                                 n_test=1, seed=i) for i in range(args.repeats)]
     rows = {}
-    runs = [(f"npe-amortized ({c})", "npe-amortized", 1, {"estimator": args.estimator, "combine": c}) for c in samplers]
+    runs = [(f"npe-amortized ({c})", "npe-amortized", 1,
+             {"estimator": args.estimator} | ({} if c == "set flow" else {"combine": c})) for c in samplers]
     ref = f"npe (per task, b={args.npe_budget})"
     if args.npe_budget > 0:
         runs.append((ref, "npe", args.npe_budget, {}))

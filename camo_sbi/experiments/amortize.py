@@ -35,7 +35,7 @@ def parse_spaces(text: str) -> tuple[str, ...]:
 
 
 def train_config(*, simulations: int, spaces, noise_joint_deg: float = 0.0, noise_ee_mm: float = 0.0,
-                 max_epochs: int | None = None):
+                 max_epochs: int | None = None, form: str | None = None, flow: str | None = None):
     """The `TrainConfig` of the CLI options (ValueError naming the option otherwise)."""
     from camo_sbi.inference.amortized import TrainConfig
     from camo_sbi.task import NoiseModel
@@ -45,10 +45,14 @@ def train_config(*, simulations: int, spaces, noise_joint_deg: float = 0.0, nois
     except ValueError as exc:
         raise ValueError(f"--noise-{str(exc).split(':')[0].replace('_', '-')}: {str(exc).split(': ', 1)[1]}") from exc
     extra = {} if max_epochs is None else {"max_epochs": max_epochs}
+    if form is not None:
+        extra["form"] = form
+    if flow is not None:
+        extra["density_estimator"] = flow
     try:
         return TrainConfig(simulations=simulations, spaces=tuple(spaces), noise=noise, **extra)
     except (TypeError, ValueError) as exc:
-        name = str(exc).split(":")[0].replace("_", "-")
+        name = {"density_estimator": "flow"}.get(str(exc).split(":")[0], str(exc).split(":")[0]).replace("_", "-")
         raise ValueError(f"--{name}: {str(exc).split(': ', 1)[-1]}") from exc
 
 
@@ -105,6 +109,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--noise-joint-deg", type=float, default=0.0, help="observation noise on joint angles [deg]")
     p.add_argument("--noise-ee-mm", type=float, default=0.0, help="observation noise on end-effector positions [mm]")
     p.add_argument("--max-epochs", type=int, default=None, help="training epochs at most (default: TrainConfig's)")
+    p.add_argument("--form", default=None, help="set (default: one flow q(theta | set of 1..10 reaches)) or "
+                                                "per-reach (one flow per reach, combined by the i.i.d. rule)")
+    p.add_argument("--flow", default=None, help="nsf (default: neural spline flow) or maf")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
 
@@ -116,7 +123,7 @@ def main(args) -> int:
         raise ValueError(f"--seed: must be >= 0, got {args.seed}")
     cfg = train_config(simulations=args.simulations, spaces=parse_spaces(args.space),
                        noise_joint_deg=args.noise_joint_deg, noise_ee_mm=args.noise_ee_mm,
-                       max_epochs=args.max_epochs)
+                       max_epochs=args.max_epochs, form=args.form, flow=args.flow)
     out = Path(args.out)
     if out.exists() and not args.force:
         raise ValueError(f"--out: {out} exists (use --force to overwrite)")

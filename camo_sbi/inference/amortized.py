@@ -1,4 +1,13 @@
-"""Amortized NPE: one per-reach flow per body model, combined over a person's reaches.
+"""Amortized NPE: one flow per body model, trained once, for any person's reaches.
+
+Two forms (`TrainConfig.form`):
+
+- ``"set"`` (default): q(theta | {x_1..x_k}), k = 1..max_set reaches, one conditional flow
+  behind a permutation-invariant set embedding (`_SetFlow`: mean, max and min of the
+  standardised reach features and the mean of a per-reach MLP). Inference is ONE flow sample
+  (`AmortizedEstimator.sample_set`), exact draws of the trained posterior, no combining.
+- ``"per-reach"``: q(theta | x) for one reach, combined over a person's reaches by sbi's
+  i.i.d. NPE rule and sampled by MCMC, SMC or importance sampling (``AmortizedConfig.combine``).
 
     est = train(simulator, model="panda", config=TrainConfig(simulations=200_000), seed=0)
     est.save("panda.pt");  est = load_estimator("panda.pt")
@@ -23,6 +32,10 @@
   reaches start elsewhere or whose prior is not this box (strong priors, other starts):
   retrain for those. The start is therefore constant in training and not a network input.
 
+The set form draws ``max_set`` such reaches (independent goals, same limits) for each of
+``simulations // max_set`` limit vectors; every training epoch sees a new random subset of
+each (size uniform on 1..max_set), so one flow covers every set size.
+
 Each triple is simulated once (large batched ``simulate`` calls), optionally perturbed with
 the observation-noise model (`NoiseModel.perturb`, seeded), and summarised per space exactly
 as per-task NPE does (`npe.summarize`: the valid part resampled at ``n_points`` times after
@@ -32,7 +45,11 @@ requested space (joint and/or Cartesian, from the SAME simulations, so training 
 paid once) is trained by maximum likelihood in the logit coordinates z of the prior box
 (no mass outside the box), inputs and conditions standardised with stored statistics.
 
-**Inference** (`run`, no simulation): for reaches x_1..x_N of one person,
+**Inference, set form** (`run`, no simulation): ``n_posterior_samples`` draws of
+q(theta | the person's N <= max_set reaches) and their log densities in one pass of the flow
+(sbi's ``sample_and_log_prob``), equally weighted.
+
+**Inference, per-reach form** (`run`, no simulation): for reaches x_1..x_N of one person,
 p(theta | x_1..N) ∝ p(theta)^(1-N) ∏_i q(theta | x_i) (sbi's i.i.d. NPE rule, exact when q
 is the exact per-reach posterior), held by `npe.NpePosterior` (the same flow with N
 conditions; its log target in the logit coordinates z, with the prior pushed to z as
@@ -50,9 +67,14 @@ stage); a run that does not reach the product within its stage limit is a fallba
 effective sample size below ``min_ess`` sets the fallback status (every fallback is warned
 about by the registry).
 
-What was measured (Panda, 5 reaches, the 200k-simulation estimator, 50 subjects of
-``camo-sbi calibrate``): no sampler converges on this target within seconds, and the
-numbers must be read with that in mind.
+What was measured for the set form (200k simulations, NSF, 40 epochs; 50 subjects x 5
+reaches of ``camo-sbi calibrate``): Panda mean |coverage - alpha| 0.016 (slightly
+over-confident), ~0.6 s per subject; see the README for the human, the held-out errors
+and the timings.
+
+What was measured for the per-reach form (Panda, 5 reaches, the 200k-simulation MAF
+estimator, 50 subjects of ``camo-sbi calibrate``): no sampler converges on this target
+within seconds, and the numbers must be read with that in mind.
 
 - IS: degenerate weights (ESS 1-27 of 10 000), over-confident (mean |coverage - alpha|
   0.183), ~6 s per person.
@@ -70,11 +92,13 @@ numbers must be read with that in mind.
 
 Retraining for up to 100 epochs (early-stopped at 79; validation loss 15.5 vs 17.2) or with balanced NPE's penalty
 (``TrainConfig(balance=100)``, 16.8) left both numbers about unchanged (SMC 0.285 / 0.282,
-MCMC 0.058 / 0.079). The default stays MCMC because it is the conservative choice and had
-the lower Panda error (6.9 vs 23.4 mm); ``combine="smc"`` is the fast option (0.79 s mean,
-1.27 s max per Panda person; 1.6 s mean on the human), with over-confident draws.
+MCMC 0.058 / 0.079). Within the per-reach form the default sampler stays MCMC because it is
+the conservative choice and had the lower Panda error (6.9 vs 23.4 mm); ``combine="smc"``
+is the fast option (0.79 s mean, 1.27 s max per Panda person; 1.6 s mean on the human),
+with over-confident draws. The set form avoids the product altogether, which is why it
+became the default.
 
-Why one module of ~900 lines: training, the file format and its fingerprint check, and
+Why one module of ~1000 lines: training, the file format and its fingerprint check, and
 inference are one estimator's life cycle; they share the metadata schema (a change to the
 training settings changes what a file stores and what inference checks), so they change
 together. The samplers themselves live in `npe` (`NpePosterior`), beside per-task NPE's
@@ -145,17 +169,26 @@ class TrainConfig:
 
     Attributes:
         simulations: simulated reaches (one trajectory each).
-        form: "per-reach" (one flow q(theta | one reach), combined by the i.i.d. rule; the
-            measured default) or "set" (EXPERIMENTAL: one flow q(theta | set of 1..max_set
-            reaches) behind a DeepSet embedding; the simulations are max_set reaches of each of
-            simulations // max_set limit vectors. On the Panda at 200k simulations its training
-            loss stalled at ~28.3 nats (per-reach: 17.2), not yet understood).
+        form: "set" (default: one flow q(theta | set of 1..max_set reaches) behind a
+            permutation-invariant set embedding, `_SetFlow`; the simulations are max_set
+            reaches of each of simulations // max_set limit vectors; inference is one flow
+            sample) or "per-reach" (one flow q(theta | one reach), combined over a person's
+            reaches by the i.i.d. rule and sampled by `AmortizedConfig.combine`). Measured on
+            the Panda and the human at 200k simulations (README, "Amortized inference"): the
+            set form is calibrated (mean |coverage - alpha| 0.011 on both), the per-reach
+            product is not (0.047 too wide from unconverged MCMC, 0.285 over-confident from SMC).
         max_set: the largest set of reaches the "set" form is trained on (and accepts).
         spaces: observation spaces to train a flow for ("joint", "cartesian" or both; the
             same simulations serve every space).
         noise: observation-noise model applied to the simulated trajectories (seeded).
         n_points, include_length: the trajectory summary (`npe.summarize`).
-        density_estimator: "maf" or "nsf".  hidden_features, num_transforms: flow size.
+        density_estimator: "nsf" (default; sbi's neural spline flow, coupling layers: one pass
+            per transform to sample) or "maf" (sbi's masked autoregressive flow: sampling takes
+            one pass per coordinate and transform, ~4x slower here; and in nflows' MADE the
+            first coordinate of each transform does not see the condition: on the 2-limit toy
+            of the tests, with 3 transforms, one limit came out the same for every set of
+            reaches, at its prior). The per-reach measurements were made with "maf".
+        hidden_features, num_transforms: flow size.
         embedding_dim, embedding_hidden: None, or an MLP embedding of the condition (3 layers of
             ``embedding_hidden`` units, ``embedding_dim`` outputs) trained with the flow.
         training_batch_size, learning_rate, validation_fraction, stop_after_epochs,
@@ -174,13 +207,13 @@ class TrainConfig:
     """
 
     simulations: int = 200_000
-    form: str = "per-reach"
+    form: str = "set"
     max_set: int = 10
     spaces: tuple[str, ...] = ("joint",)
     noise: NoiseModel = field(default_factory=NoiseModel)
     n_points: int = 20
     include_length: bool = True
-    density_estimator: str = "maf"
+    density_estimator: str = "nsf"
     hidden_features: int = 64
     num_transforms: int = 5
     embedding_dim: int | None = None
@@ -251,14 +284,15 @@ class AmortizedConfig:
             ``camo-sbi amortize``). Required.
         space: the observation space read ("joint" or "cartesian"); the file must hold a flow
             for it.
-        combine: how the per-reach form's product posterior is sampled: "mcmc" (default:
+        combine: how the per-reach form's product posterior is sampled (a set-form estimator,
+            the default, needs no combining and ignores it): "mcmc" (default:
             population MCMC, `npe.NpePosterior.sample_mcmc`, equally weighted draws), "smc"
             (tempered SMC, `npe.NpePosterior.sample_smc`, ``smc_particles`` weighted draws) or
             "is" (the importance sampler of `npe.NpePosterior.sample`, weighted draws). None of
             them converges on the Panda's 5-reach target within seconds; see the module
             docstring for what was measured and why MCMC stays the default.
-        n_posterior_samples: draws returned by MCMC (at most this many, mcmc_chains per kept
-            sweep) and IS; SMC returns ``smc_particles``.
+        n_posterior_samples: draws returned by the set form's flow, MCMC (at most this many,
+            mcmc_chains per kept sweep) and IS; SMC returns ``smc_particles``.
         is_rounds, defensive_fraction: the importance sampler (combine="is").
         mcmc_chains, mcmc_steps, mcmc_burn_in, mcmc_de_fraction: the population MCMC
             (combine="mcmc"): chains, sweeps, discarded adaptation sweeps, share of
@@ -433,8 +467,15 @@ class _Flow(nn.Module):
 
 
 class _SetFlow(nn.Module):
-    """q(z | {x_1..x_k}): a DeepSet embedding (per-reach MLP phi, masked mean, the set size, MLP
-    rho) feeding an sbi flow; trained jointly.
+    """q(z | {x_1..x_k}): a permutation-invariant set embedding feeding an sbi flow; trained jointly.
+
+    The embedding of a set of k reaches (features standardised with stored statistics, x'):
+    Linear([mean x', max x', min x', mean phi(x'), k / K]), with phi a per-reach MLP. The
+    raw pooled features come first because a limit shows in the extreme postures over the
+    reaches; a DeepSet of the MLP features alone (mean-pooled, the first design) learned
+    nothing in 8 epochs at 200k Panda simulations (loss 28.3 nats, the prior's 28.0) and, on
+    3000 sets, reached 27.9 where these pooled features reach 20.0 (``/work/dbg`` runs of
+    this stop, recorded in the README).
 
     Conditions are packed as (B, K * (F + 1)): K = max_set reaches of F raw features, each
     followed by a validity flag (1: a reach of the set, 0: padding). In training mode ``loss``
@@ -449,7 +490,7 @@ class _SetFlow(nn.Module):
         self.net, self.n_features, self.max_set = net, n_features, max_set
         self.phi = nn.Sequential(nn.Linear(n_features, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
                                  nn.Linear(hidden, embed))
-        self.rho = nn.Sequential(nn.Linear(embed + 1, hidden), nn.ReLU(), nn.Linear(hidden, embed))
+        self.rho = nn.Linear(3 * n_features + embed + 1, embed)
         self.register_buffer("z_mean", torch.zeros(n_inputs))
         self.register_buffer("z_std", torch.ones(n_inputs))
         self.register_buffer("x_mean", torch.zeros(n_features))
@@ -473,10 +514,13 @@ class _SetFlow(nn.Module):
             k = torch.minimum(k, valid.sum(1, keepdim=True))
             rank = torch.argsort(torch.argsort(torch.rand(valid.shape) + (~valid).float(), dim=1), dim=1)
             valid = rank < k
-        h = self.phi((sets - self.x_mean) / self.x_std)
-        w = valid.to(torch.float32).unsqueeze(-1)
-        n = w.sum(1)
-        return self.rho(torch.cat([(h * w).sum(1) / n.clamp_min(1.0), n / self.max_set], -1))
+        xs = (sets - self.x_mean) / self.x_std
+        v = valid.unsqueeze(-1)
+        w = v.to(torch.float32)
+        n = w.sum(1).clamp_min(1.0)
+        pooled = [(xs * w).sum(1) / n, torch.where(v, xs, -1e4).amax(1), torch.where(v, xs, 1e4).amin(1),
+                  (self.phi(xs) * w).sum(1) / n, w.sum(1) / self.max_set]
+        return self.rho(torch.cat(pooled, -1))
 
     def log_prob(self, input, condition):  # noqa: A002
         zs = (input.to(torch.float32) - self.z_mean) / self.z_std
@@ -488,8 +532,17 @@ class _SetFlow(nn.Module):
     def sample(self, sample_shape, condition):
         return self.net.sample(torch.Size(sample_shape), self.embed(condition)) * self.z_std + self.z_mean
 
+    def sample_and_log_prob(self, sample_shape, condition):
+        """Draws (raw z) and their log densities in one pass of the flow (sbi's
+        ``sample_and_log_prob``; a MAF's inverse yields its log-determinant, so no second pass)."""
+        zs, lp = self.net.sample_and_log_prob(torch.Size(sample_shape), self.embed(condition))
+        return zs * self.z_std + self.z_mean, lp - torch.log(self.z_std).sum()
+
 
 _SET_EMBED = 64
+# the set embedding's architecture, written to a set-form file's metadata; files of an
+# earlier (or later) embedding are refused with a message, never half-loaded
+_SET_EMBEDDING = "pooled-mean-max-min-phi/1"
 
 
 def _new_flow(settings: TrainConfig, n_inputs: int, n_conditions: int, seed: int) -> nn.Module:
@@ -666,8 +719,8 @@ class AmortizedEstimator:
         lo, w = self.low[self.free_mask], (self.high - self.low)[self.free_mask]
         with torch.random.fork_rng(devices=[]), npe.torch_threads(n_threads):
             torch.manual_seed(seed)
-            z = flow.sample((n,), cond).reshape(n, -1)
-            lp = flow.log_prob(z.unsqueeze(1), cond).reshape(-1).double()
+            z, lp = flow.sample_and_log_prob((n,), cond)
+            z, lp = z.reshape(n, -1), lp.reshape(-1).double()
         free, logdet = npe.from_unconstrained(z, lo, w, "logit")
         theta = self.low.repeat(n, 1)
         theta[:, self.free_mask] = free
@@ -802,6 +855,7 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
         "features": features,
         "training": training,
         "training_simulations": int(data["theta"].shape[0] * (config.max_set if config.form == "set" else 1)),
+        **({"set_embedding": _SET_EMBEDDING} if config.form == "set" else {}),
         "time_simulate": data["time_simulate"],
         "training_time": total,
         "versions": {"camo_sbi": version("camo_sbi"), "torch": torch.__version__,
@@ -824,6 +878,10 @@ def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
     if meta.get("format") != FORMAT:
         raise ValueError(f"estimator: {name}'s metadata has format {meta.get('format')!r}, expected {FORMAT!r}")
     settings = TrainConfig.from_json(meta["settings"])
+    if settings.form == "set" and meta.get("set_embedding") != _SET_EMBEDDING:
+        raise ValueError(f"estimator: {name} is a set-form estimator with set embedding "
+                         f"{meta.get('set_embedding', 'the first, experimental DeepSet')!r}, this version reads "
+                         f"{_SET_EMBEDDING!r} only; retrain it with `camo-sbi amortize`")
     n_in = int(sum(1 for lo, hi in zip(meta["prior"]["low"], meta["prior"]["high"], strict=True) if hi > lo))
     flows = {}
     for k, space in enumerate(settings.spaces):

@@ -328,6 +328,6 @@ register(MethodSpec("abc-smc", "ABC-SMC (pyabc) on the joint posterior of all ob
                     Capabilities(workdir=True)))
 register(MethodSpec("npe", "neural posterior estimation (sbi), one flow per task, combined", _npe,
                     Capabilities(continual=True, workdir=True)))
-register(MethodSpec("npe-amortized", "amortized NPE (sbi): one per-reach flow per body model, trained once, "
-                    "combined over a person's reaches; no simulation per person", _npe_amortized,
+register(MethodSpec("npe-amortized", "amortized NPE (sbi): one flow per body model, trained once, conditioned on "
+                    "the set of a person's reaches (or per reach, combined); no simulation per person", _npe_amortized,
                     Capabilities(amortized=True, simulates=False, posterior=True, spaces=("joint", "cartesian"))))
