@@ -256,9 +256,14 @@ def test_mcmc_is_the_default_and_a_stuck_sampler_is_a_fallback(paths, task):
     assert stuck.status.startswith("fallback: MCMC")
 
 
-def test_combine_is_checked():
+def test_combine_is_checked(paths, task):
     with pytest.raises(ValueError, match="^combine:"):
         AmortizedConfig(combine="gibbs")
+    # a set-form estimator combines nothing: asking it for a sampler is refused, not ignored
+    with pytest.raises(ValueError, match="^combine: 'smc' applies to per-reach estimators"):
+        _run(task, paths["set"], combine="smc")
+    assert _run(task, paths["set"]).extras["sampler"] == "flow"
+    assert _run(task, paths["per-reach"]).extras["sampler"] == "mcmc"  # None: the per-reach default
     with pytest.raises(ValueError, match="^mcmc_burn_in:"):
         AmortizedConfig(mcmc_steps=10, mcmc_burn_in=10)
     with pytest.raises(ValueError, match="^mcmc_de_fraction:"):
