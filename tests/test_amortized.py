@@ -564,6 +564,22 @@ def test_compare_trains_the_estimator_once_and_reuses_it(tmp_path, capsys):
     assert "reused " in capsys.readouterr().out and files[0].stat().st_mtime_ns == mtime
 
 
+def test_more_tasks_than_a_set_estimator_takes_is_refused_before_any_cell(paths, tmp_path, capsys):
+    from camo_sbi.experiments.cli import main
+
+    common = ["--methods", "npe-amortized,naive", "--tasks", str(TINY.max_set + 1)]
+    for cmd, extra in (("compare", ["--budgets", "20", "--seeds", "1", "--no-report"]),
+                       ("calibrate", ["--subjects", "2"])):
+        for where in (["--amortized", str(paths["set"])], ["--amortize-simulations", "200"]):
+            out = tmp_path / f"{cmd}{len(where[1])}"
+            with pytest.raises(SystemExit) as exc:
+                main([cmd, *common, *extra, *where, "--out", str(out)])
+            assert exc.value.code == 2
+            line = capsys.readouterr().err.strip().splitlines()[-1]
+            assert line.startswith(f"camo-sbi: error: --tasks: {TINY.max_set + 1} reaches, but the set-form"), line
+            assert not (out / "cells").exists() and not list(out.glob("work/amortized/*.pt"))
+
+
 def test_a_file_from_before_a_controller_setting_existed_counts_it_at_its_default():
     """Estimators written before ``derivative_gain``/``early_stop`` existed name neither; the
     controller then behaved as those defaults do, so the file still matches a default model

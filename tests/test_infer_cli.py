@@ -365,3 +365,41 @@ def test_demo_and_calibrate_on_a_urdf(tmp_path):
                  "40", "--sbc-draws", "10", "--out", str(out)]) == 0
     cov = pd.read_csv(out / "coverage.csv")
     assert set(cov.task) == {"arm7"} and set(cov.method) == {"camo", "naive"}
+
+
+def test_infer_with_an_amortized_estimator(recording, sim, tmp_path, capsys):
+    """`infer --amortized FILE` runs npe-amortized on a recording whose reaches start at the
+    model's start (0 simulations); an estimator that does not fit the recording (trained with
+    another noise model; reaches chained from posture to posture, as `simulate-observations`
+    writes them) is skipped with a note beside other methods, and refused, naming the reason,
+    when it is the only method."""
+    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.scenarios.reaching import make_reaching_task
+
+    theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)
+    rec = save_recordings(tmp_path / "r.csv", make_reaching_task(sim, theta, n_train=3, n_test=1, seed=0).observations,
+                          sim)
+    clean, noisy = tmp_path / "clean.pt", tmp_path / "noisy.pt"
+    tiny = ["--simulations", "300", "--max-epochs", "2"]
+    assert main(["amortize", *MODEL, *tiny, "--out", str(clean)]) == 0
+    assert main(["amortize", *MODEL, *tiny, *NOISE, "--out", str(noisy)]) == 0
+    base = ["infer", "--observations", str(rec), *MODEL]
+    out = tmp_path / "a"
+    assert main([*base, "--methods", "naive,npe-amortized", "--amortized", str(clean), "--out", str(out)]) == 0
+    df = pd.read_csv(out / "limits.csv")
+    assert set(df.method) == {"naive", "npe-amortized"} and len(df) == 2 * 2 * len(JOINTS)
+    assert (out / "posteriors" / "npe-amortized.nc").is_file()
+    capsys.readouterr()
+    assert main([*base, "--methods", "naive,npe-amortized", "--amortized", str(noisy), "--out",
+                 str(tmp_path / "b")]) == 0
+    assert "npe-amortized: skipped (task.noise:" in capsys.readouterr().out
+    assert set(pd.read_csv(tmp_path / "b" / "limits.csv").method) == {"naive"}
+    line = _exit_2([*base, "--methods", "npe-amortized", "--amortized", str(noisy), "--out", str(tmp_path / "c")],
+                   capsys)
+    assert line.startswith("camo-sbi: error: task.noise:")
+    line = _exit_2([*base, "--methods", "npe-amortized", "--out", str(tmp_path / "d")], capsys)
+    assert line.startswith("camo-sbi: error: --amortized: npe-amortized needs a trained estimator file")
+    chained = ["infer", "--observations", str(recording), *MODEL, *NOISE, "--methods", "naive,npe-amortized",
+               "--amortized", str(noisy), "--out", str(tmp_path / "e")]
+    assert main(chained) == 0
+    assert "npe-amortized: skipped (task.prior: differs" in capsys.readouterr().out

@@ -78,11 +78,13 @@ def ensure_estimator(path: Path, *, model: ModelSpec, config, seed: int, progres
 
 
 def estimator_for_run(methods, *, model: ModelSpec, path, out, simulations: int, space: str,
-                      seed: int) -> Path | None:
+                      seed: int, tasks: int | None = None) -> Path | None:
     """The estimator file a run of ``methods`` uses: None without an amortized method; ``path``
     (``--amortized``, must exist) if given; otherwise one trained here, ONCE, in the calling
     (parent) process before any cell runs, at OUT/work/amortized/<model>-<space>-n<N>-seed<S>.pt,
-    and reused by every cell and by a resumed run (its cost is recorded once, in the file)."""
+    and reused by every cell and by a resumed run (its cost is recorded once, in the file).
+    ``tasks``: the most reaches a cell will pass; a set-form estimator trained on fewer is
+    refused here, naming --tasks, before any cell runs (not by a cell, mid-grid)."""
     from camo_sbi.inference.registry import capabilities
 
     if not any(capabilities(m).amortized for m in methods):
@@ -91,13 +93,33 @@ def estimator_for_run(methods, *, model: ModelSpec, path, out, simulations: int,
         path = Path(path)
         if not path.is_file():
             raise ValueError(f"--amortized: no such file {str(path)!r}")
+        _check_set_size(path, tasks)
         return path
     cfg = train_config(simulations=simulations, spaces=(space,))
+    if tasks is not None and cfg.form == "set" and tasks > cfg.max_set:
+        raise ValueError(f"--tasks: {tasks} reaches, but the set-form estimator this run would train takes at most "
+                         f"max_set={cfg.max_set}; use --tasks {cfg.max_set} or less, or pass --amortized with a "
+                         f"per-reach estimator (`camo-sbi amortize --form per-reach`)")
     path = Path(out) / "work" / "amortized" / f"{model.name}-{space}-n{simulations}-seed{seed}.pt"
     print(f"amortized estimator: {path}")
     _, trained = ensure_estimator(path, model=model, config=cfg, seed=seed)
     print(("trained " if trained else "reused ") + str(path))
     return path
+
+
+def _check_set_size(path: Path, tasks: int | None) -> None:
+    from camo_sbi.inference.amortized import load_estimator
+
+    if tasks is None:
+        return
+    try:
+        est = load_estimator(path)
+    except ValueError as exc:
+        raise ValueError(f"--amortized: {exc}") from exc
+    if est.form == "set" and tasks > est.settings.max_set:
+        raise ValueError(f"--tasks: {tasks} reaches, but the set-form estimator {path} takes at most "
+                         f"max_set={est.settings.max_set}; use --tasks {est.settings.max_set} or less, or a per-reach "
+                         f"estimator (`camo-sbi amortize --form per-reach`)")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -370,7 +370,7 @@ def main(args) -> int:
         _parse_methods(args.methods), model=model_from_args(args), path=getattr(args, "amortized", None),
         out=args.out,
         simulations=getattr(args, "amortize_simulations", 200_000), space=getattr(args, "space", "joint"),
-        seed=args.seed)})
+        seed=args.seed, tasks=args.tasks)})
     specs = cell_specs(args)
     out = Path(args.out)
     # the resolved per-method configs replace the raw --config entries

@@ -264,7 +264,8 @@ def _with_estimator(args):
 
     path = estimator_for_run(grid_methods(args.methods), model=model_from_args(args),
                              path=getattr(args, "amortized", None),
-                             out=args.out, simulations=args.amortize_simulations, space=args.space, seed=args.seed)
+                             out=args.out, simulations=args.amortize_simulations, space=args.space, seed=args.seed,
+                             tasks=args.tasks)
     return argparse.Namespace(**{**vars(args), "amortized": path})
 
 

@@ -200,6 +200,36 @@ def _plan(methods: list[str], task, space_arg: str | None, file_name: str) -> tu
     return plan, notes
 
 
+def _check_amortized(plan: list, notes: list[str], task, obs, overrides: dict, path, only: bool) -> list:
+    """Point amortized methods at ``--amortized`` and check, before anything runs, that the
+    estimator fits this recording (model, noise, start, number of reaches); one that does not is
+    skipped with a note (or refused, naming the reason, when it is the only method)."""
+    from camo_sbi.inference.amortized import load_estimator
+    from camo_sbi.inference.registry import capabilities
+
+    kept = []
+    for name, space in plan:
+        if not capabilities(name).amortized:
+            kept.append((name, space))
+            continue
+        if path is not None:
+            overrides[name] = {**(overrides.get(name) or {}), "estimator": str(path)}
+        file = (overrides.get(name) or {}).get("estimator")
+        if file is None:
+            raise ValueError(f"--amortized: {name} needs a trained estimator file (train one with "
+                             f"`camo-sbi amortize --model M --out FILE`)")
+        try:
+            est = load_estimator(file)
+            est.check_task(task, obs, space or (overrides.get(name) or {}).get("space", "joint"))
+        except ValueError as exc:
+            if only:
+                raise
+            notes.append(f"{name}: skipped ({exc})")
+            continue
+        kept.append((name, space))
+    return kept
+
+
 def _method_config(name: str, space: str | None, budget: int, workdir: Path, overrides: dict | None) -> dict:
     from camo_sbi.experiments.calibrate import method_config
     from camo_sbi.inference.registry import capabilities
@@ -297,6 +327,8 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
                    help="resample the recording to the controller's step (default: time)")
     p.add_argument("--rate", type=float, default=None,
                    help="recorded samples per controller step (default: estimated from the file)")
+    p.add_argument("--amortized", type=Path, default=None,
+                   help="trained estimator file for npe-amortized (`camo-sbi amortize`)")
     p.add_argument("--predict-goals", type=Path, default=None,
                    help="CSV of goal_x,goal_y,goal_z[,start joint columns] to predict reaches for")
     p.add_argument("--config", action="append", default=[], metavar="METHOD=JSON",
@@ -333,6 +365,7 @@ def infer_main(args) -> int:
         goals, starts = load_goals(args.predict_goals, sim, degrees=args.degrees, noise=noise)
     task = _recorded_task(model, sim, obs, noise)
     plan, notes = _plan(methods, task, args.space, str(args.observations))
+    plan = _check_amortized(plan, notes, task, obs, overrides, getattr(args, "amortized", None), len(methods) == 1)
     for n in notes:
         print(n)
     if not plan:

@@ -688,6 +688,14 @@ class AmortizedEstimator:
             raise ValueError(f"task.noise: the task's observation noise {task.noise} differs from the noise "
                              f"{name} was trained with ({self.noise}); retrain with --noise-joint-deg / "
                              f"--noise-ee-mm matching the recordings")
+        if self.form == "set":
+            self._check_set_size(len(observations))
+
+    def _check_set_size(self, n: int) -> None:
+        k = self.settings.max_set
+        if n > k:
+            raise ValueError(f"observations: {n} reaches, but the set estimator {self.path or ''} was "
+                             f"trained on sets of at most max_set={k}; pass at most {k} or retrain")
 
     def conditions(self, observations, space: str) -> torch.Tensor:
         """(N, D) float32 network conditions of observed reaches (kept features only)."""
@@ -706,9 +714,7 @@ class AmortizedEstimator:
         """(1, K * (F + 1)) the packed set condition of 1..max_set observed reaches (set form)."""
         x = self.conditions(observations, space)
         k = self.settings.max_set
-        if x.shape[0] > k:
-            raise ValueError(f"observations: {x.shape[0]} reaches, but the set estimator {self.path or ''} was "
-                             f"trained on sets of at most max_set={k}; pass at most {k} or retrain")
+        self._check_set_size(x.shape[0])
         sets = torch.zeros(1, k, x.shape[1])
         sets[0, : x.shape[0]] = x
         valid = torch.arange(k)[None] < x.shape[0]
