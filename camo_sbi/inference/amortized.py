@@ -194,9 +194,10 @@ class TrainConfig:
         training_batch_size, learning_rate, validation_fraction, stop_after_epochs,
         max_epochs: maximum-likelihood training with early stopping (a batch holds
             ``training_batch_size`` reaches: for the set form that many // max_set sets).
-            max_epochs = 40 keeps 200 000 Panda simulations near 20 minutes on a loaded 2-core
-            machine (measured: 21.5 min at load 6-8, 6 min of CPU); the validation loss was
-            still falling, so more epochs buy accuracy on a quieter machine.
+            max_epochs = 40 keeps 200 000 Panda simulations under 20 minutes on 2 cores
+            (measured, set form, NSF: 14.7 min wall from a fresh clone with another job on the
+            second core, 13.4 min of CPU; per-reach MAF: 21.5 min at load 6-8); the validation
+            loss was still falling, so more epochs buy accuracy on a quieter machine.
         max_train_seconds: per space, stop after the epoch that crosses it (None: no limit).
         simulation_batch_size: trajectories per ``simulate`` call.
         sim_dtype: "float32" or "float64" for the simulations.
@@ -765,8 +766,11 @@ class AmortizedEstimator:
 
     def describe(self) -> str:
         m = self.metadata
-        lines = [f"amortized estimator for model {m['model']!r}: spaces {', '.join(self.flows)}, "
-                 f"{m['training_simulations']} training simulations, {m['training_time']:.1f} s to train",
+        form = (f"set form (sets of 1..{self.settings.max_set} reaches)" if self.form == "set"
+                else "per-reach form (combined by the i.i.d. rule)")
+        lines = [f"amortized estimator for model {m['model']!r}: {form}, {self.settings.density_estimator} flow, "
+                 f"spaces {', '.join(self.flows)}, {m['training_simulations']} training simulations, "
+                 f"{m['training_time']:.1f} s to train",
                  f"  noise: {self.noise}; summary: {self.settings.n_points} points + length, goal prepended"]
         for space, info in m["training"].items():
             lines.append(f"  {space}: {m['features'][space]['n_kept']} features, {info['epochs']} epochs "
