@@ -75,8 +75,8 @@ def main(argv=None) -> int:
         ref = np.empty(n)
         reference_log_kernel_sums(xs[:2], ps, ref[:2])  # compile
         kde.log_density(x[:2])
-        t_ref = _best(lambda: reference_log_kernel_sums(xs, ps, ref), args.repeats)
-        t_lib = _best(lambda: kde.log_density(x), args.repeats)
+        t_ref = _best(lambda xs=xs, ref=ref: reference_log_kernel_sums(xs, ps, ref), args.repeats)
+        t_lib = _best(lambda x=x: kde.log_density(x), args.repeats)
         lib = kde.log_density(x).numpy() - kde._log_norm
         rel = float(np.max(np.abs(lib - ref) / np.maximum(np.abs(ref), 1e-300)))
         if rel > 1e-12:
