@@ -478,7 +478,7 @@ class _SetFlow(nn.Module):
     raw pooled features come first because a limit shows in the extreme postures over the
     reaches; a DeepSet of the MLP features alone (mean-pooled, the first design) learned
     nothing in 8 epochs at 200k Panda simulations (loss 28.3 nats, the prior's 28.0) and, on
-    3000 sets, reached 27.9 where these pooled features reach 20.0
+    3000 sets, reached 27.9 where these pooled features reach 20.3
     (``benchmarks/ablate_set_embedding.py``).
 
     Conditions are packed as (B, K * (F + 1)): K = max_set reaches of F raw features, each
