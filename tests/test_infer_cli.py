@@ -399,6 +399,9 @@ def test_infer_with_an_amortized_estimator(recording, sim, tmp_path, capsys):
     assert line.startswith("camo-sbi: error: task.noise:")
     line = _exit_2([*base, "--methods", "npe-amortized", "--out", str(tmp_path / "d")], capsys)
     assert line.startswith("camo-sbi: error: --amortized: npe-amortized needs a trained estimator file")
+    line = _exit_2([*base, "--methods", "npe-amortized", "--amortized", str(tmp_path / "missing.pt"), "--out",
+                    str(tmp_path / "d")], capsys)
+    assert line.startswith("camo-sbi: error: --amortized: estimator: no such file")
     chained = ["infer", "--observations", str(recording), *MODEL, *NOISE, "--methods", "naive,npe-amortized",
                "--amortized", str(noisy), "--out", str(tmp_path / "e")]
     assert main(chained) == 0

@@ -96,10 +96,8 @@ def estimator_for_run(methods, *, model: ModelSpec, path, out, simulations: int,
         _check_set_size(path, tasks)
         return path
     cfg = train_config(simulations=simulations, spaces=(space,))
-    if tasks is not None and cfg.form == "set" and tasks > cfg.max_set:
-        raise ValueError(f"--tasks: {tasks} reaches, but the set-form estimator this run would train takes at most "
-                         f"max_set={cfg.max_set}; use --tasks {cfg.max_set} or less, or pass --amortized with a "
-                         f"per-reach estimator (`camo-sbi amortize --form per-reach`)")
+    if cfg.form == "set":
+        _refuse_set_size(tasks, cfg.max_set, "this run would train")
     path = Path(out) / "work" / "amortized" / f"{model.name}-{space}-n{simulations}-seed{seed}.pt"
     print(f"amortized estimator: {path}")
     _, trained = ensure_estimator(path, model=model, config=cfg, seed=seed)
@@ -116,10 +114,15 @@ def _check_set_size(path: Path, tasks: int | None) -> None:
         est = load_estimator(path)
     except ValueError as exc:
         raise ValueError(f"--amortized: {exc}") from exc
-    if est.form == "set" and tasks > est.settings.max_set:
-        raise ValueError(f"--tasks: {tasks} reaches, but the set-form estimator {path} takes at most "
-                         f"max_set={est.settings.max_set}; use --tasks {est.settings.max_set} or less, or a per-reach "
-                         f"estimator (`camo-sbi amortize --form per-reach`)")
+    if est.form == "set":
+        _refuse_set_size(tasks, est.settings.max_set, str(path))
+
+
+def _refuse_set_size(tasks: int | None, max_set: int, which: str) -> None:
+    if tasks is not None and tasks > max_set:
+        raise ValueError(f"--tasks: {tasks} reaches, but the set-form estimator {which} takes at most "
+                         f"max_set={max_set}; use --tasks {max_set} or less, or a per-reach estimator "
+                         f"(`camo-sbi amortize --form per-reach`, then --amortized FILE)")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -219,7 +219,10 @@ def _check_amortized(plan: list, notes: list[str], task, obs, overrides: dict, p
             raise ValueError(f"--amortized: {name} needs a trained estimator file (train one with "
                              f"`camo-sbi amortize --model M --out FILE`)")
         try:
-            est = load_estimator(file)
+            try:
+                est = load_estimator(file)
+            except ValueError as exc:
+                raise ValueError(f"--amortized: {exc}" if path is not None else str(exc)) from exc
             est.check_task(task, obs, space or (overrides.get(name) or {}).get("space", "joint"))
         except ValueError as exc:
             if only:
