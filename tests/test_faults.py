@@ -811,7 +811,12 @@ def test_sigint_still_exits_130(tmp_path):
     busy = list(COMPARE_BUSY)
     busy[busy.index("--seeds") + 1] = "40"
     cmd = [sys.executable, "-m", "camo_sbi.experiments.cli", *busy, "--out", str(out)]
-    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # the child gets SIGINT's default disposition, as a command typed at a terminal has: when the
+    # tests run as a background job of a non-interactive shell (`.ci/run &`) SIGINT is inherited
+    # as ignored, Python then installs no KeyboardInterrupt handler, and the grid simply finished
+    # (seen once in a fresh-clone run)
+    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     with proc.stderr, _reaped(proc):
         _wait_for(lambda: (out / "cells").is_dir() and any((out / "cells").glob("*.csv")), "a cell", proc)
         proc.send_signal(signal.SIGINT)
