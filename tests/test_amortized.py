@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from camo_sbi.budget import CountingSimulator
-from camo_sbi.inference import amortized, npe
+from camo_sbi.inference import amortized, npe, sbi_adapter
 from camo_sbi.inference.amortized import AmortizedConfig, TrainConfig, load_estimator, train
 from camo_sbi.inference.registry import capabilities, run_method
 from camo_sbi.priors import BoxPrior
@@ -460,6 +460,25 @@ def test_toy_posterior_recovered_roughly(tmp_path):
 def test_toy_posterior_recovered(tmp_path):
     """40 000 simulations: the mean within 1.5 exact sd, the sd within a factor 0.5-3."""
     _check_toy(40000, 80, tmp_path, mean_tol_sd=1.5, sd_ratio=(0.5, 3.0))
+
+
+def test_maf_transforms_leave_their_first_coordinate_unconditioned():
+    """Why NSF is the default flow: in sbi's MAF (nflows' MADE) the affine parameters of the first
+    coordinate of each transform have no hidden input, so that coordinate ignores the condition.
+    Structural, so untrained flows show it: the same base noise under two conditions gives one
+    identical coordinate for a one-transform MAF, none for a two-transform NSF (coupling layers
+    that alternate which coordinate they transform, each given the condition)."""
+    def same_columns(kind, transforms):
+        flow = sbi_adapter.build_flow(kind, 2, 4, hidden_features=16, num_transforms=transforms, seed=0).eval()
+        draws = []
+        for c in (torch.zeros(1, 4), torch.full((1, 4), 3.0)):
+            with torch.random.fork_rng(devices=[]), torch.no_grad():
+                torch.manual_seed(0)
+                draws.append(flow.sample(torch.Size([50]), c).reshape(50, 2))
+        return [bool(torch.equal(draws[0][:, i], draws[1][:, i])) for i in range(2)]
+
+    assert sum(same_columns("maf", 1)) == 1
+    assert sum(same_columns("nsf", 2)) == 0
 
 
 def test_set_form_toy_posterior_recovered_roughly(tmp_path):

@@ -186,8 +186,8 @@ class TrainConfig:
             per transform to sample) or "maf" (sbi's masked autoregressive flow: sampling takes
             one pass per coordinate and transform, ~4x slower here; and in nflows' MADE the
             first coordinate of each transform does not see the condition: on the 2-limit toy
-            of the tests, with 3 transforms, one limit came out the same for every set of
-            reaches, at its prior). The per-reach measurements were made with "maf".
+            of the tests, with its seed and 3 transforms, one limit came out the same for every
+            set of reaches, at its prior). The per-reach measurements were made with "maf".
         hidden_features, num_transforms: flow size.
         embedding_dim, embedding_hidden: None, or an MLP embedding of the condition (3 layers of
             ``embedding_hidden`` units, ``embedding_dim`` outputs) trained with the flow.
