@@ -20,7 +20,8 @@ from pathlib import Path
 from camo_sbi._io import atomic_write_text
 from camo_sbi.experiments.models import ModelSpec, add_model_arguments, model_from_args
 
-__all__ = ["add_arguments", "cost_table", "ensure_estimator", "estimator_for_run", "main", "parse_spaces",
+__all__ = ["add_arguments", "cost_table", "ensure_estimator", "estimator_for_run", "load_cli_estimator", "main",
+           "parse_spaces",
            "train_config", "write_cost_table"]
 
 
@@ -105,15 +106,20 @@ def estimator_for_run(methods, *, model: ModelSpec, path, out, simulations: int,
     return path
 
 
-def _check_set_size(path: Path, tasks: int | None) -> None:
+def load_cli_estimator(path):
+    """`load_estimator` for a file named by ``--amortized``: its errors name the flag."""
     from camo_sbi.inference.amortized import load_estimator
 
-    if tasks is None:
-        return
     try:
-        est = load_estimator(path)
+        return load_estimator(path)
     except ValueError as exc:
         raise ValueError(f"--amortized: {exc}") from exc
+
+
+def _check_set_size(path: Path, tasks: int | None) -> None:
+    if tasks is None:
+        return
+    est = load_cli_estimator(path)
     if est.form == "set":
         _refuse_set_size(tasks, est.settings.max_set, str(path))
 

@@ -204,6 +204,7 @@ def _check_amortized(plan: list, notes: list[str], task, obs, overrides: dict, p
     """Point amortized methods at ``--amortized`` and check, before anything runs, that the
     estimator fits this recording (model, noise, start, number of reaches); one that does not is
     skipped with a note (or refused, naming the reason, when it is the only method)."""
+    from camo_sbi.experiments.amortize import load_cli_estimator
     from camo_sbi.inference.amortized import load_estimator
     from camo_sbi.inference.registry import capabilities
 
@@ -212,18 +213,15 @@ def _check_amortized(plan: list, notes: list[str], task, obs, overrides: dict, p
         if not capabilities(name).amortized:
             kept.append((name, space))
             continue
+        cfg = overrides.get(name) or {}
         if path is not None:
-            overrides[name] = {**(overrides.get(name) or {}), "estimator": str(path)}
-        file = (overrides.get(name) or {}).get("estimator")
-        if file is None:
+            cfg = overrides[name] = {**cfg, "estimator": str(path)}
+        if cfg.get("estimator") is None:
             raise ValueError(f"--amortized: {name} needs a trained estimator file (train one with "
                              f"`camo-sbi amortize --model M --out FILE`)")
-        try:
-            try:
-                est = load_estimator(file)
-            except ValueError as exc:
-                raise ValueError(f"--amortized: {exc}" if path is not None else str(exc)) from exc
-            est.check_task(task, obs, space or (overrides.get(name) or {}).get("space", "joint"))
+        try:  # a file given by --config keeps load_estimator's own message
+            est = (load_cli_estimator if path is not None else load_estimator)(cfg["estimator"])
+            est.check_task(task, obs, space or cfg.get("space", "joint"))
         except ValueError as exc:
             if only:
                 raise

@@ -262,6 +262,11 @@ class TrainConfig:
         if self.n_threads is not None:
             check_positive_int(self.n_threads, "n_threads")
 
+    @property
+    def reaches_per_theta(self) -> int:
+        """Simulated reaches per training limit vector: max_set for the set form, 1 per reach."""
+        return self.max_set if self.form == "set" else 1
+
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
         d["spaces"] = list(self.spaces)
@@ -603,7 +608,7 @@ def simulate_training_set(simulator, prior: BoxPrior, settings: TrainConfig, see
 
     sim = unwrap_simulator(simulator)
     n = settings.simulations if n is None else check_positive_int(n, "n")
-    r = settings.max_set if settings.form == "set" else 1
+    r = settings.reaches_per_theta
     m = n // r
     n = m * r
     t0 = time.perf_counter()
@@ -844,7 +849,7 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
         with npe.torch_threads(config.n_threads):
             info = sbi_adapter.fit_density_estimator(
                 flow, z[finite], xk, seed=_seed(seed, 4, k),
-                batch_size=max(2, config.training_batch_size // (config.max_set if config.form == "set" else 1)),
+                batch_size=max(2, config.training_batch_size // config.reaches_per_theta),
                 learning_rate=config.learning_rate, validation_fraction=config.validation_fraction,
                 stop_after_epochs=config.stop_after_epochs, max_epochs=config.max_epochs,
                 max_seconds=config.max_train_seconds, progress=progress, desc=f"training {space}",
@@ -867,7 +872,7 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
         "seed": seed,
         "features": features,
         "training": training,
-        "training_simulations": int(data["theta"].shape[0] * (config.max_set if config.form == "set" else 1)),
+        "training_simulations": int(data["theta"].shape[0] * config.reaches_per_theta),
         **({"set_embedding": _SET_EMBEDDING} if config.form == "set" else {}),
         "time_simulate": data["time_simulate"],
         "training_time": total,
@@ -1032,7 +1037,7 @@ def sbi_diagnostics(estimator: AmortizedEstimator, simulator, space: str, *, n: 
         raise ValueError(f"simulator: differs from the estimator's model in {', '.join(diff)}")
     n = check_positive_int(n, "n", minimum=10)
     sim = unwrap_simulator(simulator)
-    n_sims = n * (estimator.settings.max_set if estimator.form == "set" else 1)
+    n_sims = n * estimator.settings.reaches_per_theta
     prior = BoxPrior(sim.bounds, sim.start)
     settings = dataclasses.replace(estimator.settings, spaces=(space,))
     data = simulate_training_set(sim, prior, settings, _seed(seed, 6), n=n_sims)
