@@ -21,7 +21,13 @@ from matplotlib.figure import Figure
 from scipy import stats
 
 from camo_sbi._validation import check_positive_int, numpy_generator
-from camo_sbi.diagnostics.style import method_order, method_style
+from camo_sbi.diagnostics.style import (
+    MIN_FONT_PT,
+    SINGLE_COLUMN,
+    method_order,
+    method_style,
+    paper_figure,
+)
 from camo_sbi.inference import sbi_adapter
 from camo_sbi.inference.result import PosteriorResult
 
@@ -301,9 +307,12 @@ def c2st(samples_a, samples_b, seed, *, n_folds: int = 5, classifier: str = "rf"
 # --------------------------------------------------------------------------- plot
 
 
+@paper_figure
 def plot_coverage(df_by_method, *, coordinate: str = "overall", title: str | None = None,
-                  figsize=(6.6, 4.8)) -> Figure:
-    """Coverage vs credibility level α per method, with the diagonal (perfect calibration).
+                  figsize=(SINGLE_COLUMN, 4.6)) -> Figure:
+    """Coverage vs credibility level α per method, with the diagonal (perfect calibration),
+    in the paper style (single column by default; the legend below the axes, or to their
+    right when the figure is wider than high).
 
     Args:
         df_by_method: {method: DataFrame from central_interval_coverage}, or one DataFrame with
@@ -347,9 +356,12 @@ def plot_coverage(df_by_method, *, coordinate: str = "overall", title: str | Non
             ax.fill_between(g["alpha"], g["min"], g["max"], color=st.color, alpha=0.15, lw=0)
     ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="credibility level α (central interval)",
            ylabel="empirical coverage", aspect="equal")
-    ax.set_title(title or f"Coverage ({coordinate})", fontsize=10)
-    ax.text(0.97, 0.03, "below diagonal: over-confident", ha="right", va="bottom",
-            transform=ax.transAxes, fontsize=7, color="0.4")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False,
-              title="band: min–max over tasks/budgets" if spread else None, title_fontsize=7)
+    ax.set_title(title or f"Coverage ({coordinate})", wrap=True)
+    ax.text(0.97, 0.03, "below diagonal:\nover-confident", ha="right", va="bottom",
+            transform=ax.transAxes, fontsize=MIN_FONT_PT, color="0.4")
+    wide = fig.get_figwidth() > fig.get_figheight()
+    where = {"loc": "upper left", "bbox_to_anchor": (1.02, 1.0)} if wide else \
+        {"loc": "upper left", "bbox_to_anchor": (0.0, -0.16), "ncols": 2}
+    ax.legend(fontsize=MIN_FONT_PT, frameon=False, title_fontsize=MIN_FONT_PT,
+              title="band: min–max over tasks/budgets" if spread else None, **where)
     return fig

@@ -10,26 +10,40 @@ What it fixes, so a reader can compare figures with each other:
 * **what a band is**, said in the legend title (`band_label`): the mean and the 95%
   confidence interval of the mean over N runs (Student t), the statistic `mean_ci` computes
   for the figures and the report's tables alike;
+* **small-n honesty**, one rule (`few_runs`: fewer than `SMALL_N` = 5 runs or seeds) for
+  every figure and table: a figure then draws each run as a jittered dot and the mean as a
+  line or bar, never a Student-t band; a table cell (`cell_text`) shows the mean and the
+  range of the values instead of a ± interval; `band_label` and `cell_rule` say which;
+* **degrees where a person reads an angle** (`display_metric`: a metric stored in radians
+  is drawn and tabulated in degrees, its label saying so); the files keep radians;
+* **a paper style** (`PAPER_RC`, `paper_style`, `paper_figure`): single-column
+  (`SINGLE_COLUMN` = 3.5 in) and double-column (`DOUBLE_COLUMN` = 7 in) widths with fonts of
+  at least `MIN_FONT_PT` = 8 pt at that size, and vector export (`save_figures`,
+  `FIGURE_FORMATS`: png, pdf, svg; `parse_figure_formats` reads ``--figure-format``);
 * **axes that fit the data**: integer ticks for task counts (`integer_ticks`), a log
   x axis only with at least two distinct positive x values (`plot_lines(logx=True)`), and
   a robust y scale (`robust_ylim`) when one series dwarfs the methods: the axis is clipped
   to the methods' range and the off-scale series are annotated with their largest value;
 * **legends outside the data** (`figure_legend`: one legend to the right of the panels);
 * **no pyplot state**: figures are `matplotlib.figure.Figure` objects (`new_figure`),
-  written atomically as PNG (`save_figure`).
+  written atomically (`save_figure`: the format is the path's suffix).
 
 Plot primitives on tidy tables (columns ``method``, an x column and ``value``):
-`plot_lines` (mean and CI band against x per method) and `plot_bars` (mean and CI per
-method).
+`plot_lines` (mean and CI band, or mean and dots, against x per method) and `plot_bars`
+(mean and CI, or mean and dots, per method).
 """
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import io
 import zlib
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
+import matplotlib
 import numpy as np
 import pandas as pd
 from matplotlib.axes import Axes
@@ -42,31 +56,77 @@ from camo_sbi._io import atomic_write_bytes
 
 __all__ = [
     "BASELINE_NAMES",
+    "DOUBLE_COLUMN",
     "DWARF_FACTOR",
+    "FIGURE_FORMATS",
     "METRIC_LABELS",
+    "MIN_FONT_PT",
     "MethodStyle",
+    "PAPER_RC",
+    "SINGLE_COLUMN",
+    "SMALL_N",
     "Series",
     "band_label",
+    "cell_rule",
+    "cell_text",
+    "display_metric",
+    "few_runs",
     "figure_legend",
     "figure_png",
     "integer_ticks",
+    "jitter",
     "mean_ci",
     "method_order",
     "method_style",
     "metric_label",
     "new_figure",
     "number",
+    "paper_figure",
+    "paper_style",
+    "parse_figure_formats",
     "plot_bars",
     "plot_lines",
     "robust_ylim",
     "run_counts",
     "save_figure",
+    "save_figures",
     "summarize",
+    "to_degrees",
 ]
 
 CONFIDENCE = 0.95
 DWARF_FACTOR = 4.0
 """A series whose top exceeds this many times the methods' top is drawn off scale (`robust_ylim`)."""
+SMALL_N = 5
+"""With fewer runs (or seeds) than this, no confidence interval is drawn or written (`few_runs`)."""
+SINGLE_COLUMN = 3.5
+"""A single-column figure's width [in]."""
+DOUBLE_COLUMN = 7.0
+"""A double-column figure's width [in]."""
+MIN_FONT_PT = 8
+"""No text smaller than this [pt] at the figure's own size."""
+FIGURE_FORMATS = ("png", "pdf", "svg")
+PNG_DPI = 200  # 7 in -> 1400 px
+PAPER_RC: dict[str, object] = {
+    "font.size": 8,
+    "axes.titlesize": 9,
+    "axes.labelsize": 8,
+    "xtick.labelsize": 8,
+    "ytick.labelsize": 8,
+    "legend.fontsize": 8,
+    "legend.title_fontsize": 8,
+    "figure.titlesize": 9,
+    "axes.linewidth": 0.6,
+    "grid.linewidth": 0.5,
+    "lines.linewidth": 1.2,
+    "lines.markersize": 4,
+    "xtick.major.width": 0.6,
+    "ytick.major.width": 0.6,
+    "pdf.fonttype": 42,  # TrueType in the PDF: text stays text (searchable, editable)
+    "svg.fonttype": "none",  # text as <text> elements, not paths
+    "savefig.dpi": PNG_DPI,
+}
+"""matplotlib rcParams of every camo_sbi figure (`paper_style`): fonts >= 8 pt at 3.5 / 7 in."""
 
 
 @dataclass(frozen=True)
@@ -178,9 +238,21 @@ METRIC_LABELS: dict[str, str] = {
 }
 
 
+# metrics stored in radians (results.csv keeps them so): drawn and tabulated in degrees
+_RADIAN_METRICS = {"eq2_joint", "reference_joint", "limit_error"}
+_DEGREE_LABELS = {
+    "eq2_joint": "Eq. 2 (joint), Σ goals [deg]",
+    "reference_joint": "authors' metric (joint), Σ goals [deg]",
+    "limit_error": "mean |limit error| [deg]",
+}
+
+
 def metric_label(metric: str) -> str:
-    """A metric's name in words with its unit (``limit_error_deg_<joint>`` included)."""
+    """A metric's name in words with its unit as a person reads it (angles in degrees:
+    `display_metric` converts the values of a metric stored in radians)."""
     metric = str(metric)
+    if metric in _DEGREE_LABELS:
+        return _DEGREE_LABELS[metric]
     if metric in METRIC_LABELS:
         return METRIC_LABELS[metric]
     if metric.startswith("limit_error_deg_"):
@@ -188,18 +260,90 @@ def metric_label(metric: str) -> str:
     return metric.replace("_", " ")
 
 
-def band_label(n_runs, confidence: float = CONFIDENCE, *, geometric: bool = False) -> str:
-    """What a band is, for a legend title or caption: ``n_runs`` an int or the counts seen;
-    ``geometric`` for a log axis (`plot_lines(logy=True)` averages log10 values)."""
+def to_degrees(x):
+    """Radians to degrees (arrays, scalars and DataFrame columns alike)."""
+    return np.degrees(x)
+
+
+def display_metric(df: pd.DataFrame, metric_col: str = "metric", value_col: str = "value") -> pd.DataFrame:
+    """A tidy table with the values of metrics stored in radians converted to degrees (for a
+    figure or a table; `metric_label` names the unit). Other rows are returned unchanged."""
+    if metric_col not in df.columns:
+        return df
+    rad = df[metric_col].astype(str).isin(_RADIAN_METRICS)
+    if not rad.any():
+        return df
+    out = df.copy()
+    out.loc[rad, value_col] = to_degrees(out.loc[rad, value_col].astype(float))
+    return out
+
+
+def few_runs(n_runs) -> bool:
+    """The small-n rule of every figure and table: True when some shown value averages fewer
+    than `SMALL_N` runs (``n_runs``: an int or the counts seen); then no interval is drawn."""
+    counts = [int(n) for n in np.atleast_1d(n_runs) if int(n) > 0]
+    return bool(counts) and min(counts) < SMALL_N
+
+
+def _count_text(n_runs) -> str:
     counts = sorted({int(n) for n in np.atleast_1d(n_runs)})
     if not counts:
         raise ValueError("n_runs: no counts given")
-    n = str(counts[0]) if len(counts) == 1 else f"{counts[0]}–{counts[-1]}"
+    return str(counts[0]) if len(counts) == 1 else f"{counts[0]}–{counts[-1]}"
+
+
+def band_label(n_runs, confidence: float = CONFIDENCE, *, geometric: bool = False) -> str:
+    """What a band (or its absence) is, for a legend title or caption: ``n_runs`` an int or
+    the counts seen; ``geometric`` for a log axis (`plot_lines(logy=True)` averages log10
+    values). Fewer than `SMALL_N` runs: the dots are the runs, the line their mean."""
+    n = _count_text(n_runs)
+    counts = sorted({int(v) for v in np.atleast_1d(n_runs)})
     if counts[-1] < 2:
         return f"mean of {n} run (no interval)"
+    if few_runs(counts):
+        mean = "geometric mean" if geometric else "mean"
+        return f"dots: each of {n} runs, line: {mean}\n(fewer than {SMALL_N} runs: no CI band)"
     if geometric:
         return f"geometric mean and {confidence:.0%} CI\nover {n} runs (Student t on log10)"
     return f"mean and {confidence:.0%} CI of the mean\nover {n} runs (Student t)"
+
+
+def _range_text(lo: str, hi: str) -> str:
+    return f"{lo} to {hi}" if lo.startswith("-") or hi.startswith("-") else f"{lo}–{hi}"
+
+
+def cell_text(values, fmt: Callable[[float], str] | None = None,
+              ci_fmt: Callable[[float], str] | None = None) -> str:
+    """One table cell for the values of a group (the small-n rule of `few_runs`):
+    ``mean ± half-width`` of the 95% CI of the mean (Student t) with at least `SMALL_N`
+    values, ``mean (min–max)`` with 2 to 4, the value alone with one (or identical ones).
+    ``fmt`` formats the mean and range (default `number`), ``ci_fmt`` the half-width
+    (default: 2 significant digits)."""
+    fmt = fmt or number
+    ci_fmt = ci_fmt or (lambda v: number(v, 2))
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return "–"
+    m, half = mean_ci(v)
+    lo, hi = float(v.min()), float(v.max())
+    if v.size == 1 or hi - lo <= 1e-9 * max(1.0, abs(m)):
+        return fmt(m)
+    if few_runs(v.size):
+        return f"{fmt(m)} ({_range_text(fmt(lo), fmt(hi))})"
+    return f"{fmt(m)} ± {ci_fmt(half)}"
+
+
+def cell_rule(n_runs, unit: str = "runs", confidence: float = CONFIDENCE) -> str:
+    """What the cells of `cell_text` hold, for a table's caption (``unit``: "runs", "seeds")."""
+    n = _count_text(n_runs)
+    counts = sorted({int(v) for v in np.atleast_1d(n_runs)})
+    if counts[-1] < 2:
+        return f"the value of {n} {unit.rstrip('s')} (no interval)"
+    if few_runs(counts):
+        return (f"mean (min–max) over {n} {unit}; fewer than {SMALL_N} {unit}, so no confidence "
+                "interval")
+    return f"mean ± half-width of the {confidence:.0%} confidence interval of the mean over {n} {unit} (Student t)"
 
 
 # --------------------------------------------------------------------------- statistics
@@ -241,32 +385,118 @@ def run_counts(df: pd.DataFrame, x: str | None = None, hue: str = "method", by: 
 # --------------------------------------------------------------------------- figures and axes
 
 
-def new_figure(nrows: int = 1, ncols: int = 1, *, panel: tuple[float, float] = (4.6, 3.4),
-               figsize: tuple[float, float] | None = None, **subplot_kw) -> tuple[Figure, np.ndarray]:
-    """A pyplot-free Figure (constrained layout) and its (nrows, ncols) array of axes."""
-    fig = Figure(figsize=figsize or (panel[0] * ncols + 1.6, panel[1] * nrows), layout="constrained")
+@contextlib.contextmanager
+def paper_style():
+    """`PAPER_RC` in force inside the block (matplotlib.rc_context; nothing global changes)."""
+    with matplotlib.rc_context(PAPER_RC):
+        yield
+
+
+def paper_figure(fn):
+    """Decorator: ``fn`` draws its figure under `paper_style` (text sizes are fixed when an
+    artist is made, so the style must be in force while drawing)."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with paper_style():
+            return fn(*args, **kwargs)
+    return wrapper
+
+
+def _width(width) -> float:
+    if width in ("single", None):
+        return SINGLE_COLUMN
+    if width == "double":
+        return DOUBLE_COLUMN
+    if isinstance(width, bool) or not isinstance(width, (int, float)) or not width > 0:
+        raise ValueError(f"width: expected 'single', 'double' or inches > 0, got {width!r}")
+    return float(width)
+
+
+def new_figure(nrows: int = 1, ncols: int = 1, *, width: str | float | None = None, aspect: float = 0.72,
+               legend_rows: int = 2, figsize: tuple[float, float] | None = None,
+               **subplot_kw) -> tuple[Figure, np.ndarray]:
+    """A pyplot-free Figure (constrained layout) at a paper width and its (nrows, ncols) axes.
+
+    ``width``: "single" (3.5 in), "double" (7 in) or inches; default single for one column
+    of panels, double for more. Each panel is ``aspect`` times as high as wide (its height
+    kept within 1.5-2.8 in), plus room for ``legend_rows`` rows of a legend below
+    (`figure_legend`). ``figsize`` overrides all of it. Draw under `paper_style` for its fonts.
+    """
+    if figsize is None:
+        w = _width(width if width is not None else ("single" if ncols == 1 else "double"))
+        panel_h = min(2.8, max(1.5, aspect * w / ncols))
+        figsize = (w, panel_h * nrows + 0.18 * legend_rows + 0.2)
+    fig = Figure(figsize=figsize, layout="constrained")
     axes = np.asarray(fig.subplots(nrows, ncols, squeeze=False, **subplot_kw))
     return fig, axes
 
 
-def figure_png(fig: Figure, dpi: int = 150) -> bytes:
-    """The figure as PNG bytes."""
+def parse_figure_formats(text) -> tuple[str, ...]:
+    """``"png,pdf,svg"`` -> ("png", "pdf", "svg"): the ``--figure-format`` list, checked."""
+    if isinstance(text, (list, tuple)):
+        items = [str(t).strip().lower() for t in text]
+    elif isinstance(text, str):
+        items = [t.strip().lower().lstrip(".") for t in text.split(",") if t.strip()]
+    else:
+        raise TypeError(f"--figure-format: expected a comma-separated str, got {type(text).__name__}")
+    bad = [t for t in items if t not in FIGURE_FORMATS]
+    if bad or not items:
+        raise ValueError(f"--figure-format: expected a comma-separated subset of {','.join(FIGURE_FORMATS)}, "
+                         f"got {text!r}")
+    return tuple(dict.fromkeys(items))
+
+
+def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = PNG_DPI) -> bytes:
+    """The figure as ``fmt`` (png, pdf, svg) bytes, at its own size (fonts keep their points)."""
+    if fmt not in FIGURE_FORMATS:
+        raise ValueError(f"fmt: expected one of {FIGURE_FORMATS}, got {fmt!r}")
     buf = io.BytesIO()
     if fig.get_layout_engine() is None:  # keep a figure's own (e.g. constrained) layout
         fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=dpi)
+    meta = {"pdf": {"Creator": "camo_sbi", "CreationDate": None},
+            "svg": {"Creator": "camo_sbi", "Date": None}}.get(fmt)  # no date: same figure, same bytes
+    with matplotlib.rc_context({"svg.fonttype": "none", "pdf.fonttype": 42, "svg.hashsalt": "camo_sbi"}):
+        fig.savefig(buf, format=fmt, dpi=dpi, metadata=meta)
     return buf.getvalue()
 
 
-def save_figure(fig: Figure, path, dpi: int = 150):
-    """Write ``fig`` to ``path`` as PNG atomically; a pyplot-managed figure is closed."""
-    data = figure_png(fig, dpi)
+def figure_png(fig: Figure, dpi: int = PNG_DPI) -> bytes:
+    """The figure as PNG bytes."""
+    return figure_bytes(fig, "png", dpi)
+
+
+def _release(fig: Figure) -> None:
     manager = getattr(fig.canvas, "manager", None)
     if manager is not None:  # made by pyplot: release it from pyplot's registry
         import matplotlib.pyplot as plt
 
         plt.close(fig)
-    return atomic_write_bytes(path, data)
+
+
+def save_figure(fig: Figure, path, dpi: int = PNG_DPI) -> Path:
+    """Write ``fig`` to ``path`` atomically in the format its suffix names (.png, .pdf,
+    .svg); a pyplot-managed figure is closed."""
+    path = Path(path)
+    fmt = path.suffix.lower().lstrip(".")
+    if fmt not in FIGURE_FORMATS:
+        raise ValueError(f"path: expected a .png, .pdf or .svg file, got {path.name}")
+    data = figure_bytes(fig, fmt, dpi)
+    _release(fig)
+    return Path(atomic_write_bytes(path, data))
+
+
+def save_figures(fig: Figure, path, formats: Sequence[str] = ("png",), dpi: int = PNG_DPI) -> list[Path]:
+    """Write ``fig`` once per format, ``path`` with each format's suffix (``out/fig.png``,
+    ``out/fig.pdf``, ...), atomically; returns the paths written."""
+    formats = parse_figure_formats(list(formats))
+    path = Path(path)
+    out = []
+    for fmt in formats:
+        target = path.with_suffix("." + fmt)
+        atomic_write_bytes(target, figure_bytes(fig, fmt, dpi))
+        out.append(target)
+    _release(fig)
+    return out
 
 
 def integer_ticks(ax: Axes, values=None, axis: str = "x") -> None:
@@ -321,7 +551,7 @@ class Series:
 
 
 def robust_ylim(ax: Axes, series: Mapping[str, Series], *, factor: float = DWARF_FACTOR,
-                band_cap: float = 2.5) -> list[str]:
+                band_cap: float = 2.5, spread: str = "bands") -> list[str]:
     """Fit the y axis to the methods when a series dwarfs them; returns the off-scale names.
 
     A series is off scale when its largest mean exceeds ``factor`` times the largest mean of
@@ -362,16 +592,17 @@ def robust_ylim(ax: Axes, series: Mapping[str, Series], *, factor: float = DWARF
             ax.plot(np.asarray(v.x)[above], np.full(int(above.sum()), top), linestyle="none", marker="^", ms=7,
                     color=method_style(name).color, clip_on=False, zorder=5)
     if clipped_bands:
-        lines.append("bands clipped at the top")
-    ax.text(0.99, 0.985, "\n".join(lines), transform=ax.transAxes, ha="right", va="top", fontsize=7,
+        lines.append(f"{spread} clipped at the top")
+    ax.text(0.99, 0.985, "\n".join(lines), transform=ax.transAxes, ha="right", va="top", fontsize=MIN_FONT_PT,
             color="0.25", bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": "0.8", "alpha": 0.9})
     return off
 
 
 def figure_legend(fig: Figure, axes: Sequence[Axes] | np.ndarray | Axes, *, title: str | None = None,
-                  loc: str = "outside right upper", fontsize: float = 8):
-    """One legend for the figure, outside the panels (default: to their right), built from
-    the labelled artists of ``axes`` (first occurrence of each label, in method order)."""
+                  loc: str = "outside lower center", fontsize: float = MIN_FONT_PT, ncols: int | None = None):
+    """One legend for the figure, outside the panels (default: below them, as many columns
+    as the width holds), built from the labelled artists of ``axes`` (first occurrence of
+    each label, in method order)."""
     axs = [axes] if isinstance(axes, Axes) else list(np.asarray(axes, dtype=object).reshape(-1))
     handles: dict[str, object] = {}
     for ax in axs:
@@ -381,8 +612,10 @@ def figure_legend(fig: Figure, axes: Sequence[Axes] | np.ndarray | Axes, *, titl
     if not handles:
         return None
     order = method_order(handles)
+    if ncols is None:
+        ncols = 1 if "right" in loc or "left" in loc else max(1, int(fig.get_figwidth() // 1.15))
     return fig.legend([handles[k] for k in order], order, loc=loc, fontsize=fontsize, title=title,
-                      title_fontsize=fontsize, frameon=False, alignment="left")
+                      title_fontsize=fontsize, frameon=False, alignment="left", ncols=min(ncols, len(order)))
 
 
 def _legend_handle(name: str) -> Line2D:
@@ -390,102 +623,162 @@ def _legend_handle(name: str) -> Line2D:
     return Line2D([], [], label=name, markersize=5, **st.line_kwargs())
 
 
+def jitter(n: int, width: float) -> np.ndarray:
+    """``n`` evenly spread offsets in [-width/2, width/2] (deterministic: no random state)."""
+    if n <= 1:
+        return np.zeros(max(n, 0))
+    return np.linspace(-width / 2, width / 2, n)
+
+
+def _x_step(xs: np.ndarray, log: bool) -> float:
+    """The smallest gap between distinct x values (in log10 on a log axis), 1 if only one."""
+    u = np.unique(xs[np.isfinite(xs)])
+    if log:
+        u = np.log10(u[u > 0])
+    return float(np.min(np.diff(u))) if u.size > 1 else 1.0
+
+
+def _dots(ax: Axes, data: pd.DataFrame, x: str | None, names: list[str], hue: str, *, log: bool,
+          z: Mapping[str, float], positions: Mapping[str, float] | None = None) -> None:
+    """Each run as a dot, jittered around its x (per method a little apart, so methods do not
+    hide each other's runs)."""
+    xs_all = data[x].to_numpy(dtype=float) if x is not None else np.zeros(len(data))
+    step = _x_step(xs_all, log) if x is not None else 1.0
+    spread = 0.5 * step if x is None else 0.3 * step
+    for i, h in enumerate(names):
+        g = data[data[hue].astype(str) == h]
+        if g.empty:
+            continue
+        st = method_style(h)
+        shift = (i - (len(names) - 1) / 2) * spread / max(len(names), 1) if x is not None else 0.0
+        groups = [(positions[h], g)] if x is None else list(g.groupby(x, sort=True))
+        for xv, gg in groups:
+            vals = gg["value"].to_numpy(dtype=float)
+            width = spread / max(len(names), 1) * 0.8 if x is not None else 0.35
+            off = shift + jitter(vals.size, width)
+            xp = float(xv) * 10.0**off if log else float(xv) + off
+            ax.scatter(xp, vals, s=9, color=st.color, marker=st.marker, alpha=0.7, lw=0.3,
+                       edgecolors="white", zorder=z.get(h, 3) + 0.5)
+
+
 def plot_lines(df: pd.DataFrame, *, x: str = "n_tasks", hue: str = "method", ax: Axes | None = None,
                ylabel: str = "", title: str = "", logx: bool = False, logy: bool = False,
                robust: bool = True, legend: bool = True, factor: float = DWARF_FACTOR) -> Axes:
-    """Mean of ``value`` against ``x`` per ``hue``, with a band for the 95% CI of the mean.
+    """Mean of ``value`` against ``x`` per ``hue``, with a band for the 95% CI of the mean,
+    or, with fewer than `SMALL_N` runs behind a point (`few_runs`), the runs as jittered dots.
 
     Each method in its `method_style`. ``x`` columns of integers (task counts) get integer
     ticks; ``logx`` is honoured only with at least two distinct positive x values (a single
     budget stays linear). A non-negative metric's band is not drawn below 0. ``robust``:
     `robust_ylim` clips a dwarfing series (not with ``logy``). ``legend``: draw a legend
-    with the band's meaning as its title: outside the axes, to the right, when they are the
-    figure's only axes, else inside in the emptiest corner; False for none (a figure of
-    several panels gets one `figure_legend` instead). Returns the axes (a new Figure's when
-    ``ax`` is None).
+    with the band's meaning as its title: below the axes when they are the figure's only
+    axes, else inside in the emptiest corner; False for none (a figure of several panels
+    gets one `figure_legend` instead). Returns the axes (a new Figure's when ``ax`` is None).
     """
     if not isinstance(df, pd.DataFrame):
         raise TypeError(f"df: expected a DataFrame, got {type(df).__name__}")
     if ax is None:
-        _, axes = new_figure()
+        with paper_style():
+            _, axes = new_figure()
         ax = axes[0, 0]
     geometric = bool(logy)
     data = df
     if geometric:  # a log axis: the geometric mean and the CI of the mean of log10 values
         data = df[df["value"] > 0].assign(value=lambda d: np.log10(d["value"]))
     s = summarize(data, x, hue)
+    few = few_runs(s["n"])
     nonneg = bool(len(df) and (df["value"] >= 0).all()) and not geometric
-    series = {}
-    for h in method_order(s[hue].astype(str)):
+    series, zs = {}, {}
+    names = method_order(s[hue].astype(str))
+    logx_ok = logx and _log_x(ax, df[x].dropna())
+    for h in names:
         g = s[s[hue].astype(str) == h].sort_values(x)
         st = method_style(h)
         xs, mean, ci = g[x].to_numpy(dtype=float), g["mean"].to_numpy(), g["ci"].fillna(0).to_numpy()
-        lower = np.clip(mean - ci, 0, None) if nonneg else mean - ci
-        upper = mean + ci
+        if few:  # the points' spread, not an interval
+            raw = data[data[hue].astype(str) == h].groupby(x)["value"]
+            lower = raw.min().reindex(g[x]).to_numpy(dtype=float)
+            upper = raw.max().reindex(g[x]).to_numpy(dtype=float)
+        else:
+            lower = np.clip(mean - ci, 0, None) if nonneg else mean - ci
+            upper = mean + ci
         if geometric:
             mean, lower, upper = 10.0**mean, 10.0**lower, 10.0**upper
         z = 2.0 if st.baseline else 3.0  # the methods above the baselines' reference lines
-        ax.plot(xs, mean, ms=4, lw=1.4, label=h, zorder=z, **st.line_kwargs())
-        if (ci > 0).any():
+        zs[h] = z
+        ax.plot(xs, mean, ms=3.5, lw=1.3, label=h, zorder=z, **st.line_kwargs())
+        if not few and (ci > 0).any():
             ax.fill_between(xs, lower, upper, color=st.color, alpha=0.15 if not st.baseline else 0.1, lw=0,
                             zorder=z - 1)
         series[h] = Series(xs, mean, lower, upper)
+    if few:
+        _dots(ax, df[df["value"] > 0] if geometric else df, x, names, hue, log=logx_ok, z=zs)
     xvals = df[x].dropna()
     integral = pd.api.types.is_integer_dtype(df[x]) or x in ("n_tasks", "budget", "run", "seed")
-    if not (logx and _log_x(ax, xvals)) and len(xvals) and integral:
+    if not logx_ok and len(xvals) and integral:
         integer_ticks(ax, xvals)
     if logy:
         ax.set_yscale("log")
     ax.set_xlabel({"n_tasks": "observed tasks", "budget": "simulations per observed task"}.get(x, x.replace("_", " ")))
     ax.set_ylabel(ylabel)
     if title:
-        ax.set_title(title, fontsize=10)
+        ax.set_title(title)
     ax.grid(alpha=0.3)
     if robust and not logy:
-        robust_ylim(ax, series, factor=factor)
+        robust_ylim(ax, series, factor=factor, spread="points" if few else "bands")
     if legend:
-        alone = len(ax.figure.axes) == 1  # outside to the right; beside other panels: inside, best corner
-        where = {"loc": "upper left", "bbox_to_anchor": (1.02, 1.0)} if alone else {"loc": "best"}
+        alone = len(ax.figure.axes) == 1  # below the axes; beside other panels: inside, best corner
+        where = {"loc": "upper left", "bbox_to_anchor": (0.0, -0.22), "ncols": 2} if alone else {"loc": "best"}
         if len(s):
-            ax.legend(fontsize=8 if alone else 7, frameon=not alone, framealpha=0.85, title_fontsize=7,
+            ax.legend(fontsize=MIN_FONT_PT, frameon=not alone, framealpha=0.85, title_fontsize=MIN_FONT_PT,
                       title=band_label(s["n"], geometric=geometric), alignment="left", **where)
     return ax
 
 
 def plot_bars(df: pd.DataFrame, *, hue: str = "method", ax: Axes | None = None, ylabel: str = "",
               title: str = "", robust: bool = True, factor: float = DWARF_FACTOR) -> Axes:
-    """One bar per ``hue``: the mean ``value`` with its 95% CI as an error bar, in method
-    colours (baselines grey and hatched). A dwarfing bar is clipped (`robust_ylim`) and its
-    value written on it. The band's meaning is in the x-axis label. Returns the axes."""
+    """One bar per ``hue``: the mean ``value`` with its 95% CI as an error bar, or, with fewer
+    than `SMALL_N` runs (`few_runs`), with each run as a jittered dot, in method colours
+    (baselines grey and hatched). A dwarfing bar is clipped (`robust_ylim`) and its value
+    written on it. What the bars are is in the x-axis label. Returns the axes."""
     if not isinstance(df, pd.DataFrame):
         raise TypeError(f"df: expected a DataFrame, got {type(df).__name__}")
     if ax is None:
-        _, axes = new_figure()
+        with paper_style():
+            _, axes = new_figure()
         ax = axes[0, 0]
     s = summarize(df, None, hue)
+    few = few_runs(s["n"])
     order = method_order(s[hue].astype(str))
     s = s.set_index(s[hue].astype(str)).loc[order]
     xs = np.arange(len(order))
     for i, name in enumerate(order):
         st = method_style(name)
-        ax.bar(i, s.loc[name, "mean"], yerr=s.loc[name, "ci"], capsize=4, color=st.color,
-               alpha=0.55 if st.baseline else 0.85, hatch="//" if st.baseline else None,
-               edgecolor="0.2", lw=0.6, label=name)
-    ax.set_xticks(xs, order, rotation=30 if len(order) > 4 else 0, ha="right" if len(order) > 4 else "center")
+        ax.bar(i, s.loc[name, "mean"], yerr=None if few else s.loc[name, "ci"], capsize=4, color=st.color,
+               alpha=(0.35 if few else 0.55) if st.baseline else (0.5 if few else 0.85),
+               hatch="//" if st.baseline else None, edgecolor="0.2", lw=0.6, label=name)
+    if few:
+        _dots(ax, df, None, order, hue, log=False, z={}, positions={n: i for i, n in enumerate(order)})
+    ax.set_xticks(xs, order, rotation=30 if len(order) > 3 else 0, ha="right" if len(order) > 3 else "center")
     ax.set_ylabel(ylabel)
-    ax.set_xlabel(f"bars: {band_label(s['n'])}".replace("\n", " "), fontsize=7)
+    what = band_label(s["n"]).replace("\n", " ")
+    if few:
+        what = what.replace("line:", "bar:")
+    ax.set_xlabel(f"bars: {what}" if not few else what)
     if title:
-        ax.set_title(title, fontsize=10)
+        ax.set_title(title)
     ax.grid(alpha=0.3, axis="y")
     if robust:
         series = {}
         for i, n in enumerate(order):
             m, c = float(s.loc[n, "mean"]), float(np.nan_to_num(s.loc[n, "ci"]))
-            series[n] = Series(np.array([i]), np.array([m]), np.array([min(0.0, m - c)]), np.array([m + c]))
-        off = robust_ylim(ax, series, factor=factor)
+            v = df.loc[df[hue].astype(str) == n, "value"].to_numpy(dtype=float)
+            lo, hi = (float(np.nanmin(v)), float(np.nanmax(v))) if few and v.size else (m - c, m + c)
+            series[n] = Series(np.array([i]), np.array([m]), np.array([min(0.0, lo)]), np.array([hi]))
+        off = robust_ylim(ax, series, factor=factor, spread="points" if few else "bands")
         top = ax.get_ylim()[1]
         for name in off:
             i = order.index(name)
-            ax.text(i, 0.5 * top, f"{_fmt(s.loc[name, 'mean'])}\n↑", ha="center", va="center", fontsize=7,
-                    bbox={"fc": "white", "ec": "none", "alpha": 0.8})
+            ax.text(i, 0.5 * top, f"{_fmt(s.loc[name, 'mean'])}\n↑", ha="center", va="center",
+                    fontsize=MIN_FONT_PT, bbox={"fc": "white", "ec": "none", "alpha": 0.8})
     return ax

@@ -69,10 +69,12 @@ from camo_sbi.diagnostics.calibration import (
     sbc_ranks,
     sbc_uniformity,
 )
+from camo_sbi.diagnostics.style import DOUBLE_COLUMN
 from camo_sbi.experiments.compare import run_in_processes
+from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
 from camo_sbi.experiments.method_configs import parse_configs
 from camo_sbi.experiments.models import add_model_arguments, model_from_args
-from camo_sbi.experiments.plots import save_figure
+from camo_sbi.experiments.plots import save_figures
 from camo_sbi.experiments.rundir import RunDirectory, run_settings
 from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
 
@@ -359,11 +361,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="observation space of npe-amortized (the other methods keep their own)")
     p.add_argument("--sbi-diagnostics", type=int, default=500,
                    help="npe-amortized: fresh (theta, x) pairs for sbi's run_sbc / TARP (0: skip)")
+    add_figure_format_argument(p)
     p.add_argument("--out", type=Path, default=Path("runs/calibrate"))
 
 
 def main(args) -> int:
     t0 = time.perf_counter()
+    formats = figure_formats(args)
     from camo_sbi.experiments.amortize import estimator_for_run
 
     args = argparse.Namespace(**{**vars(args), "amortized": estimator_for_run(
@@ -413,8 +417,8 @@ def main(args) -> int:
         fig = plot_coverage(labelled, coordinate="overall",
                             title=f"Coverage of central intervals, {model}: {n_subj} prior subjects, "
                                   f"{args.tasks} task{'s' if args.tasks != 1 else ''}, budget {args.budget}",
-                            figsize=(8.0, 5.6))
-        save_figure(fig, out / "coverage.png")
+                            figsize=(DOUBLE_COLUMN, 4.2))
+        figs = save_figures(fig, out / "coverage.png", formats)
         redrawn = int((ranks.drop_duplicates(["method", "subject"]).groupby("subject")["attempt"].first() > 0).sum())
         cell_time = float(df.loc[(df["record"] == "meta") & (df["name"] == "wall_time"), "value"].sum())
         text = _format_summary(summary, args, model, redrawn, time.perf_counter() - t0, cell_time)
@@ -422,7 +426,7 @@ def main(args) -> int:
             text += "\n" + _sbi_diagnostics(args, out)
         print(text)
         atomic_write_text(out / "summary.txt", text + "\n")
-        print(f"tables: {out / 'coverage.csv'}, {out / 'sbc.csv'}  figure: {out / 'coverage.png'}")
+        print(f"tables: {out / 'coverage.csv'}, {out / 'sbc.csv'}  figure: {', '.join(str(f) for f in figs)}")
     return 0
 
 

@@ -114,12 +114,14 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _demo_arguments(p: argparse.ArgumentParser) -> None:
+    from camo_sbi.experiments.figure_options import add_figure_format_argument
     from camo_sbi.experiments.models import add_model_arguments
 
     add_model_arguments(p, limits=False)
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/demo")
+    add_figure_format_argument(p)
 
 
 def _report(args) -> int:

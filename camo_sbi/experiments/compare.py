@@ -21,6 +21,12 @@ from tqdm import tqdm
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import DEFAULT_RETRIES, dask_client, map_unordered, parse_scheduler
+from camo_sbi.experiments.figure_options import (
+    add_corner_argument,
+    add_figure_format_argument,
+    corner_limits,
+    figure_formats,
+)
 from camo_sbi.experiments.method_configs import parse_configs
 from camo_sbi.experiments.models import (
     add_model_arguments,
@@ -176,10 +182,18 @@ def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
     save_netcdf(idata, out / "posteriors" / f"{spec['key']}.nc")
 
 
-def make_figures(df, out: Path) -> list[Path]:
+def make_figures(df, out: Path, formats=("png",)) -> list[Path]:
     """Error vs observed tasks at the largest budget; with at least two budgets, error vs
     budget (log x) and wall time vs budget; with one budget no error-vs-budget figure (its
-    points are the last ones of error vs tasks) and the wall time as bars per method."""
+    points are the last ones of error vs tasks) and the wall time as bars per method.
+    Each figure once per format of ``formats`` (``--figure-format``)."""
+    from camo_sbi.diagnostics.style import paper_style
+
+    with paper_style():
+        return _make_figures(df, out, formats)
+
+
+def _make_figures(df, out: Path, formats) -> list[Path]:
     from camo_sbi.diagnostics.style import (
         band_label,
         figure_legend,
@@ -188,7 +202,7 @@ def make_figures(df, out: Path) -> list[Path]:
         plot_bars,
         plot_lines,
         run_counts,
-        save_figure,
+        save_figures,
     )
 
     paths = []
@@ -202,8 +216,7 @@ def make_figures(df, out: Path) -> list[Path]:
             m = sub[sub.metric == metric]
             plot_lines(m, x=x, ax=ax, ylabel=metric_label(metric), title=title(metric), legend=False, **kw)
         figure_legend(fig, axes, title=band_label(run_counts(sub[sub.metric == metrics[0]], x)))
-        paths.append(out / name)
-        save_figure(fig, paths[-1])
+        paths.extend(save_figures(fig, out / name, formats))
 
     if last.budget.nunique() >= 2:
         pair(last, "budget", lambda m: f"{'Test' if m.startswith('cart') else 'Joint-limit'} error vs budget "
@@ -220,8 +233,7 @@ def make_figures(df, out: Path) -> list[Path]:
     else:
         plot_bars(wt, ax=axes[0, 0], ylabel=metric_label("wall_time"),
                   title=f"Wall time per run ({n_last} tasks, budget {bmax:g})")
-    paths.append(out / "wall_time.png")
-    save_figure(fig, paths[-1])
+    paths.extend(save_figures(fig, out / "wall_time.png", formats))
     return paths
 
 
@@ -293,12 +305,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='per-method config overrides, e.g. --config \'npe-amortized={"combine": "smc"}\' '
                         '(repeatable)')
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    add_figure_format_argument(p)
+    add_corner_argument(p)
     p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--out", type=Path, default=Path("runs/compare"))
 
 
 def main(args) -> int:
     t0 = time.perf_counter()
+    formats = figure_formats(args)
+    corner = corner_limits(args)
     args = _with_estimator(args)
     specs = cell_specs(args)
     if args.workers < 1:
@@ -337,7 +353,7 @@ def main(args) -> int:
         missing = keys - store.finished_keys()
         if missing:
             raise RuntimeError(f"{len(missing)} cells did not finish")
-        figs = make_figures(df, out)
+        figs = make_figures(df, out, formats)
         if getattr(args, "amortized", None) is not None:
             from camo_sbi.experiments.amortize import write_cost_table
 
@@ -350,6 +366,6 @@ def main(args) -> int:
         if not args.no_report:
             from camo_sbi.diagnostics.report import write_report
 
-            print(f"report: {write_report(out, out / 'report.html')}")
+            print(f"report: {write_report(out, out / 'report.html', corner_limits=corner)}")
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
     return 0

@@ -1,7 +1,8 @@
 """`camo-sbi demo`: simulate reaches under different joint limits and plot them.
 
 ``--out`` ending in ``.png`` is the figure's file; any other path is a directory that
-receives ``demo.png``.
+receives ``demo.png``. ``--figure-format png,pdf,svg`` writes the same figure in each format
+(``demo.pdf`` next to ``demo.png``, ...). Joint angles are drawn in degrees.
 """
 
 from __future__ import annotations
@@ -61,13 +62,18 @@ def make_figure(sim, model: str, theta: torch.Tensor, goal: torch.Tensor, traj):
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    from camo_sbi.diagnostics.style import new_figure
+    from camo_sbi.diagnostics.style import DOUBLE_COLUMN, new_figure, paper_style
 
+    with paper_style():
+        return _make_figure(sim, model, theta, goal, traj, Line2D, Patch, new_figure, DOUBLE_COLUMN)
+
+
+def _make_figure(sim, model, theta, goal, traj, Line2D, Patch, new_figure, width):
     batch = theta.shape[0]
     reached = traj.reached.numpy().astype(bool)
-    fig, _ = new_figure(1, 1, figsize=(12.0, 5.8))
+    fig, _ = new_figure(1, 1, figsize=(width, 4.4))
     fig.clear()
-    grid = fig.add_gridspec(2, 3, width_ratios=(1.9, 1, 1))
+    grid = fig.add_gridspec(2, 3, width_ratios=(1.7, 1, 1), wspace=0.12)
     ax = fig.add_subplot(grid[:, 0], projection="3d")
     shown = min(batch, _MAX_PATHS)
     for b in range(shown):
@@ -82,42 +88,41 @@ def make_figure(sim, model: str, theta: torch.Tensor, goal: torch.Tensor, traj):
     ax.set_ylabel("y [m]")
     ax.set_zlabel("z [m]")
     n_yes = int(reached[:shown].sum())
-    ax.set_title(f"{model}: end-effector paths to one goal under {shown} limit vectors\n"
-                 f"({n_yes} reached, {shown - n_yes} stopped short by their limits)", fontsize=10)
+    ax.set_title(f"{model}: {shown} limit vectors, one goal\n"
+                 f"({n_yes} reached, {shown - n_yes} stopped short)")
     ax.legend(handles=[Line2D([], [], color=REACHED_COLOR, label="reached the goal"),
                        Line2D([], [], color=NOT_REACHED_COLOR, label="not reached"),
                        Line2D([], [], color="k", marker="*", ls="none", ms=10, label="goal"),
                        Line2D([], [], color="k", marker="o", ls="none", ms=5, label="start")],
-              loc="upper left", fontsize=8, frameon=False)
+              loc="upper left", frameon=False)
 
     j = _busiest_joint(traj, theta, min(batch, _MAX_PATHS))
     picks = _pick_samples(reached[:shown], _JOINT_PANELS)
-    lo_all, hi_all = (float(v) for v in sim.bounds[j])
+    lo_all, hi_all = (float(np.degrees(v)) for v in sim.bounds[j])
     axes = [fig.add_subplot(grid[r, 1 + c]) for r in range(2) for c in range(2)]
     for ax2, b in zip(axes, picks, strict=False):
-        q = traj.trimmed(b, "joint")[:, j].numpy()
-        lo, hi = float(theta[b, 2 * j]), float(theta[b, 2 * j + 1])
+        q = np.degrees(traj.trimmed(b, "joint")[:, j].numpy())
+        lo, hi = float(np.degrees(theta[b, 2 * j])), float(np.degrees(theta[b, 2 * j + 1]))
         ax2.axhspan(lo, hi, color=LIMIT_COLOR, alpha=0.25, lw=0)
         for v in (lo, hi):
             ax2.axhline(v, color=LIMIT_COLOR, ls="--", lw=1)
         ax2.plot(q, lw=1.6, color=REACHED_COLOR if reached[b] else NOT_REACHED_COLOR)
         ax2.set_ylim(lo_all - 0.05 * (hi_all - lo_all), hi_all + 0.05 * (hi_all - lo_all))
-        ax2.set_title(f"sample {b} ({'reached' if reached[b] else 'not reached'})", fontsize=9)
-        ax2.tick_params(labelsize=7)
+        ax2.set_title(f"sample {b} ({'reached' if reached[b] else 'not reached'})")
         ax2.grid(alpha=0.3)
     for ax2 in axes[len(picks):]:
         ax2.set_visible(False)
     for ax2 in axes[2:]:
-        ax2.set_xlabel("step", fontsize=8)
+        ax2.set_xlabel("step")
     for ax2 in axes[0::2]:
-        ax2.set_ylabel(f"{sim.joint_names[j]} [rad]", fontsize=8)
+        ax2.set_ylabel(f"{sim.joint_names[j]} [deg]")
     fig.legend(handles=[Patch(facecolor=LIMIT_COLOR, alpha=0.4, edgecolor=LIMIT_COLOR, ls="--",
                               label="the sample's limits of this joint"),
                         Line2D([], [], color=REACHED_COLOR, label="reached"),
                         Line2D([], [], color=NOT_REACHED_COLOR, label="not reached")],
-               loc="outside lower right", ncols=3, fontsize=8, frameon=False,
-               title=f"right: joint {sim.joint_names[j]} (the one its limits stop most often); "
-                     f"y range = the model's full range", title_fontsize=8)
+               loc="outside lower right", ncols=3, frameon=False,
+               title=f"right: joint {sim.joint_names[j]} (the one its limits stop most often);\n"
+                     f"y range = the model's full range")
     return fig
 
 
@@ -125,7 +130,10 @@ def main(args) -> int:
     if args.batch < 1:
         raise ValueError("--batch: must be >= 1")
     path = figure_path(args.out)
-    from camo_sbi.diagnostics.style import save_figure
+    from camo_sbi.diagnostics.style import save_figures
+    from camo_sbi.experiments.figure_options import figure_formats
+
+    formats = figure_formats(args)
     from camo_sbi.simulators import sample_goals
 
     model = model_from_args(args)
@@ -138,9 +146,9 @@ def main(args) -> int:
     t0 = time.perf_counter()
     traj = sim.simulate(theta.to(torch.float32), goal.to(torch.float32))
     dt = time.perf_counter() - t0
-    save_figure(make_figure(sim, model.name, theta.to(torch.float64), goal, traj), path)
+    paths = save_figures(make_figure(sim, model.name, theta.to(torch.float64), goal, traj), path, formats)
     print(f"{model.name}: {sim.n_joints} joints {sim.joint_names}")
     print(f"simulated {args.batch} x {traj.q.shape[1]} steps in {dt * 1e3:.1f} ms; "
           f"reached {int(traj.reached.sum())}/{args.batch}; mean length {traj.length.float().mean():.1f}")
-    print(f"figure: {path}")
+    print(f"figure: {', '.join(str(p) for p in paths)}")
     return 0

@@ -62,6 +62,7 @@ from tqdm import tqdm
 
 from camo_sbi._io import atomic_write_text
 from camo_sbi._validation import derive_seed
+from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
 from camo_sbi.inference.camo import CamoConfig
 from camo_sbi.scenarios.block_stacking import OBSERVED_MOTIONS
 
@@ -264,8 +265,16 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
 # --------------------------------------------------------------------------------------
 
 
-def make_figure(df, out: Path) -> Path:
-    """Paper Fig. 5: precision / recall / F1 vs observed tasks, one row of panels per prior."""
+def make_figure(df, out: Path, formats=("png",)) -> Path:
+    """Paper Fig. 5: precision / recall / F1 vs observed tasks, one row of panels per prior;
+    written once per format of ``formats``; returns the first file."""
+    from camo_sbi.diagnostics.style import paper_style
+
+    with paper_style():
+        return _make_figure(df, out, formats)
+
+
+def _make_figure(df, out: Path, formats) -> Path:
     from camo_sbi.diagnostics.style import (
         band_label,
         figure_legend,
@@ -273,12 +282,12 @@ def make_figure(df, out: Path) -> Path:
         new_figure,
         plot_lines,
         run_counts,
-        save_figure,
+        save_figures,
     )
 
     priors = [p for p in PRIORS if p in set(df["prior"])]
     metrics = ("precision", "recall", "f1")
-    fig, axes = new_figure(len(priors), len(metrics), panel=(4.0, 3.1), sharey=True)
+    fig, axes = new_figure(len(priors), len(metrics), aspect=0.8, sharey=True)
     for r, kind in enumerate(priors):
         for c, metric in enumerate(metrics):
             sub = df[(df["prior"] == kind) & (df["metric"] == metric)]
@@ -288,9 +297,7 @@ def make_figure(df, out: Path) -> Path:
     sel = df[df["metric"].isin(metrics)]
     figure_legend(fig, axes, title=band_label(run_counts(sel, "n_tasks", by=("prior",))))
     fig.suptitle("Block allocation to the person: blocks the person takes are positives")
-    path = out / "fig5_allocation.png"
-    save_figure(fig, path)
-    return path
+    return save_figures(fig, out / "fig5_allocation.png", formats)[0]
 
 
 def _positive(name: str):
@@ -333,6 +340,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="save a scene picture for every run (the first run's is always saved)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
+    add_figure_format_argument(p)
     p.add_argument("--out", type=Path, default=Path("runs/reproduce_hrc"))
 
 
@@ -374,6 +382,7 @@ def main(args) -> int:
     from camo_sbi.simulators import human
 
     args.priors = _parse_priors(args.priors)
+    formats = figure_formats(args)
     _check_subject(args.subject)
     for name in ("runs", "tasks", "test_trials", "samples", "keep_best"):
         if getattr(args, name) < 1:
@@ -398,7 +407,7 @@ def main(args) -> int:
                 if want_png:
                     _render_run(scene, extras, png)
         df = store.write_table()
-        fig = make_figure(df, out)
+        fig = make_figure(df, out, formats)
         from camo_sbi.evaluation.claims import hrc_claims
 
         claims = hrc_claims(df, setting=f"hrc ({args.subject}, observe {getattr(args, 'observe', 'reach')})")

@@ -36,6 +36,7 @@ from tqdm import tqdm
 from camo_sbi._io import atomic_write_text
 from camo_sbi._validation import derive_seed
 from camo_sbi.distributed import dask_client, parse_scheduler
+from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
 from camo_sbi.experiments.models import (
     add_model_arguments,
     model_from_args,
@@ -159,9 +160,17 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
     return rows
 
 
-def make_figures(df, out: Path) -> list[Path]:
+def make_figures(df, out: Path, formats=("png",)) -> list[Path]:
     """Fig. 2 (error on unseen goals vs observed tasks), Fig. 3 (errors after all tasks) and the
-    limit error (binding and free bounds) vs observed tasks."""
+    limit error (binding and free bounds) vs observed tasks, each once per format of
+    ``formats``; angles in degrees (`display_metric`)."""
+    from camo_sbi.diagnostics.style import display_metric, paper_style
+
+    with paper_style():
+        return _make_figures(display_metric(df), out, formats)
+
+
+def _make_figures(df, out: Path, formats) -> list[Path]:
     from camo_sbi.diagnostics.style import (
         band_label,
         figure_legend,
@@ -169,7 +178,7 @@ def make_figures(df, out: Path) -> list[Path]:
         new_figure,
         plot_bars,
         plot_lines,
-        save_figure,
+        save_figures,
     )
 
     band = band_label(df.run.nunique())
@@ -182,15 +191,13 @@ def make_figures(df, out: Path) -> list[Path]:
                                   "The authors' Fig. 2 metric (sum over the test goals)"), strict=True):
         plot_lines(df[df.metric == metric], ax=ax, ylabel=metric_label(metric), title=title, legend=False)
     figure_legend(fig, axes, title=band)
-    paths.append(out / "fig2_cartesian_error_vs_tasks.png")
-    save_figure(fig, paths[-1])
+    paths.extend(save_figures(fig, out / "fig2_cartesian_error_vs_tasks.png", formats))
     fig, axes = new_figure(1, 2)
     for ax, metric, title in zip(axes[0], ("joint_error_deg", "reference_joint"),
                                  (f"Joint space after {k} tasks", f"The authors' Fig. 3 metric after {k} tasks"),
                                  strict=True):
         plot_bars(last[last.metric == metric], ax=ax, ylabel=metric_label(metric), title=title)
-    paths.append(out / "fig3_final_error.png")
-    save_figure(fig, paths[-1])
+    paths.extend(save_figures(fig, out / "fig3_final_error.png", formats))
     groups = [m for m in ("limit_error_binding_deg", "limit_error_free_deg") if (df.metric == m).any()]
     if groups:
         fig, axes = new_figure(1, len(groups))
@@ -199,8 +206,7 @@ def make_figures(df, out: Path) -> list[Path]:
                 "free bounds (the test reaches cannot identify them)"
             plot_lines(df[df.metric == metric], ax=ax, ylabel=metric_label(metric), title=which, legend=False)
         figure_legend(fig, axes, title=band)
-        paths.append(out / "limit_error_vs_tasks.png")
-        save_figure(fig, paths[-1])
+        paths.extend(save_figures(fig, out / "limit_error_vs_tasks.png", formats))
     return paths
 
 
@@ -227,6 +233,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run CAMO's candidate chunks on Dask: 'local:N' or 'tcp://host:8786' "
                         "(same numbers as in-process)")
     p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
+    add_figure_format_argument(p)
     p.add_argument("--out", type=Path, default=Path("runs/reproduce_panda"))
 
 
@@ -263,6 +270,7 @@ def main(args) -> int:
     if not hasattr(args, "setting"):
         args.setting = "toolkit"
     _check(args)
+    formats = figure_formats(args)
     t0 = time.perf_counter()
     st = _setting(args)
     model = model_from_args(args)
@@ -286,7 +294,7 @@ def main(args) -> int:
                     continue
                 store.put(key, run_one(sim, model, subject, run, args))
         df = store.write_table()
-        figs = make_figures(df, out)
+        figs = make_figures(df, out, formats)
         claims = manipulator_claims(df, setting=args.setting)
         atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     wall = time.perf_counter() - t0

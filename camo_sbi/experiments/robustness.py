@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from camo_sbi._io import atomic_write_text
 from camo_sbi._validation import derive_seed
+from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
 from camo_sbi.experiments.models import (
     add_model_arguments,
     model_from_args,
@@ -152,13 +153,26 @@ def summary_table(df: pd.DataFrame) -> pd.DataFrame:
     return wide.sort_values(["method", "_o"])[[c for c in cols if c in wide.columns]].reset_index(drop=True)
 
 
-def make_figure(df: pd.DataFrame, out: Path) -> Path:
+def make_figure(df: pd.DataFrame, out: Path, formats=("png",)) -> Path:
+    """Per metric, one group of bars per condition (a bar per method: the mean over seeds;
+    with fewer than 5 seeds each seed a dot), written once per format; returns the first file."""
+    from camo_sbi.diagnostics.style import paper_style
+
+    with paper_style():
+        return _make_figure(df, out, formats)
+
+
+def _make_figure(df: pd.DataFrame, out: Path, formats) -> Path:
     from camo_sbi.diagnostics.style import (
+        band_label,
+        few_runs,
         figure_legend,
+        jitter,
         method_order,
         method_style,
         new_figure,
-        save_figure,
+        run_counts,
+        save_figures,
     )
 
     metrics = [("cartesian_error_mm", "held-out Cartesian error per point [mm]"),
@@ -166,26 +180,32 @@ def make_figure(df: pd.DataFrame, out: Path) -> Path:
                ("coverage90", "coverage of the 90% interval")]
     conds = [c.name for c in CONDITIONS if c.name in set(df.condition)]
     methods = method_order(sorted(set(df.method)))
-    fig, axes = new_figure(1, len(metrics), panel=(5.2, 3.6))
+    fig, axes = new_figure(len(metrics), 1, width="double", aspect=0.3)
     width = 0.8 / max(len(methods), 1)
-    n = df.seed.nunique()
-    for ax, (metric, label) in zip(axes[0], metrics, strict=True):
+    counts = run_counts(df[df.metric.isin([m for m, _ in metrics])], "condition")
+    few = few_runs(counts)
+    for ax, (metric, label) in zip(axes[:, 0], metrics, strict=True):
         sub = df[df.metric == metric]
         for i, m in enumerate(methods):
             g = sub[sub.method == m].groupby("condition")["value"]
             means = [g.mean().get(c, np.nan) for c in conds]
             st = method_style(m)
-            ax.bar(np.arange(len(conds)) + (i - (len(methods) - 1) / 2) * width, means, width, color=st.color,
-                   label=m)
-        ax.set_xticks(np.arange(len(conds)), conds, rotation=30, ha="right", fontsize=8)
+            xs = np.arange(len(conds)) + (i - (len(methods) - 1) / 2) * width
+            ax.bar(xs, means, width, color=st.color, alpha=0.5 if few else 1.0, label=m)
+            if few:  # each seed a dot on its bar
+                for x, c in zip(xs, conds, strict=True):
+                    v = sub[(sub.method == m) & (sub.condition == c)]["value"].to_numpy(dtype=float)
+                    ax.scatter(x + jitter(v.size, 0.6 * width), v, s=7, color=st.color, edgecolors="white",
+                               lw=0.3, zorder=3)
+        ax.set_xticks(np.arange(len(conds)), conds)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, axis="y")
     if metrics[2][0] in set(df.metric):
-        axes[0, 2].axhline(0.9, color="k", lw=0.8, ls=":")
-    figure_legend(fig, axes, title=f"mean over {n} seed{'s' if n != 1 else ''}")
-    path = out / "robustness.png"
-    save_figure(fig, path)
-    return path
+        axes[2, 0].axhline(0.9, color="k", lw=0.8, ls=":")
+    title = band_label(counts).replace("line:", "bar:") if few else \
+        f"bars: mean over {df.seed.nunique()} seeds"
+    figure_legend(fig, axes, title=title)
+    return save_figures(fig, out / "robustness.png", formats)[0]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -200,6 +220,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="comma-separated subset of the conditions")
     p.add_argument("--seed", type=int, default=0, help="base seed")
     p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
+    add_figure_format_argument(p)
     p.add_argument("--out", type=Path, default=Path("runs/robustness"))
 
 
@@ -207,6 +228,7 @@ def main(args) -> int:
     from camo_sbi.inference.registry import capabilities, get_method
 
     t0 = time.perf_counter()
+    formats = figure_formats(args)
     methods = [m.strip() for m in str(args.methods).split(",") if m.strip()]
     for m in methods:
         try:
@@ -250,7 +272,7 @@ def main(args) -> int:
         df = store.write_table()
         table = summary_table(df)
         atomic_write_text(out / "robustness.csv", table.to_csv(index=False))
-        fig = make_figure(df, out)
+        fig = make_figure(df, out, formats)
     print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     bad = df[df.status != "ok"]
     if len(bad):

@@ -8,7 +8,8 @@
   ``--out DIR: another camo-sbi run holds it (pid N); ...`` or, with ``wait=True``, waits;
 * on the first run writes ``out/manifest.json``: the experiment, the package version and the
   resolved settings that determine results (`run_settings` leaves out the runtime options
-  `RUNTIME_OPTIONS`: --out, --workers, --scheduler, --no-report, --wait), plus ``config.json``
+  `RUNTIME_OPTIONS`: --out, --workers, --scheduler, --no-report, --wait, --figure-format,
+  --corner-limits), plus ``config.json``
   (the same settings, read by `camo_sbi.diagnostics.report`);
 * on later runs compares: other settings, another experiment or another camo_sbi version stop
   the command with one line naming the flags that differ, e.g.
@@ -41,7 +42,8 @@ MANIFEST = "manifest.json"
 LOCK = "run.lock"
 CONFIG = "config.json"
 _FORMAT = 1
-RUNTIME_OPTIONS = frozenset({"out", "workers", "scheduler", "no_report", "wait", "func", "command", "experiment"})
+RUNTIME_OPTIONS = frozenset({"out", "workers", "scheduler", "no_report", "wait", "func", "command", "experiment",
+                             "figure_format", "corner_limits"})
 """argparse destinations that never change a result (and the CLI's own bookkeeping)."""
 # files an experiment leaves in its directory: present without a manifest = an older run
 _RESULT_FILES = ("results.csv", "coverage.csv")
