@@ -44,6 +44,13 @@ from matplotlib.figure import Figure
 from scipy.stats import wasserstein_distance
 
 from camo_sbi._validation import check_positive_int, numpy_generator
+from camo_sbi.diagnostics.style import (
+    DOUBLE_COLUMN,
+    MIN_FONT_PT,
+    method_order,
+    method_style,
+    paper_figure,
+)
 from camo_sbi.inference.result import PosteriorResult
 
 __all__ = [
@@ -65,6 +72,11 @@ __all__ = [
     "plot_posterior",
     "plot_pair",
     "plot_forest",
+    "plot_corner",
+    "limit_name",
+    "parse_limit_names",
+    "prior_box",
+    "moved_from_prior",
     "compare_marginals",
 ]
 
@@ -182,6 +194,40 @@ def limit_draws(idata) -> tuple[np.ndarray, list[str]]:
 def true_limits(idata) -> np.ndarray | None:
     """(n, 2) true limits stored with the posterior, or None."""
     return _truth(_check_idata(idata))
+
+
+def prior_box(idata) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(n, 2) low and high edges of a stored box prior (units as stored), or (None, None)."""
+    _check_idata(idata)
+    cd = idata.constant_data if "constant_data" in idata.groups() else {}
+    if "prior_low" in cd and "prior_high" in cd:
+        return (np.asarray(cd["prior_low"].transpose("joint", "bound").values, dtype=np.float64),
+                np.asarray(cd["prior_high"].transpose("joint", "bound").values, dtype=np.float64))
+    return None, None
+
+
+def moved_from_prior(idata, draws: Sequence[np.ndarray] | None = None) -> np.ndarray:
+    """(2n,) how far each limit's posterior moved from the prior: the Wasserstein-1 distance
+    between the posterior marginal and the prior's (its stored draws, else its box edges as a
+    uniform), relative to the prior's width, averaged over ``draws`` ((S, 2n) arrays, e.g.
+    several methods; default: this posterior's). NaN where the prior has no width."""
+    _check_idata(idata)
+    post = [np.asarray(d, dtype=np.float64) for d in draws] if draws is not None else \
+        [_draws(idata)[0].reshape(-1, 2 * idata.posterior.sizes["joint"])]
+    dim = post[0].shape[1]
+    if "prior" in idata.groups() and VAR_NAME in idata.prior:
+        prior = _draws(idata, "prior")[0].reshape(-1, dim)
+    else:
+        low, high = prior_box(idata)
+        if low is None:
+            raise ValueError("idata: no prior stored (pass prior to to_inference_data)")
+        prior = np.linspace(low.reshape(-1), high.reshape(-1), 1000)
+    width = np.ptp(prior, axis=0)
+    out = np.full(dim, np.nan)
+    for k in range(dim):
+        if width[k] > 0:
+            out[k] = float(np.mean([wasserstein_distance(p[:, k], prior[:, k]) for p in post])) / width[k]
+    return out
 
 
 def _index(joints: list[str]) -> pd.MultiIndex:
@@ -561,26 +607,70 @@ def _select_joints(idata, joints) -> list[str]:
     return list(joints)
 
 
+def _scale(idata, degrees: bool) -> tuple[float, str]:
+    """(factor, unit) that turn the stored limits into what a figure shows: degrees when
+    ``degrees`` and the file holds radians (a person reads angles in degrees)."""
+    units = str(idata.posterior.attrs.get("units", "rad"))
+    if degrees and units == "rad":
+        return float(np.degrees(1.0)), "deg"
+    return 1.0, units
+
+
+def _limits_idata(draws: np.ndarray, joints: Sequence[str], attrs=None) -> az.InferenceData:
+    """A posterior-only InferenceData of (S, n, 2) limit draws (one chain); a single draw
+    (a point estimate) is repeated 4 times, so arviz draws it as a zero-width interval."""
+    d = np.asarray(draws, dtype=np.float64)
+    if d.shape[0] < 2:
+        d = np.broadcast_to(d[:1], (4,) + d.shape[1:])
+    with _quiet_arviz():
+        return az.from_dict(posterior={VAR_NAME: np.array(d)[None]},
+                            coords={"joint": list(joints), "bound": list(BOUNDS)}, dims={VAR_NAME: _DIMS},
+                            attrs=dict(attrs or {}))
+
+
+def _display_idata(idata, degrees: bool):
+    """(posterior-only idata in display units, (n, 2) truth or None, unit)."""
+    f, unit = _scale(idata, degrees)
+    draws, joints = _draws(idata)
+    truth = _truth(idata)
+    attrs = {**idata.posterior.attrs, "units": unit}
+    return _limits_idata(draws * f, joints, attrs), (None if truth is None else truth * f), unit
+
+
+def limit_name(joint: str, bound: int | str) -> str:
+    """``("panda_joint4", "lower")`` -> ``"panda_joint4_lo"``: a limit's name in flags and tables."""
+    b = BOUNDS.index(bound) if isinstance(bound, str) else int(bound)
+    return f"{joint}_{('lo', 'hi')[b]}"
+
+
+def parse_limit_names(names: Sequence[str], joints: Sequence[str]) -> list[tuple[int, int]]:
+    """``["panda_joint4_lo", ...]`` -> [(joint index, bound index)], checked against ``joints``."""
+    known = {limit_name(j, b): (i, b) for i, j in enumerate(joints) for b in range(2)}
+    bad = [n for n in names if n not in known]
+    if bad:
+        raise ValueError(f"--corner-limits: unknown limits {bad}; known: {', '.join(known)}")
+    return [known[n] for n in names]
+
+
+@paper_figure
 def plot_posterior(idata: az.InferenceData, *, joints: Sequence[str] | None = None,
-                   hdi_prob: float = 0.94, figsize=None) -> Figure:
+                   hdi_prob: float = 0.94, figsize=None, degrees: bool = True) -> Figure:
     """One panel per (joint, bound): arviz posterior density + HDI, the truth a black line.
 
-    The truth is drawn here (not as arviz's ``ref_val``, whose text collides with the mean
-    label) and named once in the figure legend. Fixed (zero-variance) limits are drawn as a
-    single vertical line with a note. The density is drawn in the method's colour
+    In degrees when the file holds radians (``degrees=False``: as stored). The truth is
+    drawn here (not as arviz's ``ref_val``, whose text collides with the mean label) and
+    named once in the figure legend. Fixed (zero-variance) limits are drawn as a single
+    vertical line with a note. The density is drawn in the method's colour
     (`camo_sbi.diagnostics.style`). Returns a matplotlib Figure (not attached to pyplot).
     """
-    from camo_sbi.diagnostics.style import method_style
-
     _check_idata(idata)
     hdi_prob = _check_prob(hdi_prob)
     sel = _select_joints(idata, joints)
-    draws, all_joints = _draws(idata)
-    truth = _truth(idata)
-    units = idata.posterior.attrs.get("units", "")
+    shown, truth, units = _display_idata(idata, degrees)
+    draws, all_joints = _draws(shown)
     method = str(idata.posterior.attrs.get("method", "posterior"))
     color = method_style(method).color
-    fig = Figure(figsize=figsize or (8.0, 2.0 * len(sel) + 0.6), layout="constrained")
+    fig = Figure(figsize=figsize or (DOUBLE_COLUMN, 1.5 * len(sel) + 0.5), layout="constrained")
     axes = np.atleast_2d(fig.subplots(len(sel), 2, squeeze=False))
     for r, j in enumerate(sel):
         ji = all_joints.index(j)
@@ -590,38 +680,40 @@ def plot_posterior(idata: az.InferenceData, *, joints: Sequence[str] | None = No
             tv = None if truth is None else float(truth[ji, c])
             if np.ptp(x) == 0:
                 ax.axvline(x[0], color=color, lw=2)
-                ax.set_title(f"{j}, {b} (fixed = {x[0]:.3g})", fontsize=9)
+                ax.set_title(f"{j}, {b} (fixed = {x[0]:.3g})")
                 ax.set_yticks([])
                 pad = max(0.1, 0.05 * abs(float(x[0])))
                 ax.set_xlim(float(x[0]) - pad, float(x[0]) + pad)
                 ax.locator_params(axis="x", nbins=3)
             else:
                 with _quiet_arviz():
-                    az.plot_posterior(idata, var_names=[VAR_NAME], coords={"joint": [j], "bound": [b]},
-                                      hdi_prob=hdi_prob, ax=ax, textsize=8, show=False, color=color)
-                ax.set_title(f"{j}, {b}", fontsize=9)
+                    az.plot_posterior(shown, var_names=[VAR_NAME], coords={"joint": [j], "bound": [b]},
+                                      hdi_prob=hdi_prob, ax=ax, textsize=MIN_FONT_PT, show=False, color=color)
+                ax.set_title(f"{j}, {b}")
             if tv is not None:
                 ax.axvline(tv, color="k", ls="--", lw=1.2, label="truth")
                 lo, hi = ax.get_xlim()
                 ax.set_xlim(min(lo, tv - 0.02 * (hi - lo)), max(hi, tv + 0.02 * (hi - lo)))
-            ax.set_xlabel(units, fontsize=8)
-    fig.suptitle(f"{method}: joint limits, {hdi_prob:.0%} HDI", fontsize=10)
+            ax.set_xlabel(f"limit [{units}]")
+    fig.suptitle(f"{method}: joint limits, {hdi_prob:.0%} HDI")
     if truth is not None:
-        fig.legend(handles=[axes[0, 0].lines[-1]], labels=["truth"], loc="outside upper right", fontsize=8,
-                   frameon=False)
+        fig.legend(handles=[axes[0, 0].lines[-1]], labels=["truth"], loc="outside upper right", frameon=False)
     return fig
 
 
+@paper_figure
 def plot_pair(idata: az.InferenceData, *, joints: Sequence[str] | None = None, max_joints: int = 3,
-              kind: str = "scatter", figsize=None) -> Figure:
-    """Pairwise scatter/kde of the free limits of a few joints, truth marked as crosses.
+              kind: str = "scatter", figsize=None, degrees: bool = True) -> Figure:
+    """Pairwise scatter/kde of the free limits of a few joints, truth marked as crosses
+    (arviz.plot_pair; degrees when the file holds radians).
 
     Args:
         joints: joints to show (default: the first ``max_joints`` with a non-fixed limit).
         kind: "scatter", "kde" or "hexbin" (arviz.plot_pair).
     """
     _check_idata(idata)
-    draws, all_joints = _draws(idata)
+    shown, truth, units = _display_idata(idata, degrees)
+    draws, all_joints = _draws(shown)
     if joints is None:
         free = [j for i, j in enumerate(all_joints) if np.ptp(draws[:, i, :], axis=0).max() > 0]
         sel = free[:max_joints]
@@ -632,33 +724,34 @@ def plot_pair(idata: az.InferenceData, *, joints: Sequence[str] | None = None, m
         raise ValueError("joints: need at least two non-fixed limits to draw a pair plot")
     if kind not in ("scatter", "kde", "hexbin"):
         raise ValueError(f"kind: expected 'scatter', 'kde' or 'hexbin', got {kind!r}")
-    labels = [f"{all_joints[i]}, {BOUNDS[c]}" for i, c in cols]
+    labels = [f"{all_joints[i]}, {BOUNDS[c]} [{units}]" for i, c in cols]
     flat = {lab: draws[:, i, c][None, :] for lab, (i, c) in zip(labels, cols, strict=True)}
     sub = az.from_dict(posterior=flat)
     k = len(cols)
-    fig = Figure(figsize=figsize or (2.6 * (k - 1) + 1, 2.6 * (k - 1) + 1), layout="constrained")
+    side = min(DOUBLE_COLUMN, 2.0 * (k - 1) + 0.8)
+    fig = Figure(figsize=figsize or (side, side), layout="constrained")
     axes = np.asarray(fig.subplots(k - 1, k - 1, squeeze=False))
-    truth = _truth(idata)
     ref = None if truth is None else {lab: float(truth[i, c]) for lab, (i, c) in zip(labels, cols, strict=True)}
     with _quiet_arviz():
         az.plot_pair(sub, var_names=labels, kind=kind, ax=axes if k > 2 else axes[0, 0],
-                     reference_values=ref, textsize=8, show=False,
+                     reference_values=ref, textsize=MIN_FONT_PT, show=False,
                      scatter_kwargs={"alpha": 0.4, "s": 4} if kind == "scatter" else None)
-    fig.suptitle(f"{idata.posterior.attrs.get('method', 'posterior')}: pairwise limits", fontsize=10)
+    fig.suptitle(f"{idata.posterior.attrs.get('method', 'posterior')}: pairwise limits")
     return fig
 
 
+@paper_figure
 def plot_forest(idatas: Sequence[az.InferenceData], model_names: Sequence[str], *,
                 joints: Sequence[str] | None = None, hdi_prob: float = 0.94,
-                truth: bool = True, figsize=None) -> Figure:
-    """Forest plot of the limits across methods (one row per model per limit).
+                truth: bool = True, figsize=None, degrees: bool = True, title: str | None = None) -> Figure:
+    """Forest plot of the limits across methods (arviz.plot_forest: one row per model per
+    limit; median, quartiles and the ``hdi_prob`` HDI), in degrees when the files hold radians.
 
-    With ``truth=True`` and true limits stored in the first InferenceData, the truth is
-    added as an extra model named "truth" (a point, zero-width interval). Each model in its
-    method's colour (`camo_sbi.diagnostics.style`); the legend sits outside, to the right.
+    A model with a single draw (a baseline's point estimate) is a zero-width interval: a
+    dot. With ``truth=True`` and true limits stored in the first InferenceData, the truth
+    is added as an extra model named "truth" (black). Each model in its method's colour
+    (`camo_sbi.diagnostics.style`); the legend sits outside, to the right.
     """
-    from camo_sbi.diagnostics.style import method_style
-
     if isinstance(idatas, az.InferenceData) or not isinstance(idatas, Sequence) or not idatas:
         raise TypeError("idatas: expected a non-empty list of arviz.InferenceData")
     for i, d in enumerate(idatas):
@@ -670,29 +763,106 @@ def plot_forest(idatas: Sequence[az.InferenceData], model_names: Sequence[str], 
         raise ValueError(f"model_names: expected {len(idatas)} names, got {len(names)}")
     hdi_prob = _check_prob(hdi_prob)
     sel = _select_joints(idatas[0], joints)
-    data, labels = list(idatas), list(names)
-    t = _truth(idatas[0])
+    shown = [_display_idata(d, degrees) for d in idatas]
+    units = shown[0][2]
+    data, labels = [s[0] for s in shown], list(names)
+    t = shown[0][1]
     if truth and t is not None:
         _, all_joints = _draws(idatas[0])
-        tv = np.broadcast_to(t, (4,) + t.shape)[None]  # (1 chain, 4 identical draws, n, 2)
-        with _quiet_arviz():
-            data.append(az.from_dict(posterior={VAR_NAME: np.array(tv)},
-                                     coords={"joint": all_joints, "bound": list(BOUNDS)},
-                                     dims={VAR_NAME: _DIMS}))
+        data.append(_limits_idata(t[None], all_joints))
         labels.append("truth")
-    fig = Figure(figsize=figsize or (7.0, 0.9 + 0.28 * len(sel) * 2 * len(data)), layout="constrained")
+    order = [labels.index(m) for m in method_order(labels[:len(names)])] + list(range(len(names), len(labels)))
+    data, labels = [data[i] for i in order], [labels[i] for i in order]
+    rows = len(sel) * 2 * len(data)
+    fig = Figure(figsize=figsize or (DOUBLE_COLUMN, 0.8 + 0.085 * rows + 0.12 * len(sel) * 2), layout="constrained")
     ax = fig.subplots()
     with _quiet_arviz():
         az.plot_forest(data, model_names=labels, var_names=[VAR_NAME], coords={"joint": sel},
-                       combined=True, hdi_prob=hdi_prob, ax=ax, textsize=8, show=False,
+                       combined=True, hdi_prob=hdi_prob, ax=ax, textsize=MIN_FONT_PT, show=False,
+                       markersize=3, linewidth=1.0,
+                       labeller=az.labels.mix_labellers((az.labels.NoModelLabeller, az.labels.NoVarLabeller))(),
                        colors=[method_style(m).color for m in labels])
-    ax.set_title(f"joint limits, {hdi_prob:.0%} HDI per method", fontsize=10)
+    ax.set_title(title or f"joint limits per method: median, quartiles, {hdi_prob:.0%} HDI (a dot alone: "
+                          "a point estimate)")
+    ax.set_xlabel(f"limit [{units}]")
+    for lab in ax.get_yticklabels():
+        lab.set_fontsize(MIN_FONT_PT)
     legend = ax.get_legend()
     if legend is not None:  # arviz puts it over the first rows: move it outside, to the right
         handles, texts = legend.legend_handles, [t.get_text() for t in legend.get_texts()]
         legend.remove()
-        ax.legend(handles, texts, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+        ax.legend(handles, texts, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     return fig
+
+
+@paper_figure
+def plot_corner(idatas: Sequence[az.InferenceData], model_names: Sequence[str], limits: Sequence[tuple[int, int]],
+                *, points: Mapping[str, az.InferenceData] | None = None, truth: bool = True,
+                degrees: bool = True, max_scatter: int = 400, title: str | None = None) -> Figure:
+    """Corner plot of k chosen limits (``limits``: (joint index, bound index)), several
+    methods overlaid: arviz.plot_pair once per method on the same axes (scatter below the
+    diagonal, marginal densities on it), the truth as black lines and crosses, and the
+    baselines' point estimates (``points``: {name: InferenceData}) as their markers.
+    Degrees when the files hold radians."""
+    k = len(limits)
+    if k < 2:
+        raise ValueError("limits: a corner plot needs at least two limits")
+    names = [str(m) for m in model_names]
+    if len(names) != len(idatas) or not names:
+        raise ValueError(f"model_names: expected {len(idatas)} names, got {len(names)}")
+    shown = {m: _display_idata(_check_idata(d), degrees) for m, d in zip(names, idatas, strict=True)}
+    units = next(iter(shown.values()))[2]
+    _, joints = _draws(idatas[0])
+    labels = [f"{joints[j]} {BOUNDS[b]} [{units}]" for j, b in limits]
+    side = min(DOUBLE_COLUMN, 1.55 * k + 0.9)
+    fig = Figure(figsize=(side, side + 0.5), layout="constrained")
+    axes = np.asarray(fig.subplots(k, k, squeeze=False))
+    t = next(iter(shown.values()))[1]
+    tv = None if (t is None or not truth) else np.array([t[j, b] for j, b in limits])
+    for m in method_order(names):
+        draws, _ = _draws(shown[m][0])
+        cols = np.stack([draws[:, j, b] for j, b in limits], axis=1)
+        step = max(1, cols.shape[0] // max_scatter)
+        sub = az.from_dict(posterior={lab: cols[::step, i][None] for i, lab in enumerate(labels)})
+        st = method_style(m)
+        with _quiet_arviz():
+            az.plot_pair(sub, var_names=labels, kind="scatter", marginals=True, ax=axes, show=False,
+                         textsize=MIN_FONT_PT, scatter_kwargs={"color": st.color, "alpha": 0.4, "s": 6},
+                         marginal_kwargs={"color": st.color, "plot_kwargs": {"linewidth": 1.2}})
+        axes[0, 0].plot([], [], color=st.color, lw=1.5, label=m)
+    for m, d in method_order_items(points or {}):
+        f, _ = _scale(d, degrees)
+        est, _ = _draws(d)
+        p = np.array([est[0, j, b] * f for j, b in limits])
+        st = method_style(m)
+        for r in range(k):
+            for c in range(r + 1):
+                if r == c:
+                    axes[r, c].axvline(p[c], color=st.color, ls=st.linestyle, lw=1.0)
+                else:
+                    axes[r, c].plot(p[c], p[r], marker=st.marker, color=st.color, ms=5, ls="none", mec="white")
+        axes[0, 0].plot([], [], color=st.color, ls=st.linestyle, marker=st.marker, label=f"{m} (point)")
+    if tv is not None:
+        for r in range(k):
+            for c in range(r + 1):
+                axes[r, c].axvline(tv[c], color="k", lw=0.9)
+                if r != c:
+                    axes[r, c].axhline(tv[r], color="k", lw=0.9)
+                    axes[r, c].plot(tv[c], tv[r], marker="+", color="k", ms=8, mew=1.3)
+        axes[0, 0].plot([], [], color="k", lw=0.9, label="truth")
+    for ax in axes.reshape(-1):
+        ax.tick_params(labelsize=MIN_FONT_PT)
+        ax.xaxis.label.set_fontsize(MIN_FONT_PT)
+        ax.yaxis.label.set_fontsize(MIN_FONT_PT)
+    handles, texts = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, texts, loc="outside lower center", ncols=min(4, len(texts)), frameon=False,
+               title=title or "diagonal: density of the draws; below: draws; black: truth")
+    return fig
+
+
+def method_order_items(d: Mapping[str, object]) -> list[tuple[str, object]]:
+    """``d``'s items in legend order (`camo_sbi.diagnostics.style.method_order`)."""
+    return [(k, d[k]) for k in method_order(list(d))]
 
 
 # --------------------------------------------------------------------------- comparison

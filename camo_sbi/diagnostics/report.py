@@ -14,20 +14,26 @@ Reads, from ``run_dir`` (every input optional)::
 
 Every section is always present (``<section id=...>`` with a stable id); missing
 inputs give a "not available: <reason>" note. Figures are drawn on plain
-``matplotlib.figure.Figure`` objects (no pyplot state, rendered by Agg) and
-embedded as base64 PNG ``data:`` URIs.
+``matplotlib.figure.Figure`` objects (no pyplot state, rendered by Agg) in the paper style
+of `camo_sbi.diagnostics.style` and embedded as base64 PNG ``data:`` URIs; with
+``figure_formats`` each figure is also written to ``figure_dir`` (e.g. as PDF and SVG).
+Angles are shown in degrees (the files keep radians); cells and captions follow the small-n
+rule of `camo_sbi.diagnostics.style.cell_text`.
 """
 
 from __future__ import annotations
 
 import base64
 import contextlib
+import contextvars
 import datetime as _dt
 import html
 import io
 import json
 import os
-from collections.abc import Callable
+import re
+import textwrap
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +63,13 @@ _MAX_METRIC_PANELS = 9
 _PPC_DRAWS = 50
 _CORNER_LIMITS = 4
 _DAGGER = "†"
+_DPI = 110  # a 7 in figure -> 770 px in the page
+# (directory, formats, names used) while write_report runs with figure_formats: every figure
+# drawn is also written there
+_FIGURE_SINK: contextvars.ContextVar[tuple[Path, tuple[str, ...], set] | None] = contextvars.ContextVar(
+    "camo_sbi_report_figures", default=None)
+_CORNER_CHOICE: contextvars.ContextVar[list[str] | None] = contextvars.ContextVar(
+    "camo_sbi_report_corner", default=None)
 
 _CSS = """
 body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:0 auto;max-width:1200px;
@@ -94,10 +107,22 @@ def _note(msg: str) -> str:
     return f'<p class="note">not available: {_esc(msg)}</p>'
 
 
+def _slug(text: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "_", text.lower()).strip("_")[:60] or "figure"
+
+
 def _fig_html(fig: Figure, caption: str, alt: str | None = None) -> str:
     buf = io.BytesIO()
     try:
-        fig.savefig(buf, format="png", dpi=90)
+        fig.savefig(buf, format="png", dpi=_DPI)
+        sink = _FIGURE_SINK.get()
+        if sink is not None:
+            from camo_sbi.diagnostics.style import save_figures
+
+            folder, formats, used = sink
+            name = f"{len(used) + 1:02d}_{_slug(alt or caption)}"
+            used.add(name)
+            save_figures(fig, folder / f"{name}.png", formats)
     finally:
         fig.clear()
     data = base64.b64encode(buf.getvalue()).decode("ascii")
@@ -202,12 +227,9 @@ def _settings(run_dir: Path) -> str:
 
 
 def _ci_cell(values) -> str:
-    from camo_sbi.diagnostics.style import mean_ci, number
+    from camo_sbi.diagnostics.style import cell_text
 
-    m, c = mean_ci(values)
-    if not np.isfinite(m):
-        return "–"
-    return f"{number(m)} ± {number(c, 2)}" if len(values) > 1 else number(m)
+    return cell_text(values)
 
 
 def _budget_text(b) -> str:
@@ -230,9 +252,9 @@ def _status_marks(sub: pd.DataFrame) -> dict[str, list[str]]:
 
 
 def _metric_table(sub: pd.DataFrame, metric: str, marks: dict[str, list[str]]) -> str:
-    from camo_sbi.diagnostics.style import method_order, metric_label
+    from camo_sbi.diagnostics.style import display_metric, method_order, metric_label
 
-    m = sub[sub["metric"] == metric]
+    m = display_metric(sub[sub["metric"] == metric])
     budgets = sorted(m["budget"].unique(), key=lambda b: (pd.isna(b), b))
     rows = []
     for method in method_order(m["method"]):
@@ -263,6 +285,8 @@ def _joint_table(sub: pd.DataFrame, marks: dict[str, list[str]]) -> str:
 
 
 def _comparison(res: pd.DataFrame | None, why: str) -> str:
+    from camo_sbi.diagnostics.style import cell_rule
+
     if res is None:
         return _note(why)
     out = []
@@ -272,15 +296,13 @@ def _comparison(res: pd.DataFrame | None, why: str) -> str:
         sub = tdf[(tdf["n_tasks"] == n_last) | tdf["n_tasks"].isna()]
         seeds = sub.groupby(["method", "budget", "metric"], dropna=False)["value"].count()
         n = sorted(set(int(v) for v in seeds))
-        n_text = str(n[0]) if len(n) == 1 else f"{n[0]}–{n[-1]}"
         marks = _status_marks(sub)
         metrics = _metric_order(m for m in sub["metric"].unique() if not m.startswith("limit_error_deg_"))
         if len(groups) > 1:
             out.append(f"<h3>task {_esc(task)}, subject {_esc(subject)}</h3>")
-        out.append(f'<p class="meta">After {n_last:g} observed tasks. Each cell: mean ± half-width of the '
-                   f"95% confidence interval of the mean over {n_text} seeds (Student t; the same statistic "
-                   "as the figures' bands); methods as rows, simulation budgets per observed task as "
-                   "columns.</p>")
+        out.append(f'<p class="meta">After {n_last:g} observed tasks. Each cell: {_esc(cell_rule(n, "seeds"))} '
+                   "(the same rule as the figures); methods as rows, simulation budgets per observed task "
+                   "as columns. Angles in degrees.</p>")
         out.append('<div class="tables">' + "".join(_metric_table(sub, m, marks) for m in metrics) + "</div>")
         if sub["metric"].str.startswith("limit_error_deg_").any():
             out.append(_joint_table(sub, marks))
@@ -301,6 +323,34 @@ def _largest(df: pd.DataFrame, by: str) -> pd.DataFrame:
 
 
 def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: str) -> str:
+    from camo_sbi.diagnostics.style import display_metric, few_runs, paper_style, run_counts
+
+    if res is None:
+        return _note(why)
+    res = display_metric(res)  # angles in degrees
+    if res[x].nunique(dropna=True) < 2:
+        vals = sorted(res[x].dropna().unique().tolist())
+        return _note(f"results.csv has fewer than two distinct {x} values ({vals}): no figure "
+                     "(the comparison tables hold the values)")
+    parts = []
+    for task, tdf in res.groupby("task"):
+        sub = _largest(tdf, fixed)
+        metrics = _metric_order(m for m in sub["metric"].unique() if not m.startswith("limit_error_deg_"))
+        shown = metrics[:_MAX_METRIC_PANELS]
+        with paper_style():
+            fig = _xy_panels(sub, shown, x, xlabel)
+        cap = (f"task {task}: each method at its largest {fixed.replace('_', ' ')}; line = mean, "
+               + ("dots = each seed and subject (fewer than 5: no confidence band)."
+                  if few_runs(run_counts(sub, x)) else
+                  "band = 95% confidence interval of the mean over seeds and subjects (Student t)."))
+        if len(metrics) > len(shown):
+            cap += f" Showing {len(shown)} of {len(metrics)} metrics (all are in the tables)."
+        parts.append(_fig_html(fig, cap, alt=f"{xlabel} figure for task {task}"))
+    return "".join(parts)
+
+
+def _xy_panels(sub: pd.DataFrame, shown: list[str], x: str, xlabel: str) -> Figure:
+    """One panel per metric of ``shown`` against ``x``, one legend below."""
     from camo_sbi.diagnostics.style import (
         band_label,
         figure_legend,
@@ -311,37 +361,21 @@ def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: 
         run_counts,
     )
 
-    if res is None:
-        return _note(why)
-    if res[x].nunique(dropna=True) < 2:
-        vals = sorted(res[x].dropna().unique().tolist())
-        return _note(f"results.csv has fewer than two distinct {x} values ({vals}): no figure "
-                     "(the comparison tables hold the values)")
-    parts = []
-    for task, tdf in res.groupby("task"):
-        sub = _largest(tdf, fixed)
-        metrics = _metric_order(m for m in sub["metric"].unique() if not m.startswith("limit_error_deg_"))
-        shown = metrics[:_MAX_METRIC_PANELS]
-        ncol = min(3, len(shown))
-        nrow = int(np.ceil(len(shown) / ncol))
-        fig, axes = new_figure(nrow, ncol, panel=(4.0, 3.0))
-        flat = axes.reshape(-1)
-        for ax in flat[len(shown):]:
-            ax.set_visible(False)
-        for ax, metric in zip(flat, shown, strict=False):
-            mdf = sub[sub["metric"] == metric]
-            plot_lines(mdf[mdf[x].notna()], x=x, ax=ax, logx=x == "budget", ylabel="",
-                       title=metric_label(metric), legend=False)
-            for method, g in mdf[mdf[x].isna()].groupby("method"):  # budget-free: a constant line
-                ax.axhline(g["value"].mean(), label=method, **{**method_style(method).line_kwargs(), "marker": None})
-            ax.set_xlabel(xlabel, fontsize=9)
-        figure_legend(fig, flat[: len(shown)], title=band_label(run_counts(sub, x)))
-        cap = (f"task {task}: each method at its largest {fixed.replace('_', ' ')}; line = mean, band = 95% "
-               f"confidence interval of the mean over seeds and subjects (Student t).")
-        if len(metrics) > len(shown):
-            cap += f" Showing {len(shown)} of {len(metrics)} metrics (all are in the tables)."
-        parts.append(_fig_html(fig, cap, alt=f"{xlabel} figure for task {task}"))
-    return "".join(parts)
+    ncol = min(3, len(shown))
+    nrow = int(np.ceil(len(shown) / ncol))
+    fig, axes = new_figure(nrow, ncol, width="double", aspect=0.75)
+    flat = axes.reshape(-1)
+    for ax in flat[len(shown):]:
+        ax.set_visible(False)
+    for ax, metric in zip(flat, shown, strict=False):
+        mdf = sub[sub["metric"] == metric]
+        plot_lines(mdf[mdf[x].notna()], x=x, ax=ax, logx=x == "budget", ylabel="",
+                   title=textwrap.fill(metric_label(metric), 34), legend=False)
+        for method, g in mdf[mdf[x].isna()].groupby("method"):  # budget-free: a constant line
+            ax.axhline(g["value"].mean(), label=method, **{**method_style(method).line_kwargs(), "marker": None})
+        ax.set_xlabel(xlabel)
+    figure_legend(fig, flat[: len(shown)], title=band_label(run_counts(sub, x)))
+    return fig
 
 
 # --------------------------------------------------------------------------- posteriors
@@ -408,57 +442,62 @@ def _group_words(task: str, subject: str) -> str:
 
 def _limits_figure(members, caption_extra: str = "") -> str:
     from camo_sbi.diagnostics import arviz_io
-    from camo_sbi.diagnostics.figures import plot_limits
 
-    draws, truth, units = {}, None, "rad"
-    for method, idata, _ in members:
-        d, joints = arviz_io.limit_draws(idata)
-        draws[method] = d
-        truth = arviz_io.true_limits(idata) if truth is None else truth
-        units = str(_attr(idata, "units", units))
-    fig = plot_limits(draws, joints, truth=truth, units=units)
-    return _fig_html(fig, "Every joint limit per method: 94% highest-density interval (thin line), quartiles "
-                          "(thick), median (dot); a marker alone is a baseline's point estimate; the black bar "
-                          "is the true limit." + caption_extra, alt="limits per method")
+    fig = arviz_io.plot_forest([d for _, d, _ in members], [m for m, _, _ in members])
+    return _fig_html(fig, "Every joint limit per method, in degrees (arviz forest plot): median (dot), quartiles "
+                          "(thick), 94% highest-density interval (thin); a dot alone is a baseline's point "
+                          "estimate; the black row is the true limit." + caption_extra, alt="limits per method")
 
 
-def _corner_selection(members) -> tuple[list[tuple[int, int]], list[str]]:
-    """The (joint, bound) limits for the corner plot: the most informed free ones (smallest mean
-    relative HDI width over the posteriors), at most _CORNER_LIMITS."""
+def _corner_selection(members, chosen: Sequence[str] | None = None) -> tuple[list[tuple[int, int]], list[str], str]:
+    """The (joint, bound) limits of the corner plot and why they were chosen.
+
+    ``chosen`` (``--corner-limits``, names like ``panda_joint4_lo``) wins. Otherwise, when
+    the truth is stored: the restricted limits (the true limit lies inside the prior's
+    range, not at its edge), most restricted first; without a truth (or when none is
+    restricted): the limits whose posterior moved most from the prior (Wasserstein-1
+    distance between the posterior and prior marginals, relative to the prior's width,
+    averaged over the methods). At most _CORNER_LIMITS, never a fixed one.
+    """
     from camo_sbi.diagnostics import arviz_io
 
-    widths = []
-    for _, idata, _ in members:
-        with contextlib.suppress(ValueError):
-            widths.append(arviz_io.posterior_width(idata)["relative_width"].to_numpy())
     _, joints = arviz_io.limit_draws(members[0][1])
-    if not widths:
-        return [], joints
-    stacked = np.stack(widths)
-    seen = np.isfinite(stacked).any(axis=0)  # fixed coordinates have no relative width
-    rel = np.full(stacked.shape[1], np.nan)
-    rel[seen] = np.nanmean(stacked[:, seen], axis=0)
-    order = [int(k) for k in np.argsort(rel) if np.isfinite(rel[k]) and rel[k] > 0]
-    return [(k // 2, k % 2) for k in order[:_CORNER_LIMITS]], joints
+    if chosen:
+        return arviz_io.parse_limit_names(list(chosen), joints), joints, "the limits asked for (--corner-limits)"
+    draws = [arviz_io.limit_draws(d)[0].reshape(-1, 2 * len(joints)) for _, d, _ in members]
+    free = np.any([np.ptp(d, axis=0) > 0 for d in draws], axis=0)
+    idata = members[0][1]
+    low, high = arviz_io.prior_box(idata)
+    truth = arviz_io.true_limits(idata)
+    if truth is not None and low is not None:
+        t, lo, hi = truth.reshape(-1), low.reshape(-1), high.reshape(-1)
+        width = np.where(hi > lo, hi - lo, np.nan)
+        # how far the true limit sits inside the prior's range, from the edge it restricts
+        inside = np.where(np.arange(t.size) % 2 == 0, t - lo, hi - t) / width
+        order = [int(k) for k in np.argsort(-inside) if free[k] and np.isfinite(inside[k]) and inside[k] > 1e-6]
+        if len(order) >= 2:
+            return ([(k // 2, k % 2) for k in order[:_CORNER_LIMITS]], joints,
+                    "the restricted limits (true limit inside the prior's range; most restricted first)")
+    moved = arviz_io.moved_from_prior(idata, [d for d in draws])
+    order = [int(k) for k in np.argsort(-moved) if free[k] and np.isfinite(moved[k])]
+    return ([(k // 2, k % 2) for k in order[:_CORNER_LIMITS]], joints,
+            "the limits whose posteriors moved most from the prior (Wasserstein-1 distance to the prior's "
+            "marginal, relative to its width)")
 
 
 def _corner_figure(posterior, points) -> str:
     from camo_sbi.diagnostics import arviz_io
-    from camo_sbi.diagnostics.figures import plot_corner
 
-    sel, joints = _corner_selection(posterior)
+    sel, joints, why = _corner_selection(posterior, _CORNER_CHOICE.get())
     if len(sel) < 2:
         return _note("a corner plot needs at least two free limits with a posterior")
-    labels = [f"{joints[j]} {('lower', 'upper')[b]}" for j, b in sel]
-    draws = {m: arviz_io.limit_draws(d)[0][:, [j for j, _ in sel], [b for _, b in sel]] for m, d, _ in posterior}
-    pts = {m: arviz_io.limit_draws(d)[0][0, [j for j, _ in sel], [b for _, b in sel]] for m, d, _ in points}
-    t = arviz_io.true_limits(posterior[0][1])
-    truth = None if t is None else t[[j for j, _ in sel], [b for _, b in sel]]
-    fig = plot_corner(draws, labels, truth=truth, points=pts, units=str(_attr(posterior[0][1], "units", "rad")))
-    return _fig_html(fig, f"Corner plot of the {len(sel)} limits the posteriors narrow most (smallest 94% HDI "
-                          "width relative to the prior): histograms of the draws on the diagonal, pairs of draws "
-                          "below; black lines and crosses: the truth; markers: baselines' point estimates.",
-                     alt="corner plot")
+    fig = arviz_io.plot_corner([d for _, d, _ in posterior], [m for m, _, _ in posterior], sel,
+                               points={m: d for m, d, _ in points})
+    names = ", ".join(arviz_io.limit_name(joints[j], b) for j, b in sel)
+    return _fig_html(fig, f"Corner plot (arviz pair plot, one per method, overlaid) of {len(sel)} limits in "
+                          f"degrees: {why}: {names}. Densities of the draws on the diagonal, pairs of draws "
+                          "below; black lines and crosses: the truth; markers and dashed lines: baselines' "
+                          "point estimates. `--corner-limits a,b,c` chooses others.", alt="corner plot")
 
 
 def _posteriors(posts, why: str) -> str:
@@ -620,14 +659,14 @@ def _posterior_comparison_table(posts) -> pd.DataFrame:
     for (subject, budget, seed, n_tasks), members in sorted(groups.items(), key=lambda kv: str(kv[0])):
         for (ma, ia, da), (mb, ib, db) in itertools.combinations(sorted(members, key=lambda m: m[0]), 2):
             free = (da.std(axis=0) > 0) | (db.std(axis=0) > 0)
-            w1 = arviz_io.compare_marginals(ia, ib)["wasserstein"].to_numpy()[free]
+            w1 = arviz_io.compare_marginals(ia, ib)["wasserstein"].to_numpy()[free] * _to_deg(ia)
             acc = float("nan")
             if n_c2st < _MAX_C2ST_PAIRS:
                 acc = c2st(da[:, free], db[:, free], 0, max_samples=500)
                 n_c2st += 1
             rows.append({"subject": subject, "budget": budget, "seed": seed, "n_tasks": n_tasks,
-                         "method A": ma, "method B": mb, "mean W1 over free marginals": float(w1.mean()),
-                         "max W1": float(w1.max()), "C2ST accuracy": acc})
+                         "method A": ma, "method B": mb, "mean W1 over free marginals [deg]": float(w1.mean()),
+                         "max W1 [deg]": float(w1.max()), "C2ST accuracy": acc})
     return pd.DataFrame(rows)
 
 
@@ -639,12 +678,31 @@ def _posterior_comparison(posts, why: str) -> str:
         return _note("needs at least two sampled posteriors (not point estimates) for the same "
                      "subject, budget and seed")
     return ('<p class="meta">Wasserstein-1 distance between the two methods\' marginals over the '
-            "free limits (same units as the posteriors), and classifier two-sample test accuracy "
+            "free limits (degrees), and classifier two-sample test accuracy "
             "(C2ST, sbi's random-forest metric on 500 draws per side: 0.5 = indistinguishable, 1 = "
             f"disjoint; computed for the first {_MAX_C2ST_PAIRS} pairs). Point estimates are left out. "
             "No method is a ground-truth reference here: compare with the calibration section to "
             "see which posteriors are trustworthy.</p>"
             + _table_html(table, index=False))
+
+
+_SUMMARY_ANGLES = ("mean", "sd", "mcse_mean", "mcse_sd", "truth")  # and every hdi_* column
+_WIDTH_ANGLES = ("hdi_lower", "hdi_upper", "posterior_width", "prior_width")
+
+
+def _to_deg(idata) -> float:
+    """The factor from a file's limits to degrees (1 when it holds degrees already)."""
+    return 1.0 if str(_attr(idata, "units", "rad")) == "deg" else float(np.degrees(1.0))
+
+
+def _in_degrees(df: pd.DataFrame, idata, columns) -> pd.DataFrame:
+    """``df`` with its angle ``columns`` (and hdi_* columns) in degrees, the headers saying so."""
+    f = _to_deg(idata)
+    cols = [c for c in df.columns if c in columns or str(c).startswith("hdi_")]
+    out = df.copy()
+    for c in cols:
+        out[c] = out[c].astype(float) * f
+    return out.rename(columns={c: f"{c} [deg]" for c in cols})
 
 
 def _diagnostics(posts, why: str) -> str:
@@ -678,15 +736,16 @@ def _diagnostics(posts, why: str) -> str:
                     "ess_tail, r_hat) are left out: they would count the repeated draws.")
         else:
             head = "independent draws in one chain: ess as arviz computes it, no r_hat (needs several chains)."
-        body = [f'<p class="meta">arviz summary; {_esc(head)}</p>', _table_html(arviz_io.summary(idata))]
+        body = [f'<p class="meta">arviz summary, in degrees (the file holds {_esc(_attr(idata, "units", "rad"))}); '
+                f"{_esc(head)}</p>", _table_html(_in_degrees(arviz_io.summary(idata), idata, _SUMMARY_ANGLES))]
         with contextlib.suppress(ValueError):
             body.append('<p class="meta">Posterior 94% HDI width relative to the prior '
                         "(1: uninformed by the observations, 0: pinned down).</p>"
-                        + _table_html(arviz_io.posterior_width(idata)))
+                        + _table_html(_in_degrees(arviz_io.posterior_width(idata), idata, _WIDTH_ANGLES)))
         with contextlib.suppress(ValueError):
             body.append('<p class="meta">Position of the true limit in each marginal '
                         "(posterior quantile; near 0 or 1: the truth is in a tail).</p>"
-                        + _table_html(arviz_io.truth_position(idata)))
+                        + _table_html(_in_degrees(arviz_io.truth_position(idata), idata, ("truth",))))
         body.insert(0, f'<p class="meta">file posteriors/{_esc(path.name)}</p>')
         out.append(f"<details><summary>{_esc(_words(idata))}</summary>{''.join(body)}</details>")
     head = ""
@@ -700,7 +759,9 @@ def _diagnostics(posts, why: str) -> str:
 # --------------------------------------------------------------------------- entry point
 
 
-def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors: int = 24) -> Path:
+def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors: int = 24,
+                 corner_limits: Sequence[str] | None = None, figure_formats: Sequence[str] | None = None,
+                 figure_dir=None) -> Path:
     """Write one self-contained HTML report for ``run_dir`` to ``out_path`` (atomically).
 
     Args:
@@ -708,6 +769,11 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
         out_path: the .html file to write (parent directories are created).
         title: page title (default: "camo_sbi report: <run_dir name>").
         max_posteriors: at most this many netCDF posteriors are plotted.
+        corner_limits: the limits of the corner plot (``["panda_joint4_lo", ...]``, as
+            ``--corner-limits``); default: the restricted ones when the truth is known, else
+            those that moved most from the prior.
+        figure_formats: also write every figure of the report in these formats (png, pdf,
+            svg) to ``figure_dir`` (default: ``<out_path's folder>/report_figures``).
 
     Returns:
         The path written. Sections (ids): settings, comparison-table, error-vs-tasks,
@@ -728,6 +794,25 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
     if out_path.exists() and out_path.is_dir():
         raise ValueError(f"out_path: {out_path} is a directory")
     title = title or f"camo_sbi report: {run_dir.resolve().name}"
+    if corner_limits is not None and (isinstance(corner_limits, str) or not isinstance(corner_limits, Sequence)):
+        raise TypeError(f"corner_limits: expected a list of limit names, got {type(corner_limits).__name__}")
+    sink = None
+    if figure_formats:
+        from camo_sbi.diagnostics.style import parse_figure_formats
+
+        folder = Path(figure_dir) if figure_dir is not None else out_path.parent / "report_figures"
+        folder.mkdir(parents=True, exist_ok=True)
+        sink = (folder, parse_figure_formats(list(figure_formats)), set())
+    sink_token, corner_token = _FIGURE_SINK.set(sink), _CORNER_CHOICE.set(
+        None if corner_limits is None else [str(c) for c in corner_limits])
+    try:
+        return _write_report(run_dir, out_path, title, max_posteriors)
+    finally:
+        _FIGURE_SINK.reset(sink_token)
+        _CORNER_CHOICE.reset(corner_token)
+
+
+def _write_report(run_dir: Path, out_path: Path, title: str, max_posteriors: int) -> Path:
 
     res, res_why = _load_results(run_dir)
     try:

@@ -366,6 +366,6 @@ def main(args) -> int:
         if not args.no_report:
             from camo_sbi.diagnostics.report import write_report
 
-            print(f"report: {write_report(out, out / 'report.html', corner_limits=corner)}")
+            print(f"report: {write_report(out, out / 'report.html', corner_limits=corner, figure_formats=None if formats == ('png',) else formats)}")
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
     return 0

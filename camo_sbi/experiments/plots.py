@@ -6,6 +6,13 @@ HTML report); this module re-exports the ones experiments and notebooks import f
 
 from __future__ import annotations
 
-from camo_sbi.diagnostics.style import mean_ci, new_figure, plot_bars, plot_lines, save_figure, save_figures
+from camo_sbi.diagnostics.style import (
+    mean_ci,
+    new_figure,
+    plot_bars,
+    plot_lines,
+    save_figure,
+    save_figures,
+)
 
 __all__ = ["mean_ci", "new_figure", "plot_bars", "plot_lines", "save_figure", "save_figures"]
