@@ -7,9 +7,11 @@ the README comes from a `results.csv` / `claims.csv` a command wrote.
     python docs/readme_tables.py robustness DIR      # robustness
     python docs/readme_tables.py calibrate DIR       # calibrate
 
-Means are over runs (or seeds), with the half-width of the 95% Student-t CI of the mean.
-Rows whose method had a non-ok status in any cell are marked with a dagger and the statuses
-are listed under the table.
+Cells follow the small-n rule of the figures (`camo_sbi.diagnostics.style.cell_text`): with
+at least 5 runs (or seeds) the mean ± the half-width of the 95% Student-t CI of the mean,
+with fewer the mean and the range (min–max), never an interval built from 2 values; each
+table's heading says which. Angles are in degrees (`display_metric`). Rows whose method had a
+non-ok status in any cell are marked with a dagger and the statuses are listed under the table.
 """
 
 from __future__ import annotations
@@ -21,20 +23,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from camo_sbi.diagnostics.style import mean_ci, method_order
+from camo_sbi.diagnostics.style import cell_rule, cell_text, display_metric, method_order
 
 
 def _fmt_values(v, digits: int) -> str:
-    """mean ± 95% CI half-width of ``v`` (`mean_ci`, the figures' statistic)."""
-    return _fmt(*mean_ci(v), digits)
-
-
-def _fmt(mean: float, ci: float, digits: int) -> str:
-    if not np.isfinite(mean):
-        return "–"
-    if not np.isfinite(ci) or ci <= 1e-9 * max(1.0, abs(mean)):  # identical over runs
-        return f"{mean:.{digits}f}"
-    return f"{mean:.{digits}f} ± {ci:.{digits}f}"
+    """One cell (`cell_text`, the figures' rule), ``digits`` decimals."""
+    def f(x):
+        return f"{x:.{digits}f}"
+    return cell_text(v, fmt=f, ci_fmt=f)
 
 
 def _marks(df: pd.DataFrame, by: list[str]) -> tuple[dict, list[str]]:
@@ -69,7 +65,7 @@ def claims_table(path: Path) -> str:
 
 
 def manipulator(d: Path) -> str:
-    df = pd.read_csv(d / "results.csv")
+    df = display_metric(pd.read_csv(d / "results.csv"))
     marks, notes = _marks(df, ["method"])
     ks = sorted(df.n_tasks.unique())
     show = [k for k in (1, 2, 3, 5, 10) if k in ks] or ks
@@ -84,7 +80,7 @@ def manipulator(d: Path) -> str:
                 v = sub[(sub.method == m) & (sub.n_tasks == k)].value.to_numpy(float)
                 cells.append(_fmt_values(v, dig))
             rows.append([m + marks.get(m, "")] + cells)
-        parts.append(f"**{metric}** [{unit}], mean ± 95% CI over {df.run.nunique()} runs, by observed tasks:\n\n"
+        parts.append(f"**{metric}** [{unit}], {cell_rule(df.run.nunique())}, by observed tasks:\n\n"
                      + _table(["method"] + [str(k) for k in show], rows))
     last = df[df.n_tasks == max(ks)]
     rows = []
@@ -95,8 +91,8 @@ def manipulator(d: Path) -> str:
             r.append(_fmt_values(v, 3))
         rows.append(r)
     parts.append(f"The paper's Eq. 2 and the authors' code's metric after {max(ks)} tasks (summed over the test goals):\n\n"
-                 + _table(["method", "eq2_cartesian [m]", "eq2_joint [rad]", "reference_cartesian [m]",
-                           "reference_joint [rad]"], rows))
+                 + _table(["method", "eq2_cartesian [m]", "eq2_joint [deg]", "reference_cartesian [m]",
+                           "reference_joint [deg]"], rows))
     if notes:
         parts.append("† " + "; ".join(notes))
     if (d / "claims.csv").exists():
@@ -117,7 +113,7 @@ def hrc(d: Path) -> str:
                 v = last[(last.prior == prior) & (last.method == m) & (last.metric == metric)].value.to_numpy(float)
                 r.append(_fmt_values(v, dig) if v.size else "–")
             rows.append(r)
-    out = (f"After {df.n_tasks.max()} tasks, mean ± 95% CI over {df.run.nunique()} runs:\n\n"
+    out = (f"After {df.n_tasks.max()} tasks, {cell_rule(df.run.nunique())}:\n\n"
            + _table(["prior", "method", "precision", "recall", "F1", "free-limit error [deg]"], rows))
     if notes:
         out += "\n\n† " + "; ".join(notes)
@@ -144,7 +140,7 @@ def compare(d: Path) -> str:
                 v = sub[sub.metric == metric].value.to_numpy(float)
                 r.append(_fmt_values(v, dig) if v.size else "–")
             rows.append(r)
-    out = (f"After {df.n_tasks.max()} observed tasks, mean ± 95% CI over {df.seed.nunique()} seeds:\n\n"
+    out = (f"After {df.n_tasks.max()} observed tasks, {cell_rule(df.seed.nunique(), 'seeds')}:\n\n"
            + _table(["method", "budget"] + [m[1] for m in metrics], rows))
     if notes:
         out += "\n\n† " + "; ".join(notes)

@@ -42,7 +42,7 @@ from matplotlib.figure import Figure
 
 from camo_sbi._io import atomic_write_text
 
-__all__ = ["SECTIONS", "RESULTS_COLUMNS", "figure_html", "table_html", "write_page", "write_report"]
+__all__ = ["SECTIONS", "RESULTS_COLUMNS", "figure_files", "figure_html", "table_html", "write_page", "write_report"]
 
 SECTIONS: tuple[tuple[str, str], ...] = (
     ("settings", "Settings"),
@@ -796,20 +796,30 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
     title = title or f"camo_sbi report: {run_dir.resolve().name}"
     if corner_limits is not None and (isinstance(corner_limits, str) or not isinstance(corner_limits, Sequence)):
         raise TypeError(f"corner_limits: expected a list of limit names, got {type(corner_limits).__name__}")
+    folder = Path(figure_dir) if figure_dir is not None else out_path.parent / "report_figures"
+    corner_token = _CORNER_CHOICE.set(None if corner_limits is None else [str(c) for c in corner_limits])
+    try:
+        with figure_files(folder, figure_formats):
+            return _write_report(run_dir, out_path, title, max_posteriors)
+    finally:
+        _CORNER_CHOICE.reset(corner_token)
+
+
+@contextlib.contextmanager
+def figure_files(folder, formats: Sequence[str] | None):
+    """Inside the block every figure `figure_html` embeds is also written to ``folder`` in
+    each of ``formats`` (``01_<alt text>.pdf``, ...); ``formats`` None or empty: nothing is."""
     sink = None
-    if figure_formats:
+    if formats:
         from camo_sbi.diagnostics.style import parse_figure_formats
 
-        folder = Path(figure_dir) if figure_dir is not None else out_path.parent / "report_figures"
-        folder.mkdir(parents=True, exist_ok=True)
-        sink = (folder, parse_figure_formats(list(figure_formats)), set())
-    sink_token, corner_token = _FIGURE_SINK.set(sink), _CORNER_CHOICE.set(
-        None if corner_limits is None else [str(c) for c in corner_limits])
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        sink = (Path(folder), parse_figure_formats(list(formats)), set())
+    token = _FIGURE_SINK.set(sink)
     try:
-        return _write_report(run_dir, out_path, title, max_posteriors)
+        yield
     finally:
-        _FIGURE_SINK.reset(sink_token)
-        _CORNER_CHOICE.reset(corner_token)
+        _FIGURE_SINK.reset(token)
 
 
 def _write_report(run_dir: Path, out_path: Path, title: str, max_posteriors: int) -> Path:

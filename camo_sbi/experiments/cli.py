@@ -109,8 +109,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _report_arguments(p: argparse.ArgumentParser) -> None:
+    from camo_sbi.experiments.figure_options import add_corner_argument, add_figure_format_argument
+
     p.add_argument("run_dir")
     p.add_argument("-o", "--output", default=None, help="HTML path (default: RUN_DIR/report.html)")
+    add_figure_format_argument(p)
+    add_corner_argument(p)
 
 
 def _demo_arguments(p: argparse.ArgumentParser) -> None:
@@ -128,9 +132,12 @@ def _report(args) -> int:
     from pathlib import Path
 
     from camo_sbi.diagnostics.report import write_report
+    from camo_sbi.experiments.figure_options import corner_limits, figure_formats
 
     out = Path(args.output) if args.output else Path(args.run_dir) / "report.html"
-    path = write_report(args.run_dir, out)
+    formats = figure_formats(args)  # png alone: the figures live in the page only
+    path = write_report(args.run_dir, out, corner_limits=corner_limits(args),
+                        figure_formats=None if formats == ("png",) else formats)
     print(f"report: {path}")
     return 0
 

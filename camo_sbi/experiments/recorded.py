@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from camo_sbi._io import atomic_write_text
 from camo_sbi._validation import derive_seed, torch_generator
+from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
 from camo_sbi.experiments.models import add_model_arguments, model_from_args, true_limits
 
 __all__ = ["add_infer_arguments", "add_simulate_arguments", "infer_main", "limits_table", "simulate_main",
@@ -243,18 +244,38 @@ def _method_config(name: str, space: str | None, budget: int, workdir: Path, ove
     return cfg
 
 
+def _shown_limits(table):
+    """The limits table as a person reads it: degrees only (radians stay in limits.csv),
+    unless a prismatic joint (metres, no degree column) needs ``estimate_rad``."""
+    if table["estimate_deg"].notna().all():
+        return table.drop(columns=["estimate_rad"])
+    return table
+
+
 def _ee_of(traj_ee: torch.Tensor, length: torch.Tensor, b: int) -> np.ndarray:
     return traj_ee[b, : int(length[b])].to(torch.float64).numpy()
 
 
-def _report(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int) -> Path:
-    """report.html: the limits table and, per reach, observed vs posterior-predictive paths."""
+def _report(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
+            formats=None) -> Path:
+    """report.html: the limits table (degrees) and, per reach, observed vs posterior-predictive
+    paths; with ``formats`` (``--figure-format``) the figures also as files in
+    ``out/report_figures``."""
+    from camo_sbi.diagnostics.report import figure_files
+    from camo_sbi.diagnostics.style import paper_style
+
+    with paper_style(), figure_files(out / "report_figures", formats):
+        return _report_page(out, task, results, notes, table, settings, seed)
+
+
+def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int) -> Path:
     import html
 
     import pandas as pd
     from matplotlib.figure import Figure
 
     from camo_sbi.diagnostics.report import figure_html, table_html, write_page
+    from camo_sbi.diagnostics.style import DOUBLE_COLUMN
     from camo_sbi.task import contain
 
     sim = task.simulator
@@ -266,7 +287,7 @@ def _report(out: Path, task, results: dict, notes: list[str], table, settings: d
              for m, r in results.items()}
     for i, o in enumerate(tqdm(obs, desc="report", unit="reach")):
         seen = (o.ee if o.ee is not None else sim.forward_kinematics(o.q)).to(torch.float64).numpy()
-        fig = Figure(figsize=(3.2 * len(methods), 5.6), constrained_layout=True)
+        fig = Figure(figsize=(max(DOUBLE_COLUMN, 1.75 * len(methods)), 4.4), constrained_layout=True)
         axes = fig.subplots(2, len(methods), squeeze=False)
         for c, m in enumerate(methods):
             # float32, as CAMO's candidates: a new chain's float64 kernel is not compiled for a figure
@@ -287,14 +308,14 @@ def _report(out: Path, task, results: dict, notes: list[str], table, settings: d
             top.plot(seen[:, 0], seen[:, 1], color="k", lw=1.8, label="observed")
             side.plot(np.arange(seen.shape[0]), np.linalg.norm(seen - o.goal.numpy(), axis=1), color="k", lw=1.8)
             top.plot(*o.goal.numpy()[:2], marker="*", color="k", ms=10, ls="none")
-            top.set_title(f"{m} ({results[m].status})", fontsize=9)
+            top.set_title(f"{m} ({results[m].status})")
             top.set_xlabel("x [m]")
             top.set_ylabel("y [m]")
             top.set_aspect("equal", adjustable="datalim")
             side.set_xlabel("controller step")
             side.set_ylabel("distance to goal [m]")
             if c == 0:
-                top.legend(fontsize=7)
+                top.legend()
         reach_html.append(figure_html(
             fig, f"reach {i}: observed (black), the estimate's prediction (red dashed) and "
                  f"{PPC_DRAWS} posterior-predictive draws per method (blue; point methods: one); "
@@ -307,7 +328,8 @@ def _report(out: Path, task, results: dict, notes: list[str], table, settings: d
     settings_html = table_html(pd.DataFrame([{"setting": k, "value": str(v)} for k, v in settings.items()]))
     sections = [
         ("settings", "Settings", settings_html + (f"<ul>{esc_notes}</ul>" if notes else "")),
-        ("limits", "Estimated limits", table_html(table, float_format="{:.4g}")),
+        ("limits", "Estimated limits", '<p class="meta">degrees (limits.csv also holds radians, '
+                                        "estimate_rad)</p>" + table_html(_shown_limits(table), float_format="{:.4g}")),
         ("reaches", "Observed vs posterior-predictive reaches", "".join(reach_html)),
     ]
     return write_page(out / "report.html", f"camo_sbi infer: {settings['observations']}", sections,
@@ -334,6 +356,7 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
                    help="CSV of goal_x,goal_y,goal_z[,start joint columns] to predict reaches for")
     p.add_argument("--config", action="append", default=[], metavar="METHOD=JSON",
                    help='per-method config overrides, e.g. --config \'npe={"max_epochs": 20}\' (repeatable)')
+    add_figure_format_argument(p)
     p.add_argument("--out", type=Path, required=True)
 
 
@@ -346,6 +369,7 @@ def infer_main(args) -> int:
     from camo_sbi.task import Observation, predict
 
     t0 = time.perf_counter()
+    formats = figure_formats(args)
     if args.budget < 1:
         raise ValueError("--budget: must be >= 1")
     if args.seed < 0:
@@ -400,7 +424,8 @@ def infer_main(args) -> int:
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
                 "config": json.dumps(overrides, sort_keys=True)}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", **settings}, indent=2))
-    report = _report(out, task, results, notes, table, settings, args.seed)
+    report = _report(out, task, results, notes, table, settings, args.seed,
+                     formats=None if formats == ("png",) else formats)
     pd_table = table[table.bound.isin(["lower", "upper"])].pivot_table(
         index="joint", columns=["method", "bound"], values="estimate_deg", sort=False)
     print(pd_table.to_string(float_format=lambda v: f"{v:.1f}"))
