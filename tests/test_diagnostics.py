@@ -340,7 +340,7 @@ def test_plot_coverage_and_calibration_bad_inputs():
 # --------------------------------------------------------------------------- report
 
 
-def make_run_dir(root, prior: BoxPrior, truth: np.ndarray):
+def make_run_dir(root, prior: BoxPrior, truth: np.ndarray, seeds: int = 3):
     """A fake run directory with config.json, results.csv, posteriors/*.nc and coverage.csv."""
     root.mkdir(parents=True, exist_ok=True)
     (root / "config.json").write_text(json.dumps({"scenario": "reaching", "robot": "panda",
@@ -350,7 +350,7 @@ def make_run_dir(root, prior: BoxPrior, truth: np.ndarray):
     for method, budgets in (("camo", [1000, 5000]), ("abc-smc", [1000, 5000]), ("naive", [np.nan])):
         for budget in budgets:
             for n_tasks in (1, 3, 5):
-                for seed in range(3):
+                for seed in range(seeds):
                     for subject in ("s0", "s1"):
                         err = 0.3 / np.sqrt(n_tasks) * (1 if np.isnan(budget) else 2000 / (budget + 1000))
                         rows.append(("reach", subject, method, budget, seed, n_tasks, "limit_rmse",
@@ -398,12 +398,15 @@ def test_report_has_every_section_and_embeds_every_image(tmp_path, prior, truth)
     # every input was present (the toy posteriors hold no observed reaches to replay)
     assert [sid for sid, body in sections.items() if "not available" in body] == ["posterior-predictive"]
     assert "camo.n_samples" in text and "reaching" in text  # settings flattened
-    # comparison: one table per metric, methods as rows, budgets as columns, mean ± 95% CI
+    # comparison: one table per metric, methods as rows, budgets as columns; 3 seeds: mean (min–max)
     tables = re.findall(r"<table.*?</table>", sections["comparison-table"], flags=re.S)
     assert len(tables) == 2 * 2  # (limit_rmse, wall_time) x (subject s0, s1)
     assert all(len(re.findall(r"<th[ >]", t)) <= 4 for t in tables)  # method, 1000, 5000, "any budget"
     lim = next(t for t in tables if "<caption>limit rmse</caption>" in t)
-    assert "95% confidence interval of the mean" in text
+    assert "mean (min–max) over 3 seeds" in text and "±" not in sections["comparison-table"]
+    assert re.search(r"<td>[\d.]+ \([\d.]+–[\d.]+\)</td>", lim)
+    assert "band = 95% confidence interval" in sections["error-vs-tasks"]  # 3 seeds x 2 subjects per point
+    assert "in degrees" in sections["posteriors"]  # the forest and corner plots
     assert "abc-smc †" in lim and "camo †" not in lim
     assert "fallback: stopped at the prior population" in sections["comparison-table"]
     # headings in words, never the cell's file name
@@ -424,6 +427,72 @@ def test_report_has_every_section_and_embeds_every_image(tmp_path, prior, truth)
     srcs = _check_self_contained(text)
     # error vs tasks, error vs budget, limits, corner, 2 marginal plots, 1 coverage plot
     assert len(srcs) == 7
+
+
+@pytest.mark.parametrize("seeds", [2, 5])
+def test_a_report_of_few_seeds_has_no_interval_built_from_them(tmp_path, prior, truth, seeds):
+    """Before: 2 seeds gave cells like '218 ± 1,269' (Student t with 1 degree of freedom)."""
+    run = make_run_dir(tmp_path / "run", prior, truth, seeds=seeds)
+    (run / "posteriors").rename(tmp_path / "no_posteriors")  # the tables and figures only
+    text = report.write_report(run, tmp_path / "r.html").read_text(encoding="utf-8")
+    body = text.split('<section id="comparison-table">', 1)[1].split('<section id="posteriors">', 1)[0]
+    if seeds < 5:
+        assert "±" not in body and "Student t" not in body
+        assert f"mean (min–max) over {seeds} seeds" in body and "dots = each seed" in body
+    else:  # five seeds: the interval, as before
+        assert "±" in body and "95% confidence interval of the mean" in body
+
+
+def test_forest_plot_is_arviz_in_degrees(prior, truth):
+    from matplotlib.collections import LineCollection
+
+    r = _informative_result(prior, truth)
+    a = arviz_io.to_inference_data(r, JOINTS, seed=0, true_theta=truth)
+    point = dataclasses.replace(r, samples=truth[None, :] + 0.05, weights=None, estimate=truth + 0.05)
+    p = arviz_io.to_inference_data(point, JOINTS, seed=0)
+    fig = arviz_io.plot_forest([a, p], ["camo", "naive"])
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "limit [deg]"
+    xs = np.concatenate([np.asarray(ln.get_xdata(), float) for ln in ax.get_lines()]
+                        + [seg[:, 0] for c in ax.collections if isinstance(c, LineCollection) for seg in c.get_segments()])
+    xs = xs[np.isfinite(xs)]
+    lo, hi = np.degrees(prior.low.numpy()).min(), np.degrees(prior.high.numpy()).max()
+    assert xs.size and lo - 1 <= xs.min() and xs.max() <= hi + 1 and np.ptp(xs) > 5  # degrees, not radians
+    assert {t.get_text() for t in ax.get_legend().get_texts()} == {"camo", "naive", "truth"}
+    rad = arviz_io.plot_forest([a], ["camo"], degrees=False)
+    assert rad.axes[0].get_xlabel() == "limit [rad]"
+
+
+def test_corner_plot_shows_the_restricted_limits_or_the_ones_asked_for(tmp_path, prior, truth):
+    run = make_run_dir(tmp_path / "run", prior, truth)
+    posts, _ = report._load_posteriors(run, 24)
+    members = [(str(d.posterior.attrs["method"]), d, p) for p, d, _ in posts if not report._is_point(d)]
+    sel, joints, why = report._corner_selection(members)
+    restricted = {k for k in range(2 * len(JOINTS)) if prior.free_mask.numpy()[k]
+                  and (truth[k] > prior.low.numpy()[k] if k % 2 == 0 else truth[k] < prior.high.numpy()[k])}
+    assert {2 * j + b for j, b in sel} <= restricted and len(sel) >= 2 and "restricted" in why
+    chosen = [f"{JOINTS[0]}_hi", f"{JOINTS[1]}_lo"]
+    sel, _, why = report._corner_selection(members, chosen)
+    assert sel == [(0, 1), (1, 0)] and "--corner-limits" in why
+    with pytest.raises(ValueError, match="^--corner-limits: unknown"):
+        report._corner_selection(members, ["knee_lo", "knee_hi"])
+    text = report.write_report(run, tmp_path / "r.html", corner_limits=chosen,
+                               figure_formats=["svg"]).read_text(encoding="utf-8")
+    assert f"{JOINTS[0]}_hi, {JOINTS[1]}_lo" in text
+    svgs = sorted((tmp_path / "report_figures").glob("*.svg"))
+    assert any("corner" in p.name for p in svgs) and any("limits_per_method" in p.name for p in svgs)
+    # without a truth: the limits whose posterior moved most from the prior come first
+    draws = prior.sample(2000, 3).numpy()
+    free = np.flatnonzero(prior.free_mask.numpy())
+    k = int(free[-1])
+    lo, hi = prior.low.numpy()[k], prior.high.numpy()[k]
+    draws[:, k] = lo + 0.05 * (hi - lo) * np.random.default_rng(0).random(2000)  # pinned near one edge
+    flat = PosteriorResult("camo", draws, None, draws.mean(axis=0), 0, 0.0, 1)
+    idata = arviz_io.to_inference_data(flat, JOINTS, seed=0, prior=prior, prior_draws=2000)
+    moved = arviz_io.moved_from_prior(idata)
+    assert int(np.nanargmax(moved)) == k and moved[k] > 0.3 and np.nanmax(np.delete(moved, k)) < 0.1
+    sel, _, why = report._corner_selection([("camo", idata, None)])
+    assert sel[0] == (k // 2, k % 2) and "moved most from the prior" in why
 
 
 def test_report_with_missing_inputs_says_not_available(tmp_path):
@@ -470,10 +539,10 @@ def test_posterior_comparison_identical_vs_shifted(prior, truth):
     table = report._posterior_comparison_table(posts)
     assert len(table) == 3 and "<table" in report._posterior_comparison(posts, "")
     row = table[(table["method A"] == "abc-smc") & (table["method B"] == "camo")].iloc[0]
-    assert row["mean W1 over free marginals"] == pytest.approx(0.0, abs=1e-12)
+    assert row["mean W1 over free marginals [deg]"] == pytest.approx(0.0, abs=1e-12)
     assert 0.35 < row["C2ST accuracy"] < 0.65
     row = table[(table["method A"] == "camo") & (table["method B"] == "npe")].iloc[0]
-    assert row["mean W1 over free marginals"] == pytest.approx(0.25, rel=0.05)
+    assert row["mean W1 over free marginals [deg]"] == pytest.approx(np.degrees(0.25), rel=0.05)
     assert row["C2ST accuracy"] > 0.95
 
 

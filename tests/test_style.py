@@ -80,13 +80,143 @@ def test_log_axis_only_with_two_budgets(tmp_path):
 
 
 def test_legend_title_names_the_interval():
-    ax = style.plot_lines(_tidy(["camo", "naive"], [1, 2], seeds=2))
+    ax = style.plot_lines(_tidy(["camo", "naive"], [1, 2], seeds=6))
     title = ax.get_legend().get_title().get_text()
-    assert "95% CI of the mean" in title and "over 2 runs" in title and "Student t" in title
-    assert style.band_label([3, 5]).endswith("over 3–5 runs (Student t)")
+    assert "95% CI of the mean" in title and "over 6 runs" in title and "Student t" in title
+    assert style.band_label([5, 7]).endswith("over 5–7 runs (Student t)")
     assert "no interval" in style.band_label(1)
-    bars = style.plot_bars(_tidy(["camo", "naive"], [1], seeds=4))
-    assert "95% CI of the mean over 4 runs" in bars.get_xlabel()
+    bars = style.plot_bars(_tidy(["camo", "naive"], [1], seeds=5))
+    assert "95% CI of the mean over 5 runs" in bars.get_xlabel()
+    few = style.plot_lines(_tidy(["camo", "naive"], [1, 2], seeds=2)).get_legend().get_title().get_text()
+    assert "each of 2 runs" in few and "no CI band" in few and "Student" not in few
+    assert "each of 3–4 runs" in style.band_label([3, 4])
+
+
+def _bands(ax) -> int:
+    from matplotlib.collections import PolyCollection
+
+    return sum(isinstance(c, PolyCollection) for c in ax.collections)
+
+
+def _dots(ax) -> np.ndarray:
+    from matplotlib.collections import PathCollection
+
+    return np.concatenate([c.get_offsets() for c in ax.collections if isinstance(c, PathCollection)]
+                          or [np.empty((0, 2))])
+
+
+@pytest.mark.parametrize("seeds", [2, 4])
+def test_a_figure_of_few_seeds_draws_its_points_not_bands(seeds):
+    """Before: 2 seeds drew a Student-t band (t with 1 dof: 12.7 sd wide, below 0 for errors)."""
+    df = _tidy(["camo", "npe", "naive"], [1, 2, 3], seeds=seeds)
+    ax = style.plot_lines(df)
+    assert _bands(ax) == 0  # no fill_between
+    dots = _dots(ax)
+    assert len(dots) == len(df)  # every run is drawn
+    np.testing.assert_allclose(np.sort(dots[:, 1]), np.sort(df["value"].to_numpy()))
+    # jittered: no two dots of one method at one x share an x position
+    assert len(np.unique(np.round(dots[:, 0], 9))) == len(dots)
+    assert np.all(np.abs(dots[:, 0] - np.round(dots[:, 0])) < 0.5)  # still next to their x
+    camo = next(ln for ln in ax.get_lines() if ln.get_label() == "camo")  # the line is the mean
+    np.testing.assert_allclose(camo.get_ydata(), df[df.method == "camo"].groupby("n_tasks")["value"].mean())
+    bars = style.plot_bars(df[df.n_tasks == 3])
+    assert all(c.errorbar is None for c in bars.containers if hasattr(c, "errorbar"))
+    assert not [ln for ln in bars.get_lines() if ln.get_label().startswith("_") and len(ln.get_xdata()) == 2
+                and ln.get_xdata()[0] == ln.get_xdata()[1]]  # no error-bar segments
+    assert len(_dots(bars)) == 3 * seeds
+    many = style.plot_lines(_tidy(["camo", "npe"], [1, 2, 3], seeds=5))
+    assert _bands(many) == 2 and len(_dots(many)) == 0  # 5 seeds: bands, as before
+
+
+def test_cells_of_few_values_show_a_range_not_an_interval():
+    """Before: '218 ± 1,269' from 2 seeds; now the mean and the range."""
+    assert style.cell_text([10.0, 426.0]) == "218 (10–426)"
+    assert "±" not in style.cell_text([1.0, 2.0, 3.0, 4.0])
+    assert style.cell_text([-3.0, 5.0]) == "1 (-3 to 5)"
+    assert style.cell_text([2.5]) == "2.5" and style.cell_text([7.0, 7.0]) == "7" and style.cell_text([]) == "–"
+    five = [1.0, 2.0, 3.0, 4.0, 5.0]
+    m, half = style.mean_ci(five)
+    assert style.cell_text(five) == f"3 ± {style.number(half, 2)}"
+    assert "no confidence interval" in style.cell_rule(2, "seeds") and "min–max" in style.cell_rule(2)
+    assert "Student t" in style.cell_rule(5) and "±" in style.cell_rule([5, 6])
+    assert style.few_runs([2, 8]) and not style.few_runs([5, 8]) and not style.few_runs(5)
+
+
+def test_radian_metrics_are_shown_in_degrees():
+    df = pd.DataFrame({"metric": ["reference_joint", "cartesian_error_mm"], "value": [np.pi, 3.0]})
+    shown = style.display_metric(df)
+    np.testing.assert_allclose(shown["value"], [180.0, 3.0])
+    assert df["value"].iloc[0] == np.pi  # the input (the file's radians) is untouched
+    assert style.metric_label("reference_joint").endswith("[deg]")
+    assert style.metric_label("eq2_joint").endswith("[deg]")
+    assert not any(style.metric_label(m).endswith("[rad]") for m in style.METRIC_LABELS)
+
+
+def _texts_pt(fig) -> list[float]:
+    return [t.get_fontsize() for t in fig.findobj(lambda a: hasattr(a, "get_fontsize") and hasattr(a, "get_text"))
+            if t.get_text().strip() and t.get_visible()]
+
+
+def test_svg_and_pdf_are_written_and_parse(tmp_path):
+    import xml.etree.ElementTree as ET
+
+    from pypdf import PdfReader
+
+    df = pd.DataFrame([{"method": m, "budget": 500, "seed": s, "n_tasks": k, "metric": metric, "value": 1.0 + s + k}
+                       for m in ("camo", "naive") for s in range(2) for k in (1, 2)
+                       for metric in ("cartesian_error_mm", "limit_error_deg", "wall_time")])
+    paths = compare.make_figures(df, tmp_path, formats=("pdf", "svg"))
+    assert sorted(p.name for p in paths) == ["error_vs_tasks.pdf", "error_vs_tasks.svg", "wall_time.pdf",
+                                             "wall_time.svg"]
+    assert not list(tmp_path.glob("*.png"))
+    svg = ET.parse(tmp_path / "error_vs_tasks.svg").getroot()
+    assert svg.tag.endswith("svg")
+    width_in = float(svg.get("width").removesuffix("pt")) / 72
+    assert width_in == pytest.approx(style.DOUBLE_COLUMN)  # the paper's double-column width
+    texts = [t for t in svg.iter() if t.tag.endswith("text")]  # svg.fonttype none: text stays text
+    assert any("observed tasks" in "".join(t.itertext()) for t in texts)
+    sizes = [float(m) for t in texts for m in __import__("re").findall(r"font-size:\s*([\d.]+)px|font:\s*([\d.]+)px",
+                                                                        t.get("style", ""))[0] if m]
+    assert sizes and min(sizes) >= style.MIN_FONT_PT  # px = pt at svg's 72 dpi
+    reader = PdfReader(tmp_path / "wall_time.pdf")
+    box = reader.pages[0].mediabox
+    assert float(box.width) / 72 == pytest.approx(style.SINGLE_COLUMN)
+    assert "Wall time" in reader.pages[0].extract_text()
+    with pytest.raises(ValueError, match="^--figure-format:"):
+        style.parse_figure_formats("png,eps")
+    assert style.parse_figure_formats("PNG, pdf,png") == ("png", "pdf")
+
+
+@pytest.mark.parametrize("maker", ["compare", "manipulator", "coverage"])
+def test_paper_figures_have_no_text_below_8_pt(maker, tmp_path):
+    from camo_sbi.experiments import manipulator
+
+    seen = []
+    orig = style.save_figures
+
+    def spy(fig, path, formats=("png",), dpi=style.PNG_DPI):
+        seen.append((fig.get_figwidth(), _texts_pt(fig)))
+        return orig(fig, path, formats, dpi)
+
+    rows = [{"method": m, "run": s, "budget": 500, "seed": s, "n_tasks": k, "metric": metric,
+             "value": 1.0 + s + k} for m in ("camo", "naive", "nominal") for s in range(3) for k in (1, 2)
+            for metric in ("cartesian_error_mm", "limit_error_deg", "wall_time", "reference_cartesian",
+                           "joint_error_deg", "reference_joint", "limit_error_binding_deg")]
+    import unittest.mock as mock
+
+    with mock.patch.object(style, "save_figures", spy):
+        if maker == "compare":
+            compare.make_figures(pd.DataFrame(rows), tmp_path)
+        elif maker == "manipulator":
+            manipulator.make_figures(pd.DataFrame(rows), tmp_path)
+        else:
+            cov = pd.DataFrame({"method": ["camo"] * 2, "alpha": [0.1, 0.9], "coverage": [0.1, 0.8]})
+            fig = calibration.plot_coverage(cov)
+            seen.append((fig.get_figwidth(), _texts_pt(fig)))
+    assert seen
+    for width, sizes in seen:
+        assert width in (style.SINGLE_COLUMN, style.DOUBLE_COLUMN)
+        assert sizes and min(sizes) >= style.MIN_FONT_PT
 
 
 def test_robust_scale_clips_a_dwarfing_baseline():
@@ -113,7 +243,7 @@ def test_demo_out_path_is_a_file_or_a_directory(tmp_path):
     assert demo.figure_path(tmp_path / "demo.png") == tmp_path / "demo.png"
     assert demo.figure_path(tmp_path / "figs") == tmp_path / "figs" / "demo.png"
     with pytest.raises(ValueError, match="^--out:"):
-        demo.figure_path(tmp_path / "demo.pdf")
+        demo.figure_path(tmp_path / "demo.pdf")  # the format is --figure-format's
     assert len({demo.REACHED_COLOR, demo.NOT_REACHED_COLOR, demo.LIMIT_COLOR}) == 3
 
 
@@ -132,8 +262,9 @@ def test_demo_writes_the_file_it_is_given_with_labelled_axes(tmp_path, monkeypat
     make = demo.make_figure
     monkeypatch.setattr(demo, "make_figure", lambda *a: drawn.append(make(*a)) or drawn[-1])
     out = tmp_path / "figs" / "demo.png"
-    assert demo.main(argparse.Namespace(model="panda", batch=8, seed=0, out=str(out))) == 0
+    assert demo.main(argparse.Namespace(model="panda", batch=8, seed=0, out=str(out), figure_format="png,svg")) == 0
     assert out.is_file() and out.read_bytes()[:4] == b"\x89PNG"
+    assert out.with_suffix(".svg").read_text().lstrip().startswith("<?xml")
     ax3d = next(a for a in drawn[0].axes if a.name == "3d")
     assert (ax3d.get_xlabel(), ax3d.get_ylabel(), ax3d.get_zlabel()) == ("x [m]", "y [m]", "z [m]")
     colors = {to_hex(ln.get_color()) for ln in ax3d.get_lines()}
