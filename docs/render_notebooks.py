@@ -1,14 +1,18 @@
 """Execute notebooks/*.ipynb and write them, with their outputs, as Markdown under docs/notebooks/.
 
     .venv/bin/pip install -e ".[docs]"
-    .venv/bin/python docs/render_notebooks.py            # all four, small scale (~2-4 min on 2 cores)
-    .venv/bin/python docs/render_notebooks.py 01_quickstart --scale full
+    .venv/bin/python docs/render_notebooks.py --scale full          # all four at the notebooks' full settings
+    .venv/bin/python docs/render_notebooks.py 04_method_comparison   # small scale (quick settings)
 
 The notebooks themselves stay committed without outputs (tests/test_notebooks_clean.py), so
 nothing stale in them can disagree with the code; these renderings are what a reader browsing
 the repository sees: ``docs/notebooks/<name>.md`` (the code, its printed output, tables
 and figures) with the figures as PNG files in ``docs/notebooks/<name>_files/``. Each
-rendering starts with a header naming the scale it ran at; tests/test_notebooks_clean.py
+rendering starts with a VISIBLE note naming the scale it ran at and how long it took; a
+small-scale rendering also gives the measured time of the notebook's full run (recorded in
+``docs/notebooks/timings.json`` by the last full rendering, or said to be unmeasured), so a
+reader knows its curves carry small-sample artefacts and what the full run costs.
+tests/test_notebooks_clean.py
 checks that its code cells are the notebook's current sources (re-render after editing a
 notebook). Uses nbconvert (the ``docs`` extra) and the stock ``python3`` kernel.
 """
@@ -16,6 +20,7 @@ notebook). Uses nbconvert (the ``docs`` extra) and the stock ``python3`` kernel.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import sys
@@ -25,12 +30,35 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOKS = ROOT / "notebooks"
 OUT = ROOT / "docs" / "notebooks"
+TIMINGS = OUT / "timings.json"
 HEADER = ("<!-- rendered by docs/render_notebooks.py from notebooks/{name}.ipynb "
-          "(CAMO_SBI_SCALE={scale}); edit the notebook, not this file -->\n\n")
+          "(CAMO_SBI_SCALE={scale}); edit the notebook, not this file -->\n\n{note}\n\n")
 
 
-def render(path: Path, out_dir: Path, scale: str, timeout: int = 600) -> Path:
-    """Execute one notebook (working directory notebooks/) and write its Markdown rendering."""
+def _minutes(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.1f} min"
+
+
+def scale_note(name: str, scale: str, seconds: float, timings: dict) -> str:
+    """The visible first lines of a rendering: the scale, its time, and for a small-scale
+    rendering the full run's measured time (or that it was not measured)."""
+    if scale == "full":
+        return (f"> **Rendered at full scale** (`CAMO_SBI_SCALE=full`, the settings in the first code cell) "
+                f"in {_minutes(seconds)} on this project's 2-core machine.")
+    full = timings.get(name)
+    cost = (f"The full run (`CAMO_SBI_SCALE=full`) took {_minutes(full['seconds'])} when last rendered "
+            f"({full['date']}); too slow to render here." if full else
+            "The full run (`CAMO_SBI_SCALE=full`) has not been timed.")
+    return (f"> **Rendered at small scale** (`CAMO_SBI_SCALE=small`, the quick settings the tests use) in "
+            f"{_minutes(seconds)}: few runs, small budgets, so the curves and tables below carry "
+            f"small-sample artefacts; read them as a demonstration, not as results. {cost} "
+            f"Full scale: `python docs/render_notebooks.py {name} --scale full`.")
+
+
+def render(path: Path, out_dir: Path, scale: str, timeout: int = 3600) -> Path:
+    """Execute one notebook (working directory notebooks/) and write its Markdown rendering,
+    headed by `scale_note`; a full rendering records its time in timings.json."""
+    t0 = time.perf_counter()
     import nbformat
     from nbconvert import MarkdownExporter
     from nbconvert.preprocessors import ExecutePreprocessor
@@ -49,8 +77,15 @@ def render(path: Path, out_dir: Path, scale: str, timeout: int = 600) -> Path:
         target = out_dir / name
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(data)
+    seconds = time.perf_counter() - t0
+    timings_path = out_dir / TIMINGS.name
+    timings = json.loads(timings_path.read_text()) if timings_path.is_file() else {}
+    if scale == "full":
+        timings[path.stem] = {"seconds": round(seconds, 1), "date": time.strftime("%Y-%m-%d")}
+        timings_path.write_text(json.dumps(timings, indent=1, sort_keys=True) + "\n")
     md = out_dir / f"{path.stem}.md"
-    md.write_text(HEADER.format(name=path.stem, scale=scale) + body, encoding="utf-8")
+    note = scale_note(path.stem, scale, seconds, timings)
+    md.write_text(HEADER.format(name=path.stem, scale=scale, note=note) + body, encoding="utf-8")
     return md
 
 
