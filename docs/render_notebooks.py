@@ -44,9 +44,9 @@ def scale_note(name: str, scale: str, seconds: float, timings: dict) -> str:
     rendering the full run's measured time (or that it was not measured)."""
     if scale == "full":
         return (f"> **Rendered at full scale** (`CAMO_SBI_SCALE=full`, the settings in the first code cell) "
-                f"in {_minutes(seconds)} on this project's 2-core machine.")
+                f"in {_minutes(seconds)} on this project's 2-core machine (shared with other jobs: a timing under load).")
     full = timings.get(name)
-    cost = (f"The full run (`CAMO_SBI_SCALE=full`) took {_minutes(full['seconds'])} when last rendered "
+    cost = (f"The full run (`CAMO_SBI_SCALE=full`) took {_minutes(full['seconds'])} (2 cores, under load) when last rendered "
             f"({full['date']}); too slow to render here." if full else
             "The full run (`CAMO_SBI_SCALE=full`) has not been timed.")
     return (f"> **Rendered at small scale** (`CAMO_SBI_SCALE=small`, the quick settings the tests use) in "
