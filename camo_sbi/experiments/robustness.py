@@ -175,9 +175,9 @@ def _make_figure(df: pd.DataFrame, out: Path, formats) -> Path:
         save_figures,
     )
 
-    metrics = [("cartesian_error_mm", "held-out Cartesian error per point [mm]"),
-               ("limit_error_binding_deg", "binding-limit error [deg]"),
-               ("coverage90", "coverage of the 90% interval")]
+    metrics = [("cartesian_error_mm", "held-out Cartesian\nerror per point [mm]"),
+               ("limit_error_binding_deg", "binding-limit\nerror [deg]"),
+               ("coverage90", "coverage of the\n90% interval")]
     conds = [c.name for c in CONDITIONS if c.name in set(df.condition)]
     methods = method_order(sorted(set(df.method)))
     fig, axes = new_figure(len(metrics), 1, width="double", aspect=0.3)
