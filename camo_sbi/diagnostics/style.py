@@ -49,6 +49,7 @@ import pandas as pd
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.markers import MarkerStyle
 from matplotlib.ticker import FixedLocator, MaxNLocator, NullLocator, ScalarFormatter
 from scipy import stats
 
@@ -657,8 +658,9 @@ def _dots(ax: Axes, data: pd.DataFrame, x: str | None, names: list[str], hue: st
             width = spread / max(len(names), 1) * 0.8 if x is not None else 0.35
             off = shift + jitter(vals.size, width)
             xp = float(xv) * 10.0**off if log else float(xv) + off
-            ax.scatter(xp, vals, s=9, color=st.color, marker=st.marker, alpha=0.7, lw=0.3,
-                       edgecolors="white", zorder=z.get(h, 3) + 0.5)
+            filled = MarkerStyle(st.marker).is_filled()
+            ax.scatter(xp, vals, s=9, color=st.color, marker=st.marker, alpha=0.7, lw=0.3 if filled else 0.8,
+                       edgecolors="white" if filled else None, zorder=z.get(h, 3) + 0.5)
 
 
 def plot_lines(df: pd.DataFrame, *, x: str = "n_tasks", hue: str = "method", ax: Axes | None = None,
