@@ -38,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import io
+import textwrap
 import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -624,6 +625,11 @@ def _legend_handle(name: str) -> Line2D:
     return Line2D([], [], label=name, markersize=5, **st.line_kwargs())
 
 
+def _wrap(title: str, width: int = 44) -> str:
+    """A panel title on lines of at most ``width`` characters (a 3.4 in panel holds ~50 at 9 pt)."""
+    return "\n".join(textwrap.fill(line, width) for line in str(title).split("\n"))
+
+
 def jitter(n: int, width: float) -> np.ndarray:
     """``n`` evenly spread offsets in [-width/2, width/2] (deterministic: no random state)."""
     if n <= 1:
@@ -722,9 +728,9 @@ def plot_lines(df: pd.DataFrame, *, x: str = "n_tasks", hue: str = "method", ax:
     if logy:
         ax.set_yscale("log")
     ax.set_xlabel({"n_tasks": "observed tasks", "budget": "simulations per observed task"}.get(x, x.replace("_", " ")))
-    ax.set_ylabel(ylabel)
+    ax.set_ylabel(_wrap(ylabel, 34))
     if title:
-        ax.set_title(title)
+        ax.set_title(_wrap(title))
     ax.grid(alpha=0.3)
     if robust and not logy:
         robust_ylim(ax, series, factor=factor, spread="points" if few else "bands")
@@ -762,13 +768,13 @@ def plot_bars(df: pd.DataFrame, *, hue: str = "method", ax: Axes | None = None, 
     if few:
         _dots(ax, df, None, order, hue, log=False, z={}, positions={n: i for i, n in enumerate(order)})
     ax.set_xticks(xs, order, rotation=30 if len(order) > 3 else 0, ha="right" if len(order) > 3 else "center")
-    ax.set_ylabel(ylabel)
+    ax.set_ylabel(_wrap(ylabel, 34))
     what = band_label(s["n"]).replace("\n", " ")
     if few:
         what = what.replace("line:", "bar:")
     ax.set_xlabel(f"bars: {what}" if not few else what)
     if title:
-        ax.set_title(title)
+        ax.set_title(_wrap(title))
     ax.grid(alpha=0.3, axis="y")
     if robust:
         series = {}
