@@ -10,7 +10,8 @@ the repository sees: ``docs/notebooks/<name>.md`` (the code, its printed output,
 and figures) with the figures as PNG files in ``docs/notebooks/<name>_files/``. Each
 rendering starts with a VISIBLE note naming the scale it ran at and how long it took; a
 small-scale rendering also gives the measured time of the notebook's full run (recorded in
-``docs/notebooks/timings.json`` by the last full rendering, or said to be unmeasured), so a
+``docs/notebooks/timings.json`` by the last full rendering; an entry
+``unfinished_after_seconds`` records a full run stopped unfinished, as observed), so a
 reader knows its curves carry small-sample artefacts and what the full run costs.
 tests/test_notebooks_clean.py
 checks that its code cells are the notebook's current sources (re-render after editing a
@@ -45,10 +46,16 @@ def scale_note(name: str, scale: str, seconds: float, timings: dict) -> str:
     if scale == "full":
         return (f"> **Rendered at full scale** (`CAMO_SBI_SCALE=full`, the settings in the first code cell) "
                 f"in {_minutes(seconds)} on this project's 2-core machine (shared with other jobs: a timing under load).")
-    full = timings.get(name)
-    cost = (f"The full run (`CAMO_SBI_SCALE=full`) took {_minutes(full['seconds'])} (2 cores, under load) when last rendered "
-            f"({full['date']}); too slow to render here." if full else
-            "The full run (`CAMO_SBI_SCALE=full`) has not been timed.")
+    full = timings.get(name) or {}
+    if "seconds" in full:
+        cost = (f"The full run (`CAMO_SBI_SCALE=full`) took {_minutes(full['seconds'])} (2 cores, under load) "
+                f"when last rendered ({full['date']}); too slow to render here.")
+    elif "unfinished_after_seconds" in full:
+        cost = (f"The full run (`CAMO_SBI_SCALE=full`) had not finished after "
+                f"{_minutes(full['unfinished_after_seconds'])} ({full['date']}, {full.get('conditions', 'under load')}) "
+                "and was stopped: its full time is unmeasured, longer than that.")
+    else:
+        cost = "The full run (`CAMO_SBI_SCALE=full`) has not been timed."
     return (f"> **Rendered at small scale** (`CAMO_SBI_SCALE=small`, the quick settings the tests use) in "
             f"{_minutes(seconds)}: few runs, small budgets, so the curves and tables below carry "
             f"small-sample artefacts; read them as a demonstration, not as results. {cost} "
