@@ -772,7 +772,7 @@ def plot_bars(df: pd.DataFrame, *, hue: str = "method", ax: Axes | None = None, 
     what = band_label(s["n"]).replace("\n", " ")
     if few:
         what = what.replace("line:", "bar:")
-    ax.set_xlabel(f"bars: {what}" if not few else what)
+    ax.set_xlabel(_wrap(f"bars: {what}" if not few else what, 48))
     if title:
         ax.set_title(_wrap(title))
     ax.grid(alpha=0.3, axis="y")
