@@ -20,8 +20,6 @@ import re
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 
-from camo_sbi.budget import charge, unwrap_simulator
-
 __all__ = ["DEFAULT_RETRIES", "dask_client", "get_client", "map_ordered", "map_unordered", "parse_scheduler",
            "run_chunks", "worker_count"]
 
@@ -171,6 +169,9 @@ def run_chunks(fn: Callable, jobs: Iterable, *, simulator, n_simulations: int, s
     client = get_client(scheduler)
     if client is None:
         return map_ordered(fn, jobs, None, simulator=simulator, **shared)
+    # imported here, not at the top: parsing --scheduler needs neither numpy nor torch
+    from camo_sbi.budget import charge, unwrap_simulator
+
     charge(simulator, n_simulations)
     return map_ordered(fn, jobs, client, simulator=unwrap_simulator(simulator), **shared)
 

@@ -525,6 +525,7 @@ def test_report_bad_inputs(tmp_path):
         report.write_report(tmp_path, tmp_path / "r.html", title=5)
 
 
+@pytest.mark.slow  # statistical (C2ST random forests, ~12 s)
 def test_posterior_comparison_identical_vs_shifted(prior, truth):
     """Same draws: W1 = 0 and C2ST at chance; shifted by 5 sd: large W1 and C2ST near 1."""
     base = _informative_result(prior, truth, method="camo", seed=1)

@@ -69,12 +69,13 @@ def lost_and_duplicated(df: pd.DataFrame, ref: pd.DataFrame) -> tuple[int, int]:
 
 
 def _same_table(df: pd.DataFrame, ref: pd.DataFrame) -> None:
-    """Equal to a clean run's table: values bit for bit (wall_time aside), dtypes, no loss, no duplicate."""
+    """Equal to a clean run's table: values bit for bit (the timings aside), dtypes, no loss, no duplicate."""
     assert lost_and_duplicated(df, ref) == (0, 0)
     assert df.dtypes.to_dict() == ref.dtypes.to_dict()
     assert all(str(df[c].dtype) == "int64" for c in INT_COLUMNS)
-    a = df[df.metric != "wall_time"].sort_values(KEY).reset_index(drop=True)
-    b = ref[ref.metric != "wall_time"].sort_values(KEY).reset_index(drop=True)
+    timings = ("wall_time", "compile_time")  # differ between runs
+    a = df[~df.metric.isin(timings)].sort_values(KEY).reset_index(drop=True)
+    b = ref[~ref.metric.isin(timings)].sort_values(KEY).reset_index(drop=True)
     pd.testing.assert_frame_equal(a, b, check_exact=True)
 
 # ------------------------------------------------------------------------------ URDF numbers
@@ -804,6 +805,7 @@ def _rundir_of(out: Path):
     return RunDirectory(out, m["experiment"], run_settings(m["settings"]))
 
 
+@pytest.mark.slow  # a 40-seed grid in a subprocess until its first cell (~17 s); SIGTERM -> 143 stays in the default run
 def test_sigint_still_exits_130(tmp_path):
     out = tmp_path / "run"
     # a grid far longer than the time to the first cell (it is interrupted, so its size costs

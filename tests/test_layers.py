@@ -12,6 +12,7 @@ registry's lazy loaders) and under ``if TYPE_CHECKING:``. Layers, bottom to top:
     5  scenarios, evaluation, io         (goal design and scenes; metrics and claims; recordings)
     6  diagnostics                       (arviz, calibration, reports)
     7  experiments                       (the CLI and the studies)
+    8  __main__                          (``python -m camo_sbi``: the CLI's entry point)
 
 A module may import its own layer's package or any lower layer, never a higher one, and
 never a sibling package of its own layer; the package root (``camo_sbi.__version__``) imports
@@ -36,6 +37,7 @@ LAYERS = {
     "scenarios": 5, "evaluation": 5, "io": 5,
     "diagnostics": 6,
     "experiments": 7,
+    "__main__": 8,
 }
 
 

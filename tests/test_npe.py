@@ -221,6 +221,7 @@ def test_bad_run_arguments_rejected(toy):
         npe.run(toy, toy.observations, budget=300, seed=-2, config=NpeConfig(**TINY))
 
 
+@pytest.mark.slow  # statistical recovery, trains flows (~14 s)
 def test_smoke_recovery_toy(toy):
     """A short training (budget 800 per task, 3 tasks) lands within 0.25 rad of the truth."""
     cfg = {**TINY, "max_epochs": 60, "stop_after_epochs": 10, "hidden_features": 32,

@@ -14,7 +14,7 @@ Layout of the InferenceData built by :func:`to_inference_data`:
   (no unit conversion).
 * ``constant_data``: ``estimate`` (the method's point estimate), ``true_limits``
   (when known), ``prior_low`` / ``prior_high`` (a box prior's edges, when given).
-* ``attrs`` (on every group): method, budget, n_simulations, wall_time, n_tasks,
+* ``attrs`` (on every group): method, budget, n_simulations, wall_time, compile_time, n_tasks,
   units, resampled, ``draws`` (what the draws are: "independent draws", "resampled
   from weighted samples (not MCMC)" or "point estimate"), resample_seed, weights_ess
   (the Kish effective sample size the weights imply, ``(sum w)^2 / sum w^2``; N for
@@ -356,6 +356,7 @@ def to_inference_data(
         "method": str(result.method),
         "n_simulations": int(result.n_simulations),
         "wall_time": float(result.wall_time),
+        "compile_time": float(result.compile_time),
         "n_tasks": int(result.n_tasks),
         "units": units,
         "resampled": int(resampled),

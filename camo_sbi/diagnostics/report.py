@@ -19,6 +19,12 @@ of `camo_sbi.diagnostics.style` and embedded as base64 PNG ``data:`` URIs; with
 ``figure_formats`` each figure is also written to ``figure_dir`` (e.g. as PDF and SVG).
 Angles are shown in degrees (the files keep radians); cells and captions follow the small-n
 rule of `camo_sbi.diagnostics.style.cell_text`.
+
+Cached per input digest: the page records (``<meta name="camo-sbi-report-inputs">``) the sha256
+of everything it was built from (the files above, the title, ``max_posteriors``, the corner and
+figure-format options, the package version and the source of the diagnostics modules that draw
+it); `write_report` on the same inputs returns the existing page without rebuilding it
+(``force=True`` rebuilds). With ``progress=True`` a tqdm bar on stderr names each section.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import base64
 import contextlib
 import contextvars
 import datetime as _dt
+import hashlib
 import html
 import io
 import json
@@ -35,14 +42,20 @@ import re
 import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
-from matplotlib.figure import Figure
 
 from camo_sbi._io import atomic_write_text
 
-__all__ = ["SECTIONS", "RESULTS_COLUMNS", "figure_files", "figure_html", "table_html", "write_page", "write_report"]
+if TYPE_CHECKING:  # matplotlib is imported by the sections that draw: checking a cached report needs none
+    from matplotlib.figure import Figure
+
+__all__ = ["SECTIONS", "RESULTS_COLUMNS", "figure_files", "figure_html", "report_digest", "report_is_current",
+           "table_html", "write_page", "write_report"]
+_DIGEST_META = "camo-sbi-report-inputs"
+_DRAWING_MODULES = ("report", "figures", "style", "arviz_io", "calibration")
 
 SECTIONS: tuple[tuple[str, str], ...] = (
     ("settings", "Settings"),
@@ -655,18 +668,24 @@ def _posterior_comparison_table(posts) -> pd.DataFrame:
             continue
         key = (a.get("subject", "–"), a.get("budget", "–"), a.get("seed", "–"), a.get("n_tasks", "–"))
         groups.setdefault(key, []).append((str(a.get("method", "?")), idata, draws))
-    rows, n_c2st = [], 0
+    rows, pairs = [], []
     for (subject, budget, seed, n_tasks), members in sorted(groups.items(), key=lambda kv: str(kv[0])):
         for (ma, ia, da), (mb, ib, db) in itertools.combinations(sorted(members, key=lambda m: m[0]), 2):
             free = (da.std(axis=0) > 0) | (db.std(axis=0) > 0)
             w1 = arviz_io.compare_marginals(ia, ib)["wasserstein"].to_numpy()[free] * _to_deg(ia)
-            acc = float("nan")
-            if n_c2st < _MAX_C2ST_PAIRS:
-                acc = c2st(da[:, free], db[:, free], 0, max_samples=500)
-                n_c2st += 1
+            if len(pairs) < _MAX_C2ST_PAIRS:
+                pairs.append((len(rows), da[:, free], db[:, free]))
             rows.append({"subject": subject, "budget": budget, "seed": seed, "n_tasks": n_tasks,
                          "method A": ma, "method B": mb, "mean W1 over free marginals [deg]": float(w1.mean()),
-                         "max W1 [deg]": float(w1.max()), "C2ST accuracy": acc})
+                         "max W1 [deg]": float(w1.max()), "C2ST accuracy": float("nan")})
+    # the classifiers (scikit-learn's random forests fit without the GIL) run on every core; each
+    # pair has its own fixed seed, so the accuracies do not depend on the number of threads
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=max(1, min(len(pairs), os.cpu_count() or 1))) as pool:
+        for (i, _, _), acc in zip(pairs, pool.map(lambda p: c2st(p[1], p[2], 0, max_samples=500), pairs),
+                                  strict=True):
+            rows[i]["C2ST accuracy"] = acc
     return pd.DataFrame(rows)
 
 
@@ -724,6 +743,7 @@ def _diagnostics(posts, why: str) -> str:
             "subject": a.get("subject", "–"), "tasks": a.get("n_tasks", "–"),
             "simulations": a.get("n_simulations", "–"),
             "wall time [s]": number(a["wall_time"]) if "wall_time" in a else "–",
+            "compile time [s]": number(a["compile_time"]) if "compile_time" in a else "–",
             "draws": kind,
             "effective samples (Kish)": "–" if ess is None or kind == arviz_io.DRAWS_POINT
             else f"{float(ess):.1f} of {a.get('n_samples_original', '?')}",
@@ -759,9 +779,54 @@ def _diagnostics(posts, why: str) -> str:
 # --------------------------------------------------------------------------- entry point
 
 
+def _inputs_digest(run_dir: Path, title: str, max_posteriors: int, options) -> str:
+    """sha256 of everything the report of ``run_dir`` is built from (see the module docstring)."""
+    from camo_sbi import __version__
+
+    h = hashlib.sha256(json.dumps([__version__, title, max_posteriors, options], default=str).encode())
+    here = Path(__file__).parent
+    files = [here / f"{m}.py" for m in _DRAWING_MODULES]
+    files += [run_dir / n for n in ("config.json", "results.csv", "coverage.csv")]
+    posts = sorted((run_dir / "posteriors").glob("*.nc")) if (run_dir / "posteriors").is_dir() else []
+    h.update(json.dumps([p.name for p in posts]).encode())
+    for p in files + posts[:max_posteriors]:
+        h.update(p.name.encode() + b"\0")
+        if p.is_file():
+            h.update(hashlib.sha256(p.read_bytes()).digest())
+    return h.hexdigest()
+
+
+def report_digest(path) -> str | None:
+    """The input digest recorded in a report written by `write_report` (None: none recorded)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096).decode("utf-8", "replace")
+    except OSError:
+        return None
+    m = re.search(rf'<meta name="{_DIGEST_META}" content="([0-9a-f]{{64}})">', head)
+    return m.group(1) if m else None
+
+
+def _options(corner_limits, figure_formats, figure_dir) -> list:
+    return [None if corner_limits is None else [str(c) for c in corner_limits],
+            None if not figure_formats else [str(f) for f in figure_formats],
+            None if figure_dir is None else str(figure_dir)]
+
+
+def report_is_current(run_dir, out_path, *, title: str | None = None, max_posteriors: int = 24,
+                      corner_limits: Sequence[str] | None = None, figure_formats: Sequence[str] | None = None,
+                      figure_dir=None) -> bool:
+    """True if ``out_path`` is a report `write_report` built from ``run_dir``'s current inputs
+    with these options."""
+    run_dir, out_path = Path(run_dir), Path(out_path)
+    title = title or f"camo_sbi report: {run_dir.resolve().name}"
+    digest = _inputs_digest(run_dir, title, max_posteriors, _options(corner_limits, figure_formats, figure_dir))
+    return out_path.is_file() and report_digest(out_path) == digest
+
+
 def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors: int = 24,
                  corner_limits: Sequence[str] | None = None, figure_formats: Sequence[str] | None = None,
-                 figure_dir=None) -> Path:
+                 figure_dir=None, force: bool = False, progress: bool = False) -> Path:
     """Write one self-contained HTML report for ``run_dir`` to ``out_path`` (atomically).
 
     Args:
@@ -774,6 +839,8 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
             those that moved most from the prior.
         figure_formats: also write every figure of the report in these formats (png, pdf,
             svg) to ``figure_dir`` (default: ``<out_path's folder>/report_figures``).
+        force: rebuild even if ``out_path`` was built from the same inputs (module docstring).
+        progress: a tqdm bar on stderr, one step per section.
 
     Returns:
         The path written. Sections (ids): settings, comparison-table, error-vs-tasks,
@@ -796,11 +863,14 @@ def write_report(run_dir, out_path, *, title: str | None = None, max_posteriors:
     title = title or f"camo_sbi report: {run_dir.resolve().name}"
     if corner_limits is not None and (isinstance(corner_limits, str) or not isinstance(corner_limits, Sequence)):
         raise TypeError(f"corner_limits: expected a list of limit names, got {type(corner_limits).__name__}")
+    digest = _inputs_digest(run_dir, title, max_posteriors, _options(corner_limits, figure_formats, figure_dir))
+    if not force and out_path.is_file() and report_digest(out_path) == digest:
+        return out_path
     folder = Path(figure_dir) if figure_dir is not None else out_path.parent / "report_figures"
     corner_token = _CORNER_CHOICE.set(None if corner_limits is None else [str(c) for c in corner_limits])
     try:
         with figure_files(folder, figure_formats):
-            return _write_report(run_dir, out_path, title, max_posteriors)
+            return _write_report(run_dir, out_path, title, max_posteriors, digest, progress)
     finally:
         _CORNER_CHOICE.reset(corner_token)
 
@@ -822,28 +892,38 @@ def figure_files(folder, formats: Sequence[str] | None):
         _FIGURE_SINK.reset(token)
 
 
-def _write_report(run_dir: Path, out_path: Path, title: str, max_posteriors: int) -> Path:
+def _write_report(run_dir: Path, out_path: Path, title: str, max_posteriors: int, digest: str,
+                  progress: bool) -> Path:
+    from tqdm import tqdm
 
+    bar = tqdm(total=len(SECTIONS) + 1, desc="report", unit="section", disable=not progress)
+    bar.set_postfix_str("loading results and posteriors")
     res, res_why = _load_results(run_dir)
     try:
         posts, post_why = _load_posteriors(run_dir, max_posteriors)
     except Exception as exc:  # noqa: BLE001
         posts, post_why = [], f"posteriors could not be loaded ({type(exc).__name__}: {exc})"
+    bar.update()
 
-    bodies = {
-        "settings": _guard(lambda: _settings(run_dir)),
-        "comparison-table": _guard(lambda: _comparison(res, res_why)),
-        "error-vs-tasks": _guard(lambda: _xy_figures(res, res_why, "n_tasks", "budget", "number of observed tasks")),
-        "error-vs-budget": _guard(lambda: _xy_figures(res, res_why, "budget", "n_tasks",
-                                                      "simulations per observed task")),
-        "posteriors": _guard(lambda: _posteriors(posts, post_why)),
-        "posterior-predictive": _guard(lambda: _predictive(posts, post_why)),
-        "posterior-comparison": _guard(lambda: _posterior_comparison(posts, post_why)),
-        "calibration": _guard(lambda: _calibration(run_dir)),
-        "diagnostics": _guard(lambda: _diagnostics(posts, post_why)),
+    builders = {
+        "settings": lambda: _settings(run_dir),
+        "comparison-table": lambda: _comparison(res, res_why),
+        "error-vs-tasks": lambda: _xy_figures(res, res_why, "n_tasks", "budget", "number of observed tasks"),
+        "error-vs-budget": lambda: _xy_figures(res, res_why, "budget", "n_tasks", "simulations per observed task"),
+        "posteriors": lambda: _posteriors(posts, post_why),
+        "posterior-predictive": lambda: _predictive(posts, post_why),
+        "posterior-comparison": lambda: _posterior_comparison(posts, post_why),
+        "calibration": lambda: _calibration(run_dir),
+        "diagnostics": lambda: _diagnostics(posts, post_why),
     }
+    bodies = {}
+    with bar:
+        for sid, name in SECTIONS:
+            bar.set_postfix_str(name)
+            bodies[sid] = _guard(builders[sid])
+            bar.update()
     return write_page(out_path, title, [(sid, name, bodies[sid]) for sid, name in SECTIONS],
-                      meta=f"run directory: {run_dir.resolve()}")
+                      meta=f"run directory: {run_dir.resolve()}", digest=digest)
 
 
 def figure_html(fig: Figure, caption: str, alt: str | None = None) -> str:
@@ -856,10 +936,11 @@ def table_html(df: pd.DataFrame, *, index: bool = False, float_format: str = "{:
     return _table_html(df, index=index, float_format=float_format)
 
 
-def write_page(out_path, title: str, sections, *, meta: str = "") -> Path:
+def write_page(out_path, title: str, sections, *, meta: str = "", digest: str | None = None) -> Path:
     """Write a self-contained HTML page atomically: ``sections`` is [(id, heading, html body)].
 
-    Every section gets ``<section id=...>``; ``meta`` is a line under the title (escaped).
+    Every section gets ``<section id=...>``; ``meta`` is a line under the title (escaped);
+    ``digest`` (hex sha256 of the page's inputs) is recorded for `report_digest`.
     """
     nav = "".join(f'<li><a href="#{sid}">{_esc(name)}</a></li>' for sid, name, _ in sections)
     body = "".join(f'<section id="{sid}"><h2>{_esc(name)}</h2>{html_}</section>\n'
@@ -867,7 +948,8 @@ def write_page(out_path, title: str, sections, *, meta: str = "") -> Path:
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     doc = (
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-        f"<title>{_esc(title)}</title><style>{_CSS}</style></head><body>"
+        + (f'<meta name="{_DIGEST_META}" content="{digest}">' if digest else "")
+        + f"<title>{_esc(title)}</title><style>{_CSS}</style></head><body>"
         f"<h1>{_esc(title)}</h1>"
         f'<p class="meta">{_esc(meta) + " · " if meta else ""}generated {stamp}</p>'
         f"<nav><ul>{nav}</ul></nav>\n{body}</body></html>\n"

@@ -234,6 +234,7 @@ METRIC_LABELS: dict[str, str] = {
     "pp_mean_cartesian_error_mm": "error of the posterior-predictive mean path [mm]",
     "n_simulations": "simulations used",
     "wall_time": "wall time [s]",
+    "compile_time": "numba compile time [s]",
     "precision": "precision", "recall": "recall", "f1": "F1", "accuracy": "accuracy",
     "limit_error": "mean |limit error| [rad]",
     "person_fraction": "share of blocks the person can do",

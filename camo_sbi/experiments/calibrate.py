@@ -55,28 +55,20 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-import pandas as pd
-import torch
 from tqdm import tqdm
 
-from camo_sbi._validation import derive_seed
-from camo_sbi.diagnostics.calibration import (
-    DEFAULT_ALPHAS,
-    central_interval_coverage,
-    plot_coverage,
-    sbc_ranks,
-    sbc_uniformity,
-)
-from camo_sbi.diagnostics.style import DOUBLE_COLUMN
+from camo_sbi._io import atomic_write_text
 from camo_sbi.experiments.compare import run_in_processes
 from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
 from camo_sbi.experiments.method_configs import parse_configs
 from camo_sbi.experiments.models import add_model_arguments, model_from_args
-from camo_sbi.experiments.plots import save_figures
-from camo_sbi.experiments.rundir import RunDirectory, run_settings
-from camo_sbi.experiments.store import ResultStore, atomic_write_text, cell_key
+
+# only light modules at import time: the CLI builds its parser from add_arguments (numpy, pandas,
+# torch and the diagnostics are imported by the functions that use them)
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = [
     "add_arguments",
@@ -134,6 +126,8 @@ def method_config(method: str, budget: int, overrides: dict | None = None) -> di
 
 def cell_specs(args) -> list[dict]:
     """Every cell (subject-major, then method) as a plain picklable dict with its key."""
+    from camo_sbi.experiments.store import cell_key
+
     methods = _parse_methods(args.methods)
     for opt in ("subjects", "tasks", "budget", "workers", "sbc_draws"):
         v = getattr(args, opt)
@@ -186,6 +180,7 @@ def draw_subject(sim, model: str, subject: int, *, n_tasks: int, seed: int):
         (task, attempt): the `ReachingTask` (true_theta set, prior = the model's box prior)
         and the attempt index used.
     """
+    from camo_sbi._validation import derive_seed
     from camo_sbi.priors import BoxPrior
     from camo_sbi.scenarios.reaching import make_reaching_task
 
@@ -205,13 +200,14 @@ def draw_subject(sim, model: str, subject: int, *, n_tasks: int, seed: int):
                        f"(last: {errors[-1]})")
 
 
-def subject_rows(samples, weights, truth, names, *, sbc_draws: int, seed, alphas=DEFAULT_ALPHAS) -> list[dict]:
+def subject_rows(samples, weights, truth, names, *, sbc_draws: int, seed, alphas=None) -> list[dict]:
     """Coverage indicators and SBC ranks of one subject's posterior.
 
     Args:
         samples: (N, D) posterior samples of the free coordinates.  weights: (N,) or None.
         truth: (D,) true free coordinates.  names: D coordinate names.
         sbc_draws: L, posterior draws per rank.  seed: int or numpy Generator.
+        alphas: central-interval levels (None: `camo_sbi.diagnostics.calibration.DEFAULT_ALPHAS`).
 
     Returns:
         rows ``{"record": "coverage", "name", "alpha", "value" (0/1)}`` for every coordinate
@@ -219,9 +215,17 @@ def subject_rows(samples, weights, truth, names, *, sbc_draws: int, seed, alphas
         Zero-width marginals (point masses) are covered iff equal to the truth and ranked by
         comparison (see the module docstring), instead of being dropped.
     """
+    import numpy as np
+
+    from camo_sbi.diagnostics.calibration import (
+        DEFAULT_ALPHAS,
+        central_interval_coverage,
+        sbc_ranks,
+    )
+
     x = np.asarray(samples, dtype=np.float64)
     t = np.asarray(truth, dtype=np.float64)
-    alphas = np.asarray(alphas, dtype=np.float64)
+    alphas = np.asarray(DEFAULT_ALPHAS if alphas is None else alphas, dtype=np.float64)
     rng = np.random.default_rng(seed)
     wide = np.ptp(x, axis=0) > 0
     covered = np.zeros((alphas.size, x.shape[1]))
@@ -246,6 +250,10 @@ def subject_rows(samples, weights, truth, names, *, sbc_draws: int, seed, alphas
 
 def run_cell(spec: dict, out: str) -> str:
     """Run one method on one subject and store its rows atomically; returns the cell key."""
+    import numpy as np
+
+    from camo_sbi._validation import derive_seed
+    from camo_sbi.experiments.store import ResultStore
     from camo_sbi.inference.registry import run_method
 
     store = ResultStore(out)
@@ -258,7 +266,7 @@ def run_cell(spec: dict, out: str) -> str:
     w = res.normalized_weights()
     rows = subject_rows(res.samples[:, free], res.weights, task.true_theta.numpy()[free], names,
                         sbc_draws=spec["sbc_draws"], seed=derive_seed(spec["seed"], spec["subject"], 11))
-    meta = {"wall_time": res.wall_time, "n_simulations": res.n_simulations, "n_samples": res.samples.shape[0],
+    meta = {"wall_time": res.wall_time, "compile_time": res.compile_time, "n_simulations": res.n_simulations, "n_samples": res.samples.shape[0],
             "ess": float(1.0 / np.sum(w**2)), "attempt": attempt}
     rows += [{"record": "meta", "name": k, "alpha": np.nan, "value": float(v)} for k, v in meta.items()]
     base = {"cell": spec["key"], "task": spec["model"], "method": spec["method"], "subject": spec["subject"]}
@@ -275,6 +283,8 @@ def aggregate(df: pd.DataFrame, sbc_draws: int) -> tuple[pd.DataFrame, pd.DataFr
     coverage: task, method, coordinate (a name or "overall"), alpha, coverage, n, point_estimate.
     sbc: task, method, subject, attempt, coordinate, rank, n_draws.
     """
+    import pandas as pd
+
     meta = df[df["record"] == "meta"].pivot_table(index=["task", "method", "subject"], columns="name",
                                                   values="value", aggfunc="first")
     point = (meta["n_samples"] == 1).groupby(level=["task", "method"]).all().rename("point_estimate")
@@ -298,6 +308,11 @@ def aggregate(df: pd.DataFrame, sbc_draws: int) -> tuple[pd.DataFrame, pd.DataFr
 
 def summarize(coverage: pd.DataFrame, ranks: pd.DataFrame, df: pd.DataFrame, sbc_draws: int) -> pd.DataFrame:
     """One row per (task, method): coverage error, direction, SBC p-values, time per subject."""
+    import numpy as np
+    import pandas as pd
+
+    from camo_sbi.diagnostics.calibration import sbc_uniformity
+
     meta = df[df["record"] == "meta"].pivot_table(index=["task", "method", "subject"], columns="name",
                                                   values="value", aggfunc="first").reset_index()
     rows = []
@@ -333,6 +348,8 @@ def summarize(coverage: pd.DataFrame, ranks: pd.DataFrame, df: pd.DataFrame, sbc
 
 
 def _at(g: pd.DataFrame, alpha: float) -> float:
+    import numpy as np
+
     i = int(np.argmin(np.abs(g["alpha"].to_numpy() - alpha)))
     return float(g["coverage"].iloc[i])
 
@@ -366,6 +383,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
+    import torch
+
+    from camo_sbi.diagnostics.calibration import plot_coverage
+    from camo_sbi.diagnostics.style import DOUBLE_COLUMN
+    from camo_sbi.experiments.plots import save_figures
+    from camo_sbi.experiments.rundir import RunDirectory, run_settings
+
     t0 = time.perf_counter()
     formats = figure_formats(args)
     from camo_sbi.experiments.amortize import estimator_for_run
@@ -434,6 +458,8 @@ def _sbi_diagnostics(args, out: Path) -> str:
     """sbi's run_sbc/check_sbc and TARP on the amortized posterior itself (the case they apply to:
     one posterior amortized over (theta, x) pairs from a fixed simulator), written to
     OUT/sbi_diagnostics.json; returns the summary lines."""
+    import numpy as np
+
     from camo_sbi.inference.amortized import load_estimator, sbi_diagnostics
 
     est = load_estimator(args.amortized)
@@ -453,6 +479,10 @@ def _sbi_diagnostics(args, out: Path) -> str:
 
 
 def _uniformity_table(ranks: pd.DataFrame, sbc_draws: int) -> pd.DataFrame:
+    import pandas as pd
+
+    from camo_sbi.diagnostics.calibration import sbc_uniformity
+
     parts = []
     for (task, method), r in ranks.groupby(["task", "method"], sort=True):
         mat = r.pivot(index="subject", columns="coordinate", values="rank")

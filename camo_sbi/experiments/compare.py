@@ -11,16 +11,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
 from tqdm import tqdm
 
-from camo_sbi._validation import derive_seed
-from camo_sbi.distributed import DEFAULT_RETRIES, dask_client, map_unordered, parse_scheduler
+# only light modules at import time: the CLI builds its parser from add_arguments (numpy, torch,
+# pandas and the store are imported by the functions that use them)
 from camo_sbi.experiments.figure_options import (
     add_corner_argument,
     add_figure_format_argument,
@@ -35,10 +34,10 @@ from camo_sbi.experiments.models import (
     true_limits,
 )
 from camo_sbi.experiments.processes import run_in_processes as _run_in_processes
-from camo_sbi.experiments.rundir import RunDirectory, run_settings
-from camo_sbi.experiments.store import ResultStore, cell_key
 
 __all__ = ["add_arguments", "main", "run_cell", "run_cells_on", "cell_specs"]
+
+log = logging.getLogger(__name__)
 
 def _parse_list(text: str, name: str, cast=str) -> list:
     items = [t.strip() for t in str(text).split(",") if t.strip()]
@@ -65,19 +64,26 @@ def grid_methods(text: str) -> list[str]:
     return methods + [b for b in names(baseline=True) if b not in methods]
 
 
-def cell_specs(args) -> list[dict]:
-    """Every grid cell as a plain dict (picklable; the cell's identity is its key)."""
+def cell_specs(args, *, build: bool = True) -> list[dict]:
+    """Every grid cell as a plain dict (picklable; the cell's identity is its key).
+
+    ``build=False``: the same specs without building the model or checking the subjects against
+    it (`models.model_from_args`), for a re-run whose cells are all finished.
+    """
+    from camo_sbi.experiments.store import cell_key
+
     methods = grid_methods(args.methods)
     budgets = _parse_list(args.budgets, "budgets", int)
     if any(b < 1 for b in budgets):
         raise ValueError("--budgets: every budget must be >= 1")
     if args.seeds < 1 or args.tasks < 1 or args.test_goals < 1:
         raise ValueError("--seeds/--tasks/--test-goals: must be >= 1")
-    model = model_from_args(args)
+    model = model_from_args(args, build=build)
     subjects = subject_list(model, args.subjects)
-    sim = model.build()
-    for s in subjects:
-        true_limits(model, sim, s)
+    if build:
+        sim = model.build()
+        for s in subjects:
+            true_limits(model, sim, s)
     # a built-in model with its defaults keeps the cell keys it always had
     model_key = {} if model.is_default else {"model": json.dumps(model.key(), sort_keys=True)}
     from camo_sbi.inference.registry import capabilities
@@ -130,8 +136,12 @@ def _model_setting(model) -> str:
 
 def run_cell(spec: dict, out: str) -> str:
     """Run one cell and write its rows (and final posterior) atomically; returns its key."""
+    import numpy as np
+
+    from camo_sbi._validation import derive_seed
     from camo_sbi.evaluation.evaluate import PPC_DRAWS, evaluate_result, true_test_trajectories
     from camo_sbi.evaluation.metrics import binding_bounds
+    from camo_sbi.experiments.store import ResultStore
     from camo_sbi.inference.registry import run_method_sequence
     from camo_sbi.scenarios.reaching import make_reaching_task
 
@@ -159,7 +169,8 @@ def run_cell(spec: dict, out: str) -> str:
         for j, name in enumerate(sim.joint_names):
             metrics[f"limit_error_deg_{name}"] = float(err[2 * j : 2 * j + 2].mean())
         metrics["n_simulations"] = res.n_simulations
-        metrics["wall_time"] = res.wall_time
+        metrics["wall_time"] = res.wall_time  # without numba compilation, which is compile_time
+        metrics["compile_time"] = res.compile_time
         for k in ("training_simulations", "training_time"):  # an amortized method's one-off cost
             if k in res.extras:
                 metrics[k] = res.extras[k]
@@ -171,6 +182,7 @@ def run_cell(spec: dict, out: str) -> str:
 
 
 def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
+    from camo_sbi._validation import derive_seed
     from camo_sbi.diagnostics.arviz_io import observed_arrays, save_netcdf, to_inference_data
 
     observed, dims = observed_arrays(task)
@@ -237,12 +249,15 @@ def _make_figures(df, out: Path, formats) -> list[Path]:
     return paths
 
 
-def run_cells_on(client, specs: list[dict], out, *, retries: int = DEFAULT_RETRIES, on_done=None) -> list[str]:
+def run_cells_on(client, specs: list[dict], out, *, retries: int | None = None, on_done=None) -> list[str]:
     """Run cells on a Dask client; a cell whose worker dies is retried (``retries``).
 
     A retried cell rewrites the same atomic file, so the store never holds a duplicate or
     a partial cell. Returns the finished keys in completion order.
     """
+    from camo_sbi.distributed import DEFAULT_RETRIES, map_unordered
+
+    retries = DEFAULT_RETRIES if retries is None else retries
     client.run(_init_worker)
     keys = []
     for key in map_unordered(run_cell, specs, client, retries=retries, out=str(out)):
@@ -253,6 +268,8 @@ def run_cells_on(client, specs: list[dict], out, *, retries: int = DEFAULT_RETRI
 
 
 def _init_worker():
+    import torch
+
     os.environ.setdefault("NUMBA_NUM_THREADS", "1")
     torch.set_num_threads(1)
 
@@ -311,12 +328,52 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("runs/compare"))
 
 
+def _finished_grid(args) -> list[dict] | None:
+    """The grid's specs if every cell of it is already finished in ``--out``, else None.
+
+    Computed without building the model (`cell_specs` with ``build=False``), so a re-run of a
+    finished grid imports neither torch nor numba. Runs with an amortized method take the full
+    path: their estimator file is part of the cell keys and is checked on every run.
+    """
+    from camo_sbi.experiments.store import ResultStore
+    from camo_sbi.inference.registry import capabilities
+
+    out = Path(args.out)
+    if not (out / "manifest.json").is_file() or any(capabilities(m).amortized for m in grid_methods(args.methods)):
+        return None
+    specs = cell_specs(args, build=False)
+    store = ResultStore(out)
+    if not all(store.done(s["key"]) for s in specs):
+        return None
+    log.info("every cell of this grid is finished in %s: no model to build", out)
+    return specs
+
+
+def _figures(df, out: Path, formats) -> list[Path]:
+    """`make_figures`, unless ``outputs.json`` says they were drawn from this very results.csv."""
+    from camo_sbi.experiments import outputs
+
+    digest = outputs.digest_files([out / "results.csv"], extra=("compare figures", *formats))
+    paths = outputs.cached(out, "figures", digest)
+    if paths is None:
+        paths = make_figures(df, out, formats)
+        outputs.record(out, "figures", digest, paths)
+    else:
+        log.info("figures unchanged: drawn from this results.csv before")
+    return paths
+
+
 def main(args) -> int:
+    from camo_sbi.distributed import dask_client, parse_scheduler
+    from camo_sbi.experiments.rundir import RunDirectory, run_settings
+
     t0 = time.perf_counter()
     formats = figure_formats(args)
     corner = corner_limits(args)
-    args = _with_estimator(args)
-    specs = cell_specs(args)
+    finished = _finished_grid(args)  # a re-run: nothing to compute, no model to build
+    if finished is None:
+        args = _with_estimator(args)
+    specs = finished if finished is not None else cell_specs(args)
     if args.workers < 1:
         raise ValueError("--workers: must be >= 1")
     scheduler = getattr(args, "scheduler", None)
@@ -335,6 +392,10 @@ def main(args) -> int:
     with RunDirectory(out, "compare", settings, wait=getattr(args, "wait", False)) as run:
         store = run.store
         todo = [s for s in specs if not store.done(s["key"])]
+        if todo and finished is not None:  # a cell went missing since the check: build and validate
+            args = _with_estimator(args)
+            specs = cell_specs(args)
+            todo = [s for s in specs if not store.done(s["key"])]
         print(f"{len(specs)} cells, {len(specs) - len(todo)} already finished")
         bar = tqdm(total=len(todo), desc="compare", unit="cell")
         if parse_scheduler(scheduler) is not None:
@@ -353,7 +414,7 @@ def main(args) -> int:
         missing = keys - store.finished_keys()
         if missing:
             raise RuntimeError(f"{len(missing)} cells did not finish")
-        figs = make_figures(df, out, formats)
+        figs = _figures(df, out, formats)
         if getattr(args, "amortized", None) is not None:
             from camo_sbi.experiments.amortize import write_cost_table
 
@@ -364,8 +425,11 @@ def main(args) -> int:
         print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
         print(f"table: {out / 'results.csv'} ({len(df)} rows)  figures: {', '.join(str(f.name) for f in figs)}")
         if not args.no_report:
-            from camo_sbi.diagnostics.report import write_report
+            from camo_sbi.diagnostics.report import report_is_current, write_report
 
-            print(f"report: {write_report(out, out / 'report.html', corner_limits=corner, figure_formats=None if formats == ('png',) else formats)}")
+            options = {"corner_limits": corner, "figure_formats": None if formats == ("png",) else formats}
+            current = report_is_current(out, out / "report.html", **options)
+            print(f"report: {write_report(out, out / 'report.html', progress=True, **options)}"
+                  + (" (unchanged: built from the same inputs)" if current else ""))
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
     return 0

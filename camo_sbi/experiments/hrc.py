@@ -55,16 +55,17 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-import torch
 from tqdm import tqdm
 
 from camo_sbi._io import atomic_write_text
-from camo_sbi._validation import derive_seed
 from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
-from camo_sbi.inference.camo import CamoConfig
-from camo_sbi.scenarios.block_stacking import OBSERVED_MOTIONS
+
+# only light modules at import time: the CLI builds its parser from add_arguments (numpy, torch,
+# pybullet's scene and the methods are imported by the functions that use them)
+if TYPE_CHECKING:
+    import numpy as np
 
 __all__ = [
     "METRICS",
@@ -88,6 +89,11 @@ STRONG_PRIOR_FIXED = ("torso_flexion", "torso_rotation", "forearm_pronation", "w
 """Joints whose limits the strong prior knows (fixed to the subject's true limits)."""
 TORSO = ("torso_flexion", "torso_rotation")
 TASK_UNITS = ("pick", "trial")
+OBSERVED_MOTIONS = ("reach", "carry")
+"""What the observer sees of a pick (`camo_sbi.scenarios.block_stacking.OBSERVED_MOTIONS`, repeated
+here so that the parser imports no pybullet; tests/test_cli.py checks that the two agree)."""
+CAMO_BANDWIDTH = 0.2
+"""``--bandwidth``'s default: `CamoConfig`'s (checked to agree by tests/test_cli.py)."""
 _CELL_SETTINGS = ("subject", "seed", "tasks", "task_unit", "test_trials", "samples", "keep_best", "epsilon",
                   "bandwidth", "space", "priors", "no_hull", "observe", "fix_torso")
 
@@ -104,6 +110,8 @@ def make_prior(sim, true_theta, kind: str, *, fix_torso: bool = False):
     ``fix_torso``: the weak prior also fixes the torso at its true limits (the strong prior
     always does), as the authors' code does for every method.
     """
+    import torch
+
     from camo_sbi.priors import BoxPrior
 
     if kind not in PRIORS:
@@ -139,6 +147,8 @@ def collect_run(scene, true_theta, *, n_tasks: int, n_test: int, seed: int, task
     order; for each pick the number of tasks observed once it is seen (pick unit: 1, 2,
     ...; trial unit: its trial's index + 1); the test trials; their (n_test, 4) labels.
     """
+    import numpy as np
+
     rng = np.random.default_rng(seed)
     max_trials = 50 * n_tasks if max_trials is None else max_trials
     observations, task_of = [], []
@@ -175,6 +185,9 @@ class _Predictor:
 
     def __call__(self, thetas) -> list[np.ndarray]:
         """Labels (n_test, 4) for each (2n,) limit vector (None -> all robot)."""
+        import numpy as np
+        import torch
+
         keys = [None if t is None else np.asarray(t, dtype=np.float64).tobytes() for t in thetas]
         todo = list(dict.fromkeys(k for k in keys if k is not None and k not in self.cache))
         if todo:
@@ -189,6 +202,9 @@ class _Predictor:
 
 def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]:
     """Both priors x (CAMO, naive, majority) on one run; returns tidy rows and extras."""
+    import torch
+
+    from camo_sbi._validation import derive_seed
     from camo_sbi.evaluation.metrics import binding_bounds, limit_errors
     from camo_sbi.inference.registry import capabilities, run_method_sequence
     from camo_sbi.scenarios.block_stacking import allocation_metrics
@@ -323,7 +339,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-best", type=_positive("--keep-best"), default=500,
                    help="CAMO keeps at most the k best draws per task")
     p.add_argument("--epsilon", type=float, default=None, help="CAMO DTW acceptance threshold (default: none)")
-    p.add_argument("--bandwidth", type=float, default=CamoConfig().bandwidth, help="CAMO kernel variance h [rad^2]")
+    p.add_argument("--bandwidth", type=float, default=CAMO_BANDWIDTH, help="CAMO kernel variance h [rad^2]")
     p.add_argument("--observe", choices=OBSERVED_MOTIONS, default="reach",
                    help="what the observer sees of a pick: the reach to the block (default) or the carry to "
                         "the tower (the authors' code)")

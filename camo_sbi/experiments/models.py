@@ -31,8 +31,10 @@ import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:  # torch is imported where limits are built: the CLI's parser imports this module
+    import torch
 
 __all__ = ["ModelSpec", "add_model_arguments", "build_simulator", "load_limits", "model_from_args",
            "parse_floats", "subject_list", "true_limits"]
@@ -154,8 +156,14 @@ def add_model_arguments(p: argparse.ArgumentParser, *, limits: bool = True) -> N
                        help="the --limits file is in degrees (prismatic joints stay in metres)")
 
 
-def model_from_args(args) -> ModelSpec:
-    """A validated `ModelSpec` from the options of `add_model_arguments` (builds the model once)."""
+def model_from_args(args, *, build: bool = True) -> ModelSpec:
+    """A validated `ModelSpec` from the options of `add_model_arguments` (builds the model once).
+
+    ``build=False``: the spec without building the simulator, so --ee, --start, --joints and
+    --height are not checked against the model (with --limits it is still built: the limits are
+    read against it). For a re-run whose cells are all finished (`compare`): their keys were
+    computed from the same, then validated, options.
+    """
     urdf = getattr(args, "urdf", None)
     model = getattr(args, "model", None)
     if urdf is not None and model is not None:
@@ -186,6 +194,9 @@ def model_from_args(args) -> ModelSpec:
     else:
         spec = ModelSpec(kind=model, height_m=getattr(args, "height", None), sex=getattr(args, "sex", None),
                          start=start)
+    path = getattr(args, "limits", None)
+    if not build and path is None:
+        return spec
     if model == "human":
         from camo_sbi.simulators.human import anthropometry
 
@@ -194,7 +205,6 @@ def model_from_args(args) -> ModelSpec:
         except ValueError as exc:
             raise ValueError(f"--height: {exc}") from exc
     sim = spec.build()  # validates --ee / --start / --joints before any work
-    path = getattr(args, "limits", None)
     if path is not None:
         lim = load_limits(path, sim, degrees=bool(getattr(args, "degrees", False)))
         spec = ModelSpec(**{**asdict(spec), "limits": tuple((j, float(lo), float(hi)) for j, (lo, hi)
@@ -211,6 +221,8 @@ def load_limits(path, sim, *, degrees: bool = False) -> torch.Tensor:
     unknown or missing joint names, a pair that is not two numbers, lo > hi, a pair outside
     the model's range, or one that does not contain the start posture.
     """
+    import torch
+
     path = Path(path)
     where = f"--limits: {path}"
     try:
@@ -273,6 +285,8 @@ def subject_list(spec: ModelSpec, subjects: str | None, *, default_all: bool = F
 
 def true_limits(spec: ModelSpec, sim, name: str) -> torch.Tensor:
     """(2n,) float64 true limits of subject ``name``: the --limits file, or a named profile."""
+    import torch
+
     from camo_sbi.experiments import subjects
 
     if spec.limits is not None:

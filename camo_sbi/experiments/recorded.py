@@ -24,15 +24,19 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-import torch
 from tqdm import tqdm
 
 from camo_sbi._io import atomic_write_text
-from camo_sbi._validation import derive_seed, torch_generator
 from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
 from camo_sbi.experiments.models import add_model_arguments, model_from_args, true_limits
+
+# only light modules at import time: the CLI builds its parser from the add_*_arguments functions
+# (numpy and torch are imported by the functions that use them)
+if TYPE_CHECKING:
+    import numpy as np
+    import torch
 
 __all__ = ["add_infer_arguments", "add_simulate_arguments", "infer_main", "limits_table", "simulate_main",
            "simulate_recordings"]
@@ -67,6 +71,10 @@ def simulate_recordings(sim, theta, n_reaches: int, *, seed: int, noise=None, ra
     ``rate_multiplier`` times as many samples (linear interpolation in time); noise from
     ``noise.perturb`` (seed ``derive_seed(seed, 1)``) on every value, start included.
     """
+    import numpy as np
+    import torch
+
+    from camo_sbi._validation import derive_seed, torch_generator
     from camo_sbi.io.recordings import resample_to_controller
     from camo_sbi.scenarios.reaching import observe, reachable_goals
     from camo_sbi.task import NoiseModel, Observation
@@ -101,6 +109,8 @@ def add_simulate_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def simulate_main(args) -> int:
+    import numpy as np
+
     from camo_sbi.io.recordings import save_recordings
     from camo_sbi.task import Observation
 
@@ -138,6 +148,7 @@ def limits_table(results: dict, sim):
     Point methods (one sample) have both interval ends at the estimate. Prismatic joints:
     ``estimate_rad`` holds metres and the degree columns are empty.
     """
+    import numpy as np
     import pandas as pd
 
     from camo_sbi.inference.result import weighted_quantile
@@ -160,6 +171,8 @@ def limits_table(results: dict, sim):
 
 
 def _recorded_task(model, sim, obs, noise):
+    import torch
+
     from camo_sbi.priors import BoxPrior
     from camo_sbi.task import Task
 
@@ -253,6 +266,8 @@ def _shown_limits(table):
 
 
 def _ee_of(traj_ee: torch.Tensor, length: torch.Tensor, b: int) -> np.ndarray:
+    import torch
+
     return traj_ee[b, : int(length[b])].to(torch.float64).numpy()
 
 
@@ -271,7 +286,9 @@ def _report(out: Path, task, results: dict, notes: list[str], table, settings: d
 def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int) -> Path:
     import html
 
+    import numpy as np
     import pandas as pd
+    import torch
     from matplotlib.figure import Figure
 
     from camo_sbi.diagnostics.report import figure_html, table_html, write_page
@@ -361,6 +378,10 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def infer_main(args) -> int:
+    import numpy as np
+    import torch
+
+    from camo_sbi._validation import derive_seed
     from camo_sbi.diagnostics.arviz_io import save_netcdf, to_inference_data
     from camo_sbi.experiments.compare import grid_methods
     from camo_sbi.experiments.method_configs import parse_configs

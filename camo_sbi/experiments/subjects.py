@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
-import torch
+from typing import TYPE_CHECKING
 
-__all__ = ["ONE_JOINT", "PANDA_PROFILES", "PAPER_JOINT", "build_model", "subject_names", "subject_theta"]
+if TYPE_CHECKING:  # imported where limits are built: the CLI's --help lists the profiles below
+    import torch
+
+__all__ = ["HUMAN_PROFILES", "ONE_JOINT", "PANDA_PROFILES", "PAPER_JOINT", "build_model", "subject_names",
+           "subject_theta"]
 
 # Panda profiles: {joint index: fraction of the range kept on each side of the start posture}.
 # Restricting a joint to a fraction f keeps lo = s - f (s - L), hi = s + f (U - s).
@@ -22,6 +26,10 @@ full range (their shoulder roll [pi/2 - 0.5, pi/2 + 0.5] around the start pi/2).
 PAPER_JOINT = {"panda": "panda_joint1", "human": "shoulder_flexion"}
 """The joint the one-joint subject restricts: the first joint of the arm (the authors' shoulder roll)."""
 _ONE_JOINT_HALF_WIDTH = 0.5
+HUMAN_PROFILES = ("frozen_shoulder", "elbow_flexion_contracture", "restricted_wrist", "hemiparesis_mild")
+"""The names of `camo_sbi.simulators.human.IMPAIRED_PROFILES` (defined there, with their limits),
+repeated here so that ``--help`` lists them without importing the model (torch);
+``tests/test_cli.py`` checks that the two agree."""
 
 
 def build_model(model: str):
@@ -47,6 +55,8 @@ def subject_names(model: str) -> list[str]:
 
 def subject_theta(sim, model: str, name: str) -> torch.Tensor:
     """(2n,) float64 true limits of subject ``name`` for ``model`` (``ONE_JOINT`` for either model)."""
+    import torch
+
     if name == ONE_JOINT:
         if model not in PAPER_JOINT:
             raise ValueError(f"model: expected one of {sorted(PAPER_JOINT)}, got {model!r}")

@@ -22,11 +22,13 @@ import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
-from camo_sbi._validation import check_positive_int
-from camo_sbi.inference.result import STATUS_OK, PosteriorResult
-from camo_sbi.task import Task, check_observations
+# nothing heavy at import time: the CLI's --help lists the registered methods (numpy, torch and
+# the task are imported by the functions that run a method)
+if TYPE_CHECKING:
+    from camo_sbi.inference.result import PosteriorResult
+    from camo_sbi.task import Task
 
 __all__ = [
     "Capabilities",
@@ -192,6 +194,9 @@ def space_of(name: str, config) -> str | None:
 
 
 def _prepare(name, task, observations, budget, seed, config):
+    from camo_sbi._validation import check_positive_int
+    from camo_sbi.task import Task, check_observations
+
     if not isinstance(task, Task):
         raise TypeError(f"task: expected a camo_sbi.task.Task, got {type(task).__name__}")
     spec = get_method(name)
@@ -206,9 +211,58 @@ def _prepare(name, task, observations, budget, seed, config):
 
 
 def _warn_status(name: str, result: PosteriorResult) -> None:
+    from camo_sbi.inference.result import STATUS_OK
+
     if result.status != STATUS_OK:
         warnings.warn(f"method {name!r} after {result.n_tasks} task(s): {result.status}", RuntimeWarning,
                       stacklevel=3)
+
+
+class _CompileClock:
+    """Seconds numba spends compiling while installed (a context manager).
+
+    numba broadcasts a ``numba:compiler_lock`` event around each compilation, including loading
+    a compiled kernel from its disk cache and waiting for another thread's compilation. The
+    clock adds up the union of those intervals over all threads (nested or concurrent ones count
+    once). A method's ``wall_time`` is its elapsed time minus this, so the first run in a
+    process is not charged for compiling the kernels every later run reuses.
+    """
+
+    def __enter__(self):
+        import threading
+
+        from numba.core import event
+
+        clock = self
+        self._lock, self._depth, self._since, self._total = threading.Lock(), 0, 0.0, 0.0
+
+        class _Listener(event.Listener):
+            def on_start(self, ev):
+                with clock._lock:
+                    if clock._depth == 0:
+                        clock._since = time.perf_counter()
+                    clock._depth += 1
+
+            def on_end(self, ev):
+                with clock._lock:
+                    if clock._depth == 0:  # began before the clock was installed
+                        return
+                    clock._depth -= 1
+                    if clock._depth == 0:
+                        clock._total += time.perf_counter() - clock._since
+
+        self._event, self._listener = event, _Listener()
+        event.register("numba:compiler_lock", self._listener)
+        return self
+
+    def __exit__(self, *exc):
+        self._event.unregister("numba:compiler_lock", self._listener)
+
+    @property
+    def seconds(self) -> float:
+        """Compilation so far (an interval still open counts up to now)."""
+        with self._lock:
+            return self._total + (time.perf_counter() - self._since if self._depth else 0.0)
 
 
 def run_method(name: str, task: Task, observations: Sequence | None = None, *, budget: int, seed: int,
@@ -216,16 +270,18 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
     """Run method ``name`` on ``observations`` (default: all of the task's) under a counted budget.
 
     The simulator is wrapped in a `CountingSimulator` capped at ``budget * len(observations)``;
-    the result's ``method``, ``n_simulations``, ``wall_time`` and ``n_tasks`` are set here.
+    the result's ``method``, ``n_simulations``, ``wall_time``, ``compile_time`` and ``n_tasks``
+    are set here (``wall_time`` excludes the numba compilation measured as ``compile_time``).
     A result whose status is not "ok" is warned about (RuntimeWarning).
     """
     spec, impl, cfg, observations, budget, seed = _prepare(name, task, observations, budget, seed, config)
     counted, counter = task.with_budget(budget * len(observations))
-    t0 = time.perf_counter()
-    result = impl.run(counted, observations, budget=budget, seed=seed, config=cfg)
-    wall = time.perf_counter() - t0
-    result = replace(result, method=name, n_simulations=counter.n_simulations, wall_time=wall,
-                     n_tasks=len(observations))
+    with _CompileClock() as jit:
+        t0 = time.perf_counter()
+        result = impl.run(counted, observations, budget=budget, seed=seed, config=cfg)
+        elapsed = time.perf_counter() - t0
+    result = replace(result, method=name, n_simulations=counter.n_simulations, wall_time=max(0.0, elapsed - jit.seconds),
+                     compile_time=jit.seconds, n_tasks=len(observations))
     _warn_status(name, result)
     return result
 
@@ -236,20 +292,24 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
 
     Continual methods (`Capabilities.continual`) observe the tasks once; the others are
     rerun from scratch for each k with a fresh counter capped at ``budget * k``. For a
-    continual method the k-th result's ``n_simulations`` and ``wall_time`` are read from the
-    counter (cap ``budget * K``) and the clock here when it yields task k's result.
+    continual method the k-th result's ``n_simulations``, ``wall_time`` and ``compile_time``
+    are read from the counter (cap ``budget * K``) and the clocks here when it yields task k's
+    result (both cumulative; ``wall_time`` without the compilation so far).
     """
     spec, impl, cfg, observations, budget, seed = _prepare(name, task, observations, budget, seed, config)
     if not spec.capabilities.continual or impl.run_sequence is None:
         return [run_method(name, task, observations[: k + 1], budget=budget, seed=seed, config=cfg)
                 for k in range(len(observations))]
     counted, counter = task.with_budget(budget * len(observations))
-    out, t0 = [], time.perf_counter()
-    for k, r in enumerate(impl.run_sequence(counted, observations, budget=budget, seed=seed, config=cfg)):
-        r = replace(r, method=name, n_tasks=k + 1, n_simulations=counter.n_simulations,
-                    wall_time=time.perf_counter() - t0)
-        _warn_status(name, r)
-        out.append(r)
+    out = []
+    with _CompileClock() as jit:
+        t0 = time.perf_counter()
+        for k, r in enumerate(impl.run_sequence(counted, observations, budget=budget, seed=seed, config=cfg)):
+            compiling = jit.seconds
+            r = replace(r, method=name, n_tasks=k + 1, n_simulations=counter.n_simulations,
+                        wall_time=max(0.0, time.perf_counter() - t0 - compiling), compile_time=compiling)
+            _warn_status(name, r)
+            out.append(r)
     if len(out) != len(observations):
         raise RuntimeError(f"method {name!r}: run_sequence yielded {len(out)} results for "
                            f"{len(observations)} observations")

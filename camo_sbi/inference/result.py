@@ -32,7 +32,7 @@ class PosteriorResult:
         weights: (N,) non-negative weights summing to 1, or None for equally weighted draws.
         estimate: (2n,) float64 point estimate (CAMO: the argmax of the joint density).
         n_simulations: simulations actually consumed, as counted by the budget wrapper.
-        wall_time: seconds spent in ``run``.
+        wall_time: seconds spent in ``run``, without JIT compilation (``compile_time``).
         n_tasks: number of observed tasks the posterior conditions on.
         extras: method-specific data (e.g. per-task acceptance counts, epsilons).
         status: ``"ok"``; ``"fallback: <reason>"`` when the method could not do what it
@@ -40,6 +40,9 @@ class PosteriorResult:
             met epsilon, ABC-SMC stopping at its prior population, NPE with a degenerate
             importance sample); ``"failed: <reason>"`` when it produced no usable answer.
             Tables carry it in a ``status`` column; a non-ok status is also warned about.
+        compile_time: seconds of numba compilation (or loading compiled code from its cache)
+            during ``run``, measured by the registry and never counted in ``wall_time``: the
+            first run in a process pays it, later ones do not.
     """
 
     method: str
@@ -51,6 +54,7 @@ class PosteriorResult:
     n_tasks: int
     extras: dict[str, Any] = field(default_factory=dict)
     status: str = STATUS_OK
+    compile_time: float = 0.0
 
     def __post_init__(self):
         check_status(self.status)

@@ -47,7 +47,6 @@ import tempfile
 from dataclasses import dataclass
 
 import numpy as np
-import pybullet as p
 import torch
 
 from camo_sbi._validation import (
@@ -60,6 +59,30 @@ from camo_sbi._validation import (
 )
 from camo_sbi.simulators.base import Trajectories
 from camo_sbi.task import Observation, contain
+
+
+def _import_pybullet():
+    """pybullet, imported with file descriptor 2 on /dev/null: when first imported it writes
+    ``pybullet build time: ...`` to stderr from C, which would land in every command's output."""
+    import sys
+
+    if "pybullet" in sys.modules:
+        return sys.modules["pybullet"]
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            try:
+                import pybullet
+            finally:
+                os.dup2(saved, 2)
+    finally:
+        os.close(saved)
+    return pybullet
+
+
+p = _import_pybullet()
 
 __all__ = [
     "ARM_LINKS",
