@@ -22,9 +22,12 @@ def add_figure_format_argument(p: argparse.ArgumentParser) -> None:
 def figure_formats(args) -> tuple[str, ...]:
     """The checked ``--figure-format`` of ``args`` (png for a namespace without the flag);
     a bad value is a ValueError naming the flag."""
+    text = getattr(args, "figure_format", None) or "png"
+    if text == "png":  # the default: checking it needs no matplotlib (a re-run of a finished grid imports none)
+        return ("png",)
     from camo_sbi.diagnostics.style import parse_figure_formats
 
-    return parse_figure_formats(getattr(args, "figure_format", None) or "png")
+    return parse_figure_formats(text)
 
 
 def add_corner_argument(p: argparse.ArgumentParser) -> None:
