@@ -307,15 +307,20 @@ def test_compare_with_abc_smc_and_npe(tmp_path):
     out = tmp_path / "sbi"
     args = ["--methods", "abc-smc,npe", "--seeds", "1"]
     df = _compare(out, *args)
-    expected = {(m, k, x) for m in ("abc-smc", "npe") for k in (1, 2) for x in COMPARE_METRICS}
     got = list(zip(df.method, df.n_tasks, df.metric, strict=True))
-    assert len(got) == len(set(got)) == len(expected) and set(got) == expected
+    assert len(got) == len(set(got))
+    sets = _metric_sets(df, ["method", "n_tasks"])
+    assert set(sets.index) == {(m, k) for m in ("abc-smc", "npe", *BASELINES) for k in (1, 2)}
+    for m in ("abc-smc", "npe"):  # posterior methods: the prediction metrics and the posterior-predictive ones
+        for k in (1, 2):
+            assert COMPARE_METRICS | PPC <= sets[(m, k)] <= COMPARE_METRICS | PPC | LIMIT_GROUPS
     v = df.set_index(["method", "n_tasks", "metric"]).value
     assert v.notna().all()
     for m in ("abc-smc", "npe"):
         for k in (1, 2):
             assert 0 < v[(m, k, "n_simulations")] <= 100 * k  # counted, within the cap
-    assert len(list((out / "posteriors").glob("*.nc"))) == 2
+    # one posterior per cell: the two methods and the three baselines, one seed, one budget
+    assert len(list((out / "posteriors").glob("*.nc"))) == 2 + len(BASELINES)
     pd.testing.assert_frame_equal(_compare(out, *args), df)  # resumable: finished cells skipped
 
 
