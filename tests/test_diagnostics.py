@@ -62,11 +62,19 @@ def test_to_inference_data_keeps_values_names_and_metadata(prior, truth):
     assert set(idata.groups()) == {"posterior", "prior", "observed_data", "constant_data"}
     lim = idata.posterior["limits"]
     assert lim.dims == ("chain", "draw", "joint", "bound")
-    assert lim.sizes["chain"] == 1 and lim.sizes["draw"] == r.samples.shape[0]
+    # independent draws: a subset of arviz_draw_count(N) distinct samples in 2 chains (plain
+    # az.summary wants 2 for r_hat; at most S log10 S effective draws <= N)
+    m = arviz_io.arviz_draw_count(len(r.samples))
+    assert lim.sizes["chain"] == 2 and lim.sizes["draw"] == m // 2 and 500 < m * np.log10(m) <= len(r.samples)
     assert list(lim["joint"].values) == JOINTS and list(lim["bound"].values) == ["lower", "upper"]
     # exact values, layout [lo_1, hi_1, ...] -> (joint, bound)
-    np.testing.assert_array_equal(lim.values[0].reshape(len(r.samples), -1), r.samples)
-    np.testing.assert_array_equal(lim.sel(joint="elbow", bound="upper").values[0], r.samples[:, 3])
+    rows = lim.values.reshape(m, -1)
+    pos = [int(np.flatnonzero((r.samples == row).all(axis=1))[0]) for row in rows]
+    assert len(set(pos)) == m
+    np.testing.assert_array_equal(lim.sel(joint="elbow", bound="upper").values.reshape(-1), r.samples[pos, 3])
+    np.testing.assert_array_equal(idata.constant_data["weighted_samples"].values.reshape(len(r.samples), -1),
+                                  r.samples)
+    np.testing.assert_array_equal(idata.constant_data["weights"].values, np.full(len(r.samples), 1 / len(r.samples)))
     np.testing.assert_array_equal(idata.constant_data["true_limits"].values.reshape(-1), truth)
     np.testing.assert_array_equal(idata.constant_data["estimate"].values.reshape(-1), r.estimate)
     assert idata.prior["limits"].sizes["draw"] == 300
@@ -97,8 +105,13 @@ def test_weighted_samples_resampled_reproducibly(prior, truth):
     assert not np.array_equal(a.posterior["limits"].values, c.posterior["limits"].values)
     assert a.posterior.attrs["resampled"] == 1 and a.posterior.attrs["resample_seed"] == 7
     assert a.posterior.attrs["weights_ess"] == pytest.approx(1 / np.sum(r.weights**2))
-    # every resampled draw is one of the original samples
-    draws = a.posterior["limits"].values[0].reshape(4000, -1)
+    # the posterior group: arviz_draw_count(Kish ESS) draws in 2 chains, each one of the samples
+    m = arviz_io.arviz_draw_count(r.ess)
+    assert a.posterior["limits"].shape[:2] == (2, m // 2) and m * np.log10(m) <= r.ess
+    assert np.isin(a.posterior["limits"].values.reshape(m, -1)[:, 0], r.samples[:, 0]).all()
+    # the samples and weights themselves are stored; the toolkit's draws resample them
+    np.testing.assert_allclose(a.constant_data["weights"].values, r.weights)
+    draws = arviz_io.limit_draws(a)[0].reshape(4000, -1)
     assert np.isin(draws[:, 0], r.samples[:, 0]).all()
     # tolerance: weighted mean preserved within 0.1 posterior sd (resampling SE ~ sd/sqrt(4000) = 0.016 sd)
     sd = r.samples.std(axis=0)
@@ -126,7 +139,7 @@ def test_netcdf_roundtrip_loads_with_plain_arviz(tmp_path, prior, truth):
     loaded = arviz_io.load_netcdf(path)
     np.testing.assert_array_equal(loaded.prior["limits"].values, idata.prior["limits"].values)
     arviz_io.save_netcdf(loaded, path)  # overwrite an existing file (atomically replaced)
-    assert az.from_netcdf(str(path)).posterior.sizes["draw"] == r.samples.shape[0]
+    assert az.from_netcdf(str(path)).posterior.sizes["draw"] == idata.posterior.sizes["draw"]
 
 
 def test_summary_truth_position_and_width(prior, truth):
