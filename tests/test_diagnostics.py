@@ -10,6 +10,7 @@ import base64
 import dataclasses
 import json
 import re
+import warnings
 
 import arviz as az
 import numpy as np
@@ -575,6 +576,45 @@ def test_weighted_draws_are_marked_resampled_and_lose_the_mcmc_columns(prior, tr
     assert arviz_io.draws_kind(plain) == arviz_io.DRAWS_INDEPENDENT and "ess_bulk" in arviz_io.summary(plain)
     point = dataclasses.replace(r, samples=truth[None, :], weights=None, estimate=truth)
     assert arviz_io.draws_kind(arviz_io.to_inference_data(point, JOINTS, seed=0)) == arviz_io.DRAWS_POINT
+
+
+@pytest.mark.parametrize("log_sd", [1.0, 2.2, 3.0, 5.0])
+def test_plain_arviz_cannot_inflate_the_ess_of_weighted_samples(tmp_path, prior, truth, log_sd):
+    """Issue 25's case: 500 weighted draws whose Kish ESS is ~15 were read by plain az.summary as
+    ess_bulk 395-491. Saved now, plain arviz reports at most the Kish ESS (and NaN, with a log
+    note, when it is below the 8 draws its diagnostics need), without a warning."""
+    rng = np.random.default_rng(int(log_sd * 10))
+    r = _informative_result(prior, truth, weighted=True, n=500, width=0.3)
+    lw = log_sd * rng.standard_normal(500)
+    r = dataclasses.replace(r, weights=np.exp(lw - lw.max()))
+    path = arviz_io.save_netcdf(arviz_io.to_inference_data(r, JOINTS, seed=0, true_theta=truth), tmp_path / "w.nc")
+    free = [f"limits[{j}, {b}]" for j in ("shoulder", "elbow") for b in ("lower", "upper")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # the free joints (arviz divides 0 by 0 on the fixed wrist's zero-width limits)
+        s = az.summary(az.from_netcdf(str(path)), coords={"joint": ["shoulder", "elbow"]}).loc[free]
+    ess = s[["ess_bulk", "ess_tail"]].to_numpy()
+    assert not (ess > r.ess).any(), (r.ess, ess)
+    # the old layout (every sample resampled, one chain) for contrast: arviz counted the draws
+    old = az.from_dict(posterior={"x": r.resample(500, np.random.default_rng(0))[None, :, :4]})
+    with arviz_io._quiet_arviz():
+        inflated = az.ess(old)["x"].values.max()
+    assert inflated > (3 * r.ess if r.ess < 50 else r.ess)
+    # and the toolkit's own summary still reads every weighted sample (mean within 0.05 sd of the weighted mean)
+    t = arviz_io.summary(arviz_io.load_netcdf(path)).loc[free]
+    sd = r.samples.std(axis=0)[:4]
+    assert np.all(np.abs(t["mean"].to_numpy() - r.mean()[:4]) < 0.05 * sd)
+
+
+def test_arviz_draw_count_bounds_arviz_s_ess():
+    for kish in np.r_[1.0, np.linspace(1.1, 50, 200), 395.0, 3411.8]:
+        m = arviz_io.arviz_draw_count(kish)
+        assert m % 2 == 0  # two equal chains
+        if kish >= 7.23:  # 8 draws or more: arviz computes an ESS, at most m log10 m
+            assert m >= 8 and m * np.log10(m) <= kish + 1e-12 < (m + 2) * np.log10(m + 2)
+        else:  # 2 chains of 3: too few for arviz's diagnostics (NaN)
+            assert m == 6
+    assert arviz_io.arviz_draw_count(15.4) == 12 and arviz_io.arviz_draw_count(7.3) == 8
 
 
 def test_report_replays_the_observed_reaches_against_posterior_draws(tmp_path):

@@ -13,9 +13,9 @@ Layout of the InferenceData built by :func:`to_inference_data`:
   draws can exceed N); weighted samples resampled
   (systematic, in a seeded random order) to ``arviz_draw_count(Kish ESS)`` draws in 2 chains,
   few enough that arviz's ESS (at most S log10 S for S draws) stays at or below the Kish
-  ESS (below a Kish ESS of 7.23: fewer than 8 draws in one chain, for which arviz notes in
-  its log that some diagnostics need more, and reports them NaN); a point estimate as that
-  point twice (sd 0, arviz's diagnostics NaN, the same note).
+  ESS (below a Kish ESS of 7.23: 2 chains of 3 draws, for which arviz notes in its log that
+  its diagnostics need 4 per chain, and reports them NaN); a point estimate as that point
+  twice (sd 0, arviz's diagnostics NaN, the same note).
 * ``prior``: ``limits`` drawn from the prior (seeded), same dims (optional).
 * ``observed_data``: whatever arrays the caller passes (optional), stored as given
   (no unit conversion).
@@ -325,7 +325,7 @@ def to_inference_data(
     w = result.weights
     resampled = w is not None and not np.allclose(w, 1.0 / n_orig)
     if n_resample is not None:
-        n_resample = check_positive_int(n_resample, "n_resample", minimum=2 * _MIN_DRAWS)
+        n_resample = check_positive_int(n_resample, "n_resample", minimum=2)
     weights_ess = result.ess  # Kish: (sum w)^2 / sum w^2; N for equal weights
     draws_kind = DRAWS_POINT if n_orig == 1 else DRAWS_RESAMPLED if resampled else DRAWS_INDEPENDENT
     post = _posterior_draws(result, draws_kind, n_resample, rng) * scale
@@ -428,19 +428,22 @@ def to_inference_data(
 
 
 def arviz_draw_count(kish_ess: float) -> int:
-    """How many resampled draws the ``posterior`` group holds for weighted samples whose Kish
-    ESS is ``kish_ess``, so that plain arviz cannot report more effective samples than that.
+    """How many draws the ``posterior`` group holds for samples whose Kish ESS is ``kish_ess``
+    (N for N equally weighted ones), so that plain arviz cannot report more effective samples.
 
     arviz's ESS of S draws is S / tau with tau >= 1 / log10(S) (its own floor), so at most
-    S log10(S): the largest S with S log10(S) <= ``kish_ess``, even and at least 8 (2 chains
-    of 4, what arviz's diagnostics need) when the Kish ESS allows that (>= 7.23); below, fewer
-    than 8 in one chain (at least 2): arviz then notes that they are too few for some of its
-    diagnostics (NaN), which is the honest answer for so few effective samples.
+    S log10(S): the largest even S >= 8 (2 chains of 4, what arviz's diagnostics need) with
+    S log10(S) <= ``kish_ess``. Below a Kish ESS of 7.23 no such S exists: 6 draws (2 chains
+    of 3), for which arviz notes in its log that its diagnostics need 4 per chain and reports
+    them NaN (the honest answer for so few effective samples; with 4 to 7 draws in one chain
+    it would compute them, and warn on the repeated draws).
     """
-    s = 2
-    while (s + 1) * np.log10(s + 1) <= kish_ess:
-        s += 1
-    return s - s % 2 if s >= 2 * _MIN_DRAWS else s
+    if kish_ess < 8 * np.log10(8):
+        return 6
+    s = 8
+    while (s + 2) * np.log10(s + 2) <= kish_ess:
+        s += 2
+    return s
 
 
 def _posterior_draws(result: PosteriorResult, kind: str, n_resample: int | None, rng) -> np.ndarray:
@@ -449,7 +452,7 @@ def _posterior_draws(result: PosteriorResult, kind: str, n_resample: int | None,
 
     * independent draws: ``arviz_draw_count(N)`` of them (a seeded random subset), in 2 chains;
     * weighted samples: ``arviz_draw_count(Kish ESS)`` draws (or ``n_resample``) by systematic
-      resampling, in a seeded random order, in 2 chains (1 below 8 draws); the samples and
+      resampling, in a seeded random order, in 2 chains; the samples and
       weights themselves go to ``constant_data`` (``weighted_samples``, ``weights``);
     * a point estimate: that point twice in one chain (mean = the estimate, sd 0; arviz's
       MCMC diagnostics need 4 draws and are NaN, which is what they are for one point).
@@ -463,7 +466,7 @@ def _posterior_draws(result: PosteriorResult, kind: str, n_resample: int | None,
     else:
         m = n_resample or arviz_draw_count(result.ess)
         draws = result.systematic(m)[rng.permutation(m)]
-    chains = 2 if m >= 2 * _MIN_DRAWS else 1
+    chains = 2 if m >= 2 else 1
     m -= m % chains
     return draws[:m].reshape(chains, m // chains, -1)
 
@@ -567,14 +570,15 @@ def summary(idata: az.InferenceData, hdi_prob: float = 0.94) -> pd.DataFrame:
     mcse / ess_bulk / ess_tail are kept for independent draws only: draws resampled from
     weighted samples repeat a few samples, so those columns would report the number of
     draws, not the effective sample size (``attrs["weights_ess"]``, Kish, is that); mean,
-    sd and HDI come from every weighted sample (resampled, `limit_draws`). r_hat is dropped:
+    sd and HDI come from every stored sample (weighted ones resampled, `limit_draws`), not
+    from the few draws of the ``posterior`` group. r_hat is dropped:
     the stored chains are halves of one sample, not MCMC chains. Rows are named like ``limits[shoulder, lower]``; a ``truth``
     column is added when the true limits are stored. Fixed (zero-variance) limits show sd 0.
     """
     _check_idata(idata)
     hdi_prob = _check_prob(hdi_prob)
     source = idata
-    if draws_kind(idata) == DRAWS_RESAMPLED:  # mean, sd and HDI from every weighted sample
+    if "constant_data" in idata.groups() and "weights" in idata.constant_data:  # from every sample
         draws, joints = _draws(idata)
         source = _limits_idata(draws, joints)
     with _quiet_arviz():
