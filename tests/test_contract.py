@@ -138,12 +138,17 @@ def test_sbi_style_sample_and_log_prob(name, task, runs):
         assert {tuple(r) for r in draws.numpy()} <= {tuple(r) for r in res.samples}
     with pytest.raises(ValueError, match="^sample_shape:"):
         res.sample((-1,))
+    with pytest.raises(ValueError, match="^seed:"):
+        res.sample((2,), seed=-1)
     if res.density is None:
         with pytest.raises(NotImplementedError, match=f"^log_prob: method {name!r}"):
             res.log_prob(draws)
     else:
         lp = res.log_prob(draws[:10])
         assert lp.shape == (10,) and bool(torch.isfinite(lp).all())
+        if "camo" in (name, get_method(name).base):  # CAMO weights its kept vectors by that density (Eq. 6)
+            w = torch.softmax(res.log_prob(torch.from_numpy(res.samples)), dim=0).numpy()
+            np.testing.assert_allclose(w, res.weights, rtol=1e-9, atol=1e-15)
 
 
 @pytest.mark.parametrize("name", [m for m in METHODS if capabilities(m).continual])

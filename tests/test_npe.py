@@ -119,6 +119,8 @@ def test_sbi_style_sample_resamples_the_importance_draws():
     x = post.sample((4000,), seed=1)
     assert x.shape == (4000, 2) and x.dtype == torch.float64
     assert post.sample((3, 5), seed=1).shape == (3, 5, 2)
+    with pytest.raises(ValueError, match="^sample_shape:"):
+        post.sample((-2,), seed=1)
     torch.testing.assert_close(post.sample((50,), seed=2), post.sample((50,), seed=2))
     # product of N(-3, 1) and N(-2, 0.5^2): mean -2.2, sd sqrt(0.2); of N(4, .25), N(5, 1): 4.2, sqrt(0.2)
     np.testing.assert_allclose(x.mean(0).numpy(), [-2.2, 4.2], atol=0.05)
@@ -288,14 +290,17 @@ def test_panda_slow():
 
 
 class _StubPosterior:
-    """What `npe._result` reads from an `NpePosterior`: ``sample``, ``info``, ``n_tasks``."""
+    """What `npe._result` reads from an `NpePosterior`: ``sample_is``, ``log_prob``, ``info``, ``n_tasks``."""
 
     def __init__(self, weights):
         self.weights = np.asarray(weights, dtype=np.float64)
         self.n_tasks = 2
         self.info = {"tasks": [{"time_simulate": 0.0, "time_train": 0.0}] * 2}
 
-    def sample(self, n, seed, *, is_rounds, defensive_fraction):  # noqa: ARG002
+    def log_prob(self, theta):  # pragma: no cover - carried by the result, not called here
+        raise NotImplementedError
+
+    def sample_is(self, n, seed, *, is_rounds, defensive_fraction):  # noqa: ARG002
         w = self.weights / self.weights.sum()
         theta = np.tile((TRUE.numpy() + 0.0)[None, :], (len(w), 1))
         return npe.ImportanceSample(theta, w, np.zeros(len(w)), float(1 / np.sum(w**2)), [float(1 / np.sum(w**2))])

@@ -73,7 +73,12 @@ from camo_sbi._validation import (
 from camo_sbi.distributed import parse_scheduler, run_chunks
 from camo_sbi.inference import sbi_adapter
 from camo_sbi.inference.contract import check_run_args
-from camo_sbi.inference.result import STATUS_OK, PosteriorResult, weighted_median
+from camo_sbi.inference.result import (
+    STATUS_OK,
+    PosteriorResult,
+    check_sample_shape,
+    weighted_median,
+)
 from camo_sbi.priors import BoxPrior
 from camo_sbi.task import NoiseModel, contain
 
@@ -532,7 +537,7 @@ class NpePosterior:
         an int; None draws a fresh nondeterministic seed (never the global random state).
         The weighted draws themselves, with their effective sample size, come from ``sample_is``.
         """
-        shape = tuple(torch.Size(sample_shape if not isinstance(sample_shape, int) else (sample_shape,)))
+        shape = check_sample_shape(sample_shape)
         if seed is None:
             seed = int(np.random.SeedSequence().generate_state(1)[0])
         seed = check_positive_int(seed, "seed", minimum=0)

@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["STATUS_OK", "PosteriorResult", "check_status", "weighted_median", "weighted_quantile"]
+__all__ = ["STATUS_OK", "PosteriorResult", "check_sample_shape", "check_status", "weighted_median",
+           "weighted_quantile"]
 
 STATUS_OK = "ok"
 _STATUS_PREFIXES = ("fallback: ", "failed: ")
@@ -129,7 +130,7 @@ class PosteriorResult:
         """
         import torch  # not at import time: reading results needs no torch
 
-        shape = _sample_shape(sample_shape)
+        shape = check_sample_shape(sample_shape)
         rng = np.random.default_rng() if seed is None else _generator(seed)
         n = int(np.prod(shape, dtype=np.int64))
         draws = self.resample(n, rng) if n else np.empty((0, self.samples.shape[1]))
@@ -153,7 +154,9 @@ class PosteriorResult:
         return self.samples[idx]
 
 
-def _sample_shape(sample_shape) -> tuple[int, ...]:
+def check_sample_shape(sample_shape) -> tuple[int, ...]:
+    """``sample_shape`` (an int, or a sequence of non-negative ints such as ``(100,)`` or a
+    torch.Size) as a tuple of ints."""
     if isinstance(sample_shape, numbers.Integral) and not isinstance(sample_shape, bool):
         sample_shape = (sample_shape,)
     try:
@@ -169,8 +172,10 @@ def _sample_shape(sample_shape) -> tuple[int, ...]:
 def _generator(seed) -> np.random.Generator:
     if isinstance(seed, np.random.Generator):
         return seed
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
-        raise TypeError(f"seed: expected a non-negative int, a numpy Generator or None, got {seed!r}")
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise TypeError(f"seed: expected a non-negative int, a numpy Generator or None, got {type(seed).__name__}")
+    if seed < 0:
+        raise ValueError(f"seed: must be >= 0, got {seed}")
     return np.random.default_rng(int(seed))
 
 
