@@ -46,6 +46,11 @@ def test_to_pyabc_prior_keeps_box_exactly():
     prior = BoxPrior(bounds, torch.tensor([0.5, 0.0, 0.2]), fixed={1: (-0.3, 2.0)})
     names = parameter_names(prior)
     assert names == ["theta_00", "theta_01", "theta_04", "theta_05"]
+    # named by joint and bound (what pyabc's History shows), in theta order, fixed joints left out
+    assert parameter_names(prior, ["shoulder", "elbow", "wrist"]) == ["shoulder_lo", "shoulder_hi", "wrist_lo",
+                                                                      "wrist_hi"]
+    with pytest.raises(ValueError, match="^joint_names"):
+        parameter_names(prior, ["a", "a", "b"])
     dist = to_pyabc_prior(prior)
     low = prior.low[prior.free_mask].numpy()
     high = prior.high[prior.free_mask].numpy()
@@ -170,7 +175,11 @@ def test_workdir_keeps_history(tmp_path):
     assert res.extras["db"] == str(db) and db.is_file()
     with sqlite3.connect(db) as con:
         (n,) = con.execute("SELECT count(*) FROM populations WHERE t >= 0").fetchone()
+        names = {r[0] for r in con.execute("SELECT DISTINCT name FROM parameters")}
     assert n == res.extras["n_populations"]
+    # the History names the parameters by joint and bound (alphabetically x0_hi < x0_lo, so the
+    # recovery tests above also check that theta order never follows pyabc's column order)
+    assert names == {"x0_lo", "x0_hi", "x1_lo", "x1_hi"}
 
 
 @pytest.mark.parametrize(

@@ -120,6 +120,37 @@ def test_estimate_and_samples_inside_the_prior_box(name, task, runs):
     assert bool(task.prior.contains(torch.from_numpy(res.samples)).all())
 
 
+@pytest.mark.parametrize("name", METHODS)
+def test_sbi_style_sample_and_log_prob(name, task, runs):
+    """``result.sample((100,))`` is a (100, 2n) tensor of draws inside the prior box, the same
+    for the same seed; ``log_prob`` evaluates a density where the method has one and otherwise
+    raises NotImplementedError naming the method."""
+    res = runs[name][0]
+    n = task.prior.dim
+    draws = res.sample((100,), seed=0)
+    assert isinstance(draws, torch.Tensor) and draws.shape == (100, n) and draws.dtype == torch.float64
+    assert res.sample((5, 4)).shape == (5, 4, n) and res.sample().shape == (n,)
+    torch.testing.assert_close(res.sample((100,), seed=0), draws)
+    assert bool(task.prior.contains(draws).all())
+    if res.samples.shape[0] == 1:  # a point estimate: every draw is that point
+        assert bool((draws == torch.from_numpy(res.estimate)).all())
+    else:  # draws are samples of the result (resampled by weight), not something else
+        assert {tuple(r) for r in draws.numpy()} <= {tuple(r) for r in res.samples}
+    with pytest.raises(ValueError, match="^sample_shape:"):
+        res.sample((-1,))
+    with pytest.raises(ValueError, match="^seed:"):
+        res.sample((2,), seed=-1)
+    if res.density is None:
+        with pytest.raises(NotImplementedError, match=f"^log_prob: method {name!r}"):
+            res.log_prob(draws)
+    else:
+        lp = res.log_prob(draws[:10])
+        assert lp.shape == (10,) and bool(torch.isfinite(lp).all())
+        if "camo" in (name, get_method(name).base):  # CAMO weights its kept vectors by that density (Eq. 6)
+            w = torch.softmax(res.log_prob(torch.from_numpy(res.samples)), dim=0).numpy()
+            np.testing.assert_allclose(w, res.weights, rtol=1e-9, atol=1e-15)
+
+
 @pytest.mark.parametrize("name", [m for m in METHODS if capabilities(m).continual])
 def test_continual_sequence_equals_reruns(name, task):
     """The k-th result of one continual pass equals a fresh run on the first k tasks."""

@@ -10,6 +10,7 @@ import base64
 import dataclasses
 import json
 import re
+import warnings
 
 import arviz as az
 import numpy as np
@@ -62,11 +63,19 @@ def test_to_inference_data_keeps_values_names_and_metadata(prior, truth):
     assert set(idata.groups()) == {"posterior", "prior", "observed_data", "constant_data"}
     lim = idata.posterior["limits"]
     assert lim.dims == ("chain", "draw", "joint", "bound")
-    assert lim.sizes["chain"] == 1 and lim.sizes["draw"] == r.samples.shape[0]
+    # independent draws: a subset of arviz_draw_count(N) distinct samples in 2 chains (plain
+    # az.summary wants 2 for r_hat; at most S log10 S effective draws <= N)
+    m = arviz_io.arviz_draw_count(len(r.samples))
+    assert lim.sizes["chain"] == 2 and lim.sizes["draw"] == m // 2 and 500 < m * np.log10(m) <= len(r.samples)
     assert list(lim["joint"].values) == JOINTS and list(lim["bound"].values) == ["lower", "upper"]
     # exact values, layout [lo_1, hi_1, ...] -> (joint, bound)
-    np.testing.assert_array_equal(lim.values[0].reshape(len(r.samples), -1), r.samples)
-    np.testing.assert_array_equal(lim.sel(joint="elbow", bound="upper").values[0], r.samples[:, 3])
+    rows = lim.values.reshape(m, -1)
+    pos = [int(np.flatnonzero((r.samples == row).all(axis=1))[0]) for row in rows]
+    assert len(set(pos)) == m
+    np.testing.assert_array_equal(lim.sel(joint="elbow", bound="upper").values.reshape(-1), r.samples[pos, 3])
+    np.testing.assert_array_equal(idata.constant_data["weighted_samples"].values.reshape(len(r.samples), -1),
+                                  r.samples)
+    np.testing.assert_array_equal(idata.constant_data["weights"].values, np.full(len(r.samples), 1 / len(r.samples)))
     np.testing.assert_array_equal(idata.constant_data["true_limits"].values.reshape(-1), truth)
     np.testing.assert_array_equal(idata.constant_data["estimate"].values.reshape(-1), r.estimate)
     assert idata.prior["limits"].sizes["draw"] == 300
@@ -97,8 +106,13 @@ def test_weighted_samples_resampled_reproducibly(prior, truth):
     assert not np.array_equal(a.posterior["limits"].values, c.posterior["limits"].values)
     assert a.posterior.attrs["resampled"] == 1 and a.posterior.attrs["resample_seed"] == 7
     assert a.posterior.attrs["weights_ess"] == pytest.approx(1 / np.sum(r.weights**2))
-    # every resampled draw is one of the original samples
-    draws = a.posterior["limits"].values[0].reshape(4000, -1)
+    # the posterior group: arviz_draw_count(Kish ESS) draws in 2 chains, each one of the samples
+    m = arviz_io.arviz_draw_count(r.ess)
+    assert a.posterior["limits"].shape[:2] == (2, m // 2) and m * np.log10(m) <= r.ess
+    assert np.isin(a.posterior["limits"].values.reshape(m, -1)[:, 0], r.samples[:, 0]).all()
+    # the samples and weights themselves are stored; the toolkit's draws resample them
+    np.testing.assert_allclose(a.constant_data["weights"].values, r.weights)
+    draws = arviz_io.limit_draws(a)[0].reshape(4000, -1)
     assert np.isin(draws[:, 0], r.samples[:, 0]).all()
     # tolerance: weighted mean preserved within 0.1 posterior sd (resampling SE ~ sd/sqrt(4000) = 0.016 sd)
     sd = r.samples.std(axis=0)
@@ -126,7 +140,7 @@ def test_netcdf_roundtrip_loads_with_plain_arviz(tmp_path, prior, truth):
     loaded = arviz_io.load_netcdf(path)
     np.testing.assert_array_equal(loaded.prior["limits"].values, idata.prior["limits"].values)
     arviz_io.save_netcdf(loaded, path)  # overwrite an existing file (atomically replaced)
-    assert az.from_netcdf(str(path)).posterior.sizes["draw"] == r.samples.shape[0]
+    assert az.from_netcdf(str(path)).posterior.sizes["draw"] == idata.posterior.sizes["draw"]
 
 
 def test_summary_truth_position_and_width(prior, truth):
@@ -562,6 +576,45 @@ def test_weighted_draws_are_marked_resampled_and_lose_the_mcmc_columns(prior, tr
     assert arviz_io.draws_kind(plain) == arviz_io.DRAWS_INDEPENDENT and "ess_bulk" in arviz_io.summary(plain)
     point = dataclasses.replace(r, samples=truth[None, :], weights=None, estimate=truth)
     assert arviz_io.draws_kind(arviz_io.to_inference_data(point, JOINTS, seed=0)) == arviz_io.DRAWS_POINT
+
+
+@pytest.mark.parametrize("log_sd", [1.0, 2.2, 3.0, 5.0])
+def test_plain_arviz_cannot_inflate_the_ess_of_weighted_samples(tmp_path, prior, truth, log_sd):
+    """Issue 25's case: 500 weighted draws whose Kish ESS is ~15 were read by plain az.summary as
+    ess_bulk 395-491. Saved now, plain arviz reports at most the Kish ESS (and NaN, with a log
+    note, when it is below the 8 draws its diagnostics need), without a warning."""
+    rng = np.random.default_rng(int(log_sd * 10))
+    r = _informative_result(prior, truth, weighted=True, n=500, width=0.3)
+    lw = log_sd * rng.standard_normal(500)
+    r = dataclasses.replace(r, weights=np.exp(lw - lw.max()))
+    path = arviz_io.save_netcdf(arviz_io.to_inference_data(r, JOINTS, seed=0, true_theta=truth), tmp_path / "w.nc")
+    free = [f"limits[{j}, {b}]" for j in ("shoulder", "elbow") for b in ("lower", "upper")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # the free joints (arviz divides 0 by 0 on the fixed wrist's zero-width limits)
+        s = az.summary(az.from_netcdf(str(path)), coords={"joint": ["shoulder", "elbow"]}).loc[free]
+    ess = s[["ess_bulk", "ess_tail"]].to_numpy()
+    assert not (ess > r.ess).any(), (r.ess, ess)
+    # the old layout (every sample resampled, one chain) for contrast: arviz counted the draws
+    old = az.from_dict(posterior={"x": r.resample(500, np.random.default_rng(0))[None, :, :4]})
+    with arviz_io._quiet_arviz():
+        inflated = az.ess(old)["x"].values.max()
+    assert inflated > (3 * r.ess if r.ess < 50 else r.ess)
+    # and the toolkit's own summary still reads every weighted sample (mean within 0.05 sd of the weighted mean)
+    t = arviz_io.summary(arviz_io.load_netcdf(path)).loc[free]
+    sd = r.samples.std(axis=0)[:4]
+    assert np.all(np.abs(t["mean"].to_numpy() - r.mean()[:4]) < 0.05 * sd)
+
+
+def test_arviz_draw_count_bounds_arviz_s_ess():
+    for kish in np.r_[1.0, np.linspace(1.1, 50, 200), 395.0, 3411.8]:
+        m = arviz_io.arviz_draw_count(kish)
+        assert m % 2 == 0  # two equal chains
+        if kish >= 7.23:  # 8 draws or more: arviz computes an ESS, at most m log10 m
+            assert m >= 8 and m * np.log10(m) <= kish + 1e-12 < (m + 2) * np.log10(m + 2)
+        else:  # 2 chains of 3: too few for arviz's diagnostics (NaN)
+            assert m == 6
+    assert arviz_io.arviz_draw_count(15.4) == 12 and arviz_io.arviz_draw_count(7.3) == 8
 
 
 def test_report_replays_the_observed_reaches_against_posterior_draws(tmp_path):

@@ -87,7 +87,7 @@ def test_product_of_gaussians_recovered_by_importance_sampling():
     prec = sum(1 / torch.tensor(s, dtype=torch.float64) ** 2 for s in sds)
     mean = sum(torch.tensor(m, dtype=torch.float64) / torch.tensor(s, dtype=torch.float64) ** 2
                for m, s in zip(mus, sds, strict=True)) / prec
-    draws = post.sample(20000, seed=0, is_rounds=2)
+    draws = post.sample_is(20000, seed=0, is_rounds=2)
     assert draws.ess > 2000
     m = draws.weights @ draws.theta
     v = draws.weights @ (draws.theta - m) ** 2
@@ -103,9 +103,35 @@ def test_product_of_gaussians_recovered_by_importance_sampling():
 def test_single_task_logit_weights_are_uniform():
     low, high = torch.tensor([-1.0, 0.0]), torch.tensor([0.0, 1.0])
     post = NpePosterior([_Gauss([0.3, -0.2], [1.0, 0.8])], [torch.zeros(1)], low, high)
-    draws = post.sample(1000, seed=1, is_rounds=0)
+    draws = post.sample_is(1000, seed=1, is_rounds=0)
     assert draws.ess == pytest.approx(1000)
     assert np.all((draws.theta >= low.numpy()) & (draws.theta <= high.numpy()))
+
+
+def test_sbi_style_sample_resamples_the_importance_draws():
+    """``NpePosterior.sample(sample_shape, seed=None)`` returns (*sample_shape, 2n) equally weighted
+    draws (importance draws resampled by weight), like sbi; seeded, and without a seed never
+    touching the global random state."""
+    low = torch.tensor([-50.0, 0.0])
+    high = torch.tensor([0.0, 50.0])
+    ests = [_Gauss([-3.0, 4.0], [1.0, 0.5]), _Gauss([-2.0, 5.0], [0.5, 1.0])]
+    post = NpePosterior(ests, [torch.zeros(1)] * 2, low, high, theta_transform="none")
+    x = post.sample((4000,), seed=1)
+    assert x.shape == (4000, 2) and x.dtype == torch.float64
+    assert post.sample((3, 5), seed=1).shape == (3, 5, 2)
+    with pytest.raises(ValueError, match="^sample_shape:"):
+        post.sample((-2,), seed=1)
+    torch.testing.assert_close(post.sample((50,), seed=2), post.sample((50,), seed=2))
+    # product of N(-3, 1) and N(-2, 0.5^2): mean -2.2, sd sqrt(0.2); of N(4, .25), N(5, 1): 4.2, sqrt(0.2)
+    np.testing.assert_allclose(x.mean(0).numpy(), [-2.2, 4.2], atol=0.05)
+    np.testing.assert_allclose(x.std(0).numpy(), [0.2**0.5] * 2, rtol=0.1)
+    torch.manual_seed(5)
+    state = torch.get_rng_state()
+    np.random.seed(5)
+    np_state = np.random.get_state()
+    assert post.sample((10,)).shape == (10, 2)
+    assert torch.equal(torch.get_rng_state(), state)
+    assert np.array_equal(np.random.get_state()[1], np_state[1])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -161,12 +187,12 @@ def test_save_load_round_trip(toy, tmp_path):
     lp = post.log_prob(theta)
     assert torch.isfinite(lp).all()
     torch.testing.assert_close(again.log_prob(theta), lp, rtol=0, atol=0)
-    a = post.sample(200, seed=3)
-    b = again.sample(200, seed=3)
+    a = post.sample_is(200, seed=3)
+    b = again.sample_is(200, seed=3)
     np.testing.assert_array_equal(a.theta, b.theta)
     np.testing.assert_array_equal(a.weights, b.weights)
     # the reloaded posterior reproduces the run's own samples (same sampling seed)
-    fresh = load_posterior(path).sample(TINY["n_posterior_samples"], npe._seed_int(0, 2) % 2**32,
+    fresh = load_posterior(path).sample_is(TINY["n_posterior_samples"], npe._seed_int(0, 2) % 2**32,
                                         is_rounds=TINY["is_rounds"])
     np.testing.assert_array_equal(fresh.theta, res.samples)
     with pytest.raises(ValueError, match="^path"):
@@ -182,7 +208,7 @@ def test_fixed_coordinates_not_trained(toy):
     task = toy_task(prior)
     post, info = npe.fit(task, task.observations[:1], budget=300, seed=0, config=NpeConfig(**TINY))
     assert post.n_free == 2
-    assert post.sample(100, seed=0).theta.shape == (100, 4)
+    assert post.sample_is(100, seed=0).theta.shape == (100, 4)
     res = run_method("npe", task, task.observations[:1], budget=300, seed=0, config=TINY)
     assert np.all(res.samples[:, 2] == -0.4) and np.all(res.samples[:, 3] == 0.7)
     assert res.estimate[2] == -0.4 and res.estimate[3] == 0.7
@@ -264,14 +290,17 @@ def test_panda_slow():
 
 
 class _StubPosterior:
-    """What `npe._result` reads from an `NpePosterior`: ``sample``, ``info``, ``n_tasks``."""
+    """What `npe._result` reads from an `NpePosterior`: ``sample_is``, ``log_prob``, ``info``, ``n_tasks``."""
 
     def __init__(self, weights):
         self.weights = np.asarray(weights, dtype=np.float64)
         self.n_tasks = 2
         self.info = {"tasks": [{"time_simulate": 0.0, "time_train": 0.0}] * 2}
 
-    def sample(self, n, seed, *, is_rounds, defensive_fraction):  # noqa: ARG002
+    def log_prob(self, theta):  # pragma: no cover - carried by the result, not called here
+        raise NotImplementedError
+
+    def sample_is(self, n, seed, *, is_rounds, defensive_fraction):  # noqa: ARG002
         w = self.weights / self.weights.sum()
         theta = np.tile((TRUE.numpy() + 0.0)[None, :], (len(w), 1))
         return npe.ImportanceSample(theta, w, np.zeros(len(w)), float(1 / np.sum(w**2)), [float(1 / np.sum(w**2))])

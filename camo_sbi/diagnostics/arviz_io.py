@@ -6,24 +6,37 @@ conversion, netCDF I/O, summaries and the arviz plots all call arviz.
 Layout of the InferenceData built by :func:`to_inference_data`:
 
 * ``posterior``: variable ``limits`` with dims ``(chain, draw, joint, bound)``,
-  ``joint`` = the joint names, ``bound`` = ``["lower", "upper"]``. Independent
-  draws are stored as ONE chain (r_hat is therefore undefined). Weighted samples
-  are first resampled (multinomial, seeded), and ``attrs`` record it.
+  ``joint`` = the joint names, ``bound`` = ``["lower", "upper"]``, laid out so that plain
+  ``az.summary`` reads it without a warning and cannot report more effective samples than
+  the result holds (every sample is in ``constant_data``): independent draws, a seeded
+  subset of ``arviz_draw_count(N)`` of them in 2 chains (arviz's ESS of N independent
+  draws can exceed N); weighted samples resampled
+  (systematic, in a seeded random order) to ``arviz_draw_count(Kish ESS)`` draws in 2 chains,
+  few enough that arviz's ESS (at most S log10 S for S draws) stays at or below the Kish
+  ESS (below a Kish ESS of 7.23: 2 chains of 3 draws, for which arviz notes in its log that
+  its diagnostics need 4 per chain, and reports them NaN); a point estimate as that point
+  twice (sd 0, arviz's diagnostics NaN, the same note).
 * ``prior``: ``limits`` drawn from the prior (seeded), same dims (optional).
 * ``observed_data``: whatever arrays the caller passes (optional), stored as given
   (no unit conversion).
 * ``constant_data``: ``estimate`` (the method's point estimate), ``true_limits``
-  (when known), ``prior_low`` / ``prior_high`` (a box prior's edges, when given).
+  (when known), ``prior_low`` / ``prior_high`` (a box prior's edges, when given), and for
+  more than one sample ``weighted_samples`` (sample, joint, bound) with their normalised
+  ``weights`` (sample): the result itself, from which anything can be recomputed (the
+  toolkit's own figures and tables read them).
 * ``attrs`` (on every group): method, budget, n_simulations, wall_time, compile_time, n_tasks,
   units, resampled, ``draws`` (what the draws are: "independent draws", "resampled
   from weighted samples (not MCMC)" or "point estimate"), resample_seed, weights_ess
   (the Kish effective sample size the weights imply, ``(sum w)^2 / sum w^2``; N for
   equal weights), n_samples_original, and any scalar extras of the result as
-  ``extra_<key>``. Resampled draws repeat the weighted samples: their effective sample
-  size is ``weights_ess``, not what MCMC diagnostics (ess_bulk, r_hat) would report.
+  ``extra_<key>``. The effective sample size of weighted samples is ``weights_ess``; the
+  ess_bulk / ess_tail plain arviz reports on their few resampled draws cannot exceed it.
 
-The file written by :func:`save_netcdf` loads with plain ``arviz.from_netcdf``
-and ``arviz.summary`` prints rows like ``limits[shoulder_pan, lower]``.
+The file written by :func:`save_netcdf` loads with plain ``arviz.from_netcdf``, and plain
+``arviz.summary`` prints rows like ``limits[shoulder_pan, lower]`` without a warning (a
+point estimate: one logged note that its 2 draws are too few for arviz's diagnostics,
+which are NaN). Limits with zero width inside a distribution (fixed joints) make arviz
+divide 0 by 0 in r_hat and mcse_sd: numpy warns there, in arviz's code.
 """
 
 from __future__ import annotations
@@ -63,6 +76,7 @@ __all__ = [
     "true_limits",
     "observed_arrays",
     "VAR_NAME",
+    "arviz_draw_count",
     "to_inference_data",
     "save_netcdf",
     "load_netcdf",
@@ -86,6 +100,7 @@ DRAWS_RESAMPLED = "resampled from weighted samples (not MCMC)"
 DRAWS_POINT = "point estimate"
 _MCMC_COLUMNS = ("mcse_mean", "mcse_sd", "ess_bulk", "ess_tail", "r_hat")
 BOUNDS = ("lower", "upper")
+_MIN_DRAWS = 4  # per chain: arviz's diagnostics warn below 4 draws (and below 2 chains)
 _UNITS = ("rad", "deg")
 _DIMS = ["joint", "bound"]
 
@@ -173,10 +188,25 @@ def _check_idata(idata, name: str = "idata") -> az.InferenceData:
 
 
 def _draws(idata, group: str = "posterior") -> tuple[np.ndarray, list[str]]:
-    """(S, n, 2) stacked draws of ``limits`` and the joint names."""
+    """(S, n, 2) stacked draws of ``limits`` and the joint names.
+
+    For the posterior of weighted samples stored with their weights (``constant_data``), the
+    draws are a systematic resampling of those samples, one per sample (deterministic), not
+    the few draws the ``posterior`` group holds for plain arviz (`arviz_draw_count`).
+    """
     da = getattr(idata, group)[VAR_NAME].transpose("chain", "draw", "joint", "bound")
+    joints = [str(j) for j in da["joint"].values]
+    cd = idata.constant_data if "constant_data" in idata.groups() else {}
+    if group == "posterior" and "weighted_samples" in cd and "weights" in cd:
+        ws = np.asarray(cd["weighted_samples"].transpose("sample", "joint", "bound").values, dtype=np.float64)
+        w = np.asarray(cd["weights"].values, dtype=np.float64)
+        if draws_kind(idata) == DRAWS_RESAMPLED:
+            cw = np.cumsum(w)
+            idx = np.searchsorted(cw, (np.arange(len(w)) + 0.5) / len(w) * cw[-1], side="right")
+            return ws[np.minimum(idx, len(w) - 1)], joints
+        return ws, joints
     vals = np.asarray(da.values, dtype=np.float64)
-    return vals.reshape(-1, vals.shape[2], vals.shape[3]), [str(j) for j in da["joint"].values]
+    return vals.reshape(-1, vals.shape[2], vals.shape[3]), joints
 
 
 def _truth(idata) -> np.ndarray | None:
@@ -268,7 +298,8 @@ def to_inference_data(
             "joint" gets the joint names as coordinates.
         units: "rad" (as is) or "deg" (limits, prior, truth and estimate converted).
         budget: simulation budget granted to the method (default: ``result.extras["budget"]``).
-        n_resample: draws taken when resampling weighted samples (default: N).
+        n_resample: posterior draws taken from the samples (default: `arviz_draw_count` of
+            their Kish ESS, N for equal weights, so that plain arviz cannot inflate it).
         attrs: extra scalar metadata (task, subject, ...) added to the attrs.
 
     Returns:
@@ -290,24 +321,26 @@ def to_inference_data(
     scale = float(np.degrees(1.0)) if units == "deg" else 1.0
 
     # posterior ----------------------------------------------------------------
-    samples = result.samples
-    n_orig = samples.shape[0]
+    n_orig = result.samples.shape[0]
     w = result.weights
     resampled = w is not None and not np.allclose(w, 1.0 / n_orig)
     if n_resample is not None:
-        n_resample = check_positive_int(n_resample, "n_resample")
-    if resampled:
-        samples = result.resample(n_resample or n_orig, rng)
+        n_resample = check_positive_int(n_resample, "n_resample", minimum=2)
     weights_ess = result.ess  # Kish: (sum w)^2 / sum w^2; N for equal weights
     draws_kind = DRAWS_POINT if n_orig == 1 else DRAWS_RESAMPLED if resampled else DRAWS_INDEPENDENT
-    post = (samples * scale).reshape(1, samples.shape[0], n, 2)
+    post = _posterior_draws(result, draws_kind, n_resample, rng) * scale
+    post = post.reshape(post.shape[0], post.shape[1], n, 2)
 
     coords = {"joint": names, "bound": list(BOUNDS)}
-    dims = {VAR_NAME: _DIMS, "estimate": _DIMS, "true_limits": _DIMS, "prior_low": _DIMS, "prior_high": _DIMS}
+    dims = {VAR_NAME: _DIMS, "estimate": _DIMS, "true_limits": _DIMS, "prior_low": _DIMS, "prior_high": _DIMS,
+            "weighted_samples": ["sample", *_DIMS], "weights": ["sample"]}
 
     # prior --------------------------------------------------------------------
     prior_dict = None
     constant = {"estimate": (result.estimate * scale).reshape(n, 2)}
+    if n_orig > 1:  # every sample and its weight: anything outside the toolkit can recompute from them
+        constant["weighted_samples"] = (result.samples * scale).reshape(n_orig, n, 2)
+        constant["weights"] = result.normalized_weights().copy()
     if prior is not None:
         if not hasattr(prior, "sample"):
             raise TypeError(f"prior: expected an object with sample(n, seed), got {type(prior).__name__}")
@@ -392,6 +425,50 @@ def to_inference_data(
     for g in idata.groups():  # from_dict puts attrs on posterior only in some versions
         getattr(idata, g).attrs.update(meta)
     return idata
+
+
+def arviz_draw_count(kish_ess: float) -> int:
+    """How many draws the ``posterior`` group holds for samples whose Kish ESS is ``kish_ess``
+    (N for N equally weighted ones), so that plain arviz cannot report more effective samples.
+
+    arviz's ESS of S draws is S / tau with tau >= 1 / log10(S) (its own floor), so at most
+    S log10(S): the largest even S >= 8 (2 chains of 4, what arviz's diagnostics need) with
+    S log10(S) <= ``kish_ess``. Below a Kish ESS of 7.23 no such S exists: 6 draws (2 chains
+    of 3), for which arviz notes in its log that its diagnostics need 4 per chain and reports
+    them NaN (the honest answer for so few effective samples; with 4 to 7 draws in one chain
+    it would compute them, and warn on the repeated draws).
+    """
+    if kish_ess < 8 * np.log10(8):
+        return 6
+    s = 8
+    while (s + 2) * np.log10(s + 2) <= kish_ess:
+        s += 2
+    return s
+
+
+def _posterior_draws(result: PosteriorResult, kind: str, n_resample: int | None, rng) -> np.ndarray:
+    """(chains, draws, 2n) what the ``posterior`` group holds, in a shape plain ``az.summary``
+    reads without a warning and whose ESS it cannot inflate:
+
+    * independent draws: ``arviz_draw_count(N)`` of them (a seeded random subset), in 2 chains;
+    * weighted samples: ``arviz_draw_count(Kish ESS)`` draws (or ``n_resample``) by systematic
+      resampling, in a seeded random order, in 2 chains; the samples and
+      weights themselves go to ``constant_data`` (``weighted_samples``, ``weights``);
+    * a point estimate: that point twice in one chain (mean = the estimate, sd 0; arviz's
+      MCMC diagnostics need 4 draws and are NaN, which is what they are for one point).
+    """
+    samples = result.samples
+    if kind == DRAWS_POINT:
+        return np.broadcast_to(samples[:1], (2, samples.shape[1]))[None].copy()
+    if kind == DRAWS_INDEPENDENT:  # a seeded random subset, without replacement
+        m = min(n_resample or arviz_draw_count(samples.shape[0]), samples.shape[0])
+        draws = samples[rng.permutation(samples.shape[0])[:m]]
+    else:
+        m = n_resample or arviz_draw_count(result.ess)
+        draws = result.systematic(m)[rng.permutation(m)]
+    chains = 2 if m >= 2 else 1
+    m -= m % chains
+    return draws[:m].reshape(chains, m // chains, -1)
 
 
 def observed_arrays(task) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
@@ -492,16 +569,22 @@ def summary(idata: az.InferenceData, hdi_prob: float = 0.94) -> pd.DataFrame:
 
     mcse / ess_bulk / ess_tail are kept for independent draws only: draws resampled from
     weighted samples repeat a few samples, so those columns would report the number of
-    draws, not the effective sample size (``attrs["weights_ess"]``, Kish, is that). r_hat
-    needs more than one chain. Rows are named like ``limits[shoulder, lower]``; a ``truth``
+    draws, not the effective sample size (``attrs["weights_ess"]``, Kish, is that); mean,
+    sd and HDI come from every stored sample (weighted ones resampled, `limit_draws`), not
+    from the few draws of the ``posterior`` group. r_hat is dropped:
+    the stored chains are halves of one sample, not MCMC chains. Rows are named like ``limits[shoulder, lower]``; a ``truth``
     column is added when the true limits are stored. Fixed (zero-variance) limits show sd 0.
     """
     _check_idata(idata)
     hdi_prob = _check_prob(hdi_prob)
+    source = idata
+    if "constant_data" in idata.groups() and "weights" in idata.constant_data:  # from every sample
+        draws, joints = _draws(idata)
+        source = _limits_idata(draws, joints)
     with _quiet_arviz():
-        df = az.summary(idata, var_names=[VAR_NAME], hdi_prob=hdi_prob, kind="all")
+        df = az.summary(source, var_names=[VAR_NAME], hdi_prob=hdi_prob, kind="all")
     drop = [c for c in _MCMC_COLUMNS if c in df and draws_kind(idata) != DRAWS_INDEPENDENT]
-    if idata.posterior.sizes["chain"] < 2 and "r_hat" in df:
+    if "r_hat" in df:  # the 2 chains are halves of independent or resampled draws, not MCMC chains
         drop.append("r_hat")
     df = df.drop(columns=sorted(set(drop)))
     truth = _truth(idata)

@@ -662,8 +662,8 @@ def _posterior_comparison_table(posts) -> pd.DataFrame:
         if idata is None:
             continue
         a = idata.posterior.attrs
-        draws = np.asarray(idata.posterior["limits"].values)
-        draws = draws.reshape(-1, draws.shape[-2] * draws.shape[-1])
+        draws = arviz_io.limit_draws(idata)[0]  # every stored sample (the posterior group holds a few)
+        draws = draws.reshape(draws.shape[0], -1)
         if draws.shape[0] < 20:  # a point estimate (naive) is not a posterior to compare
             continue
         key = (a.get("subject", "–"), a.get("budget", "–"), a.get("seed", "–"), a.get("n_tasks", "–"))

@@ -382,7 +382,7 @@ def infer_main(args) -> int:
     import torch
 
     from camo_sbi._validation import derive_seed
-    from camo_sbi.diagnostics.arviz_io import save_netcdf, to_inference_data
+    from camo_sbi.diagnostics.arviz_io import observed_arrays, save_netcdf, to_inference_data
     from camo_sbi.experiments.compare import grid_methods
     from camo_sbi.experiments.method_configs import parse_configs
     from camo_sbi.inference.registry import run_method
@@ -419,6 +419,7 @@ def infer_main(args) -> int:
     out = Path(args.out)
     (out / "posteriors").mkdir(parents=True, exist_ok=True)
     results = {}
+    observed, observed_dims = observed_arrays(task)  # the recorded reaches, in every posterior file
     bar = tqdm(plan, desc="infer", unit="method")
     for name, space in bar:
         bar.set_postfix_str(name)
@@ -426,8 +427,8 @@ def infer_main(args) -> int:
         res = run_method(name, task, budget=args.budget, seed=args.seed, config=cfg)
         results[name] = res
         idata = to_inference_data(res, sim.joint_names, prior=task.prior, seed=derive_seed(args.seed, 13),
-                                  budget=args.budget, attrs={"task": model.name, "observations":
-                                                             str(args.observations)})
+                                  budget=args.budget, observed=observed, observed_dims=observed_dims,
+                                  attrs={"task": model.name, "observations": str(args.observations)})
         save_netcdf(idata, out / "posteriors" / f"{name}.nc")
     bar.close()
     table = limits_table(results, sim)

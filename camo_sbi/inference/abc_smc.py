@@ -66,9 +66,11 @@ Seeding. pyabc draws from numpy's GLOBAL RNG. `run` seeds it inside `numpy_globa
 which restores the caller's state afterwards (pyabc leaks no global state), and uses a
 single-process sampler, so one seed gives identical populations.
 
-Parameters: only the prior's free coordinates are pyabc parameters, named
-``theta_{index:02d}`` (index into the full 2n vector); fixed coordinates are re-inserted
-with `BoxPrior.expand`. See `to_pyabc_prior`.
+Parameters: only the prior's free coordinates are pyabc parameters, named by joint and
+bound (``shoulder_pitch_lo``, ``shoulder_pitch_hi``: what pyabc's History and its plots
+show); fixed coordinates are re-inserted with `BoxPrior.expand`. Every conversion between
+pyabc's parameters and theta goes through that list of names, never pyabc's column order.
+See `parameter_names`, `to_pyabc_prior`.
 """
 
 from __future__ import annotations
@@ -243,16 +245,22 @@ class AbcSmcConfig:
 # ----------------------------------------------------------------------------------------------
 
 
-def parameter_names(prior: BoxPrior) -> list[str]:
+def parameter_names(prior: BoxPrior, joint_names=None) -> list[str]:
     """pyabc parameter names of the prior's free coordinates, in theta order.
 
-    ``theta_{i:02d}`` with i the index into the full (2n,) vector, so that pyabc's
-    alphabetical column order equals theta order.
+    ``{joint}_lo`` / ``{joint}_hi`` from ``joint_names`` (n unique names, base to tip);
+    without them ``theta_{i:02d}`` with i the index into the full (2n,) vector.
     """
-    return [f"theta_{i:02d}" for i in torch.nonzero(prior.free_mask).flatten().tolist()]
+    free = torch.nonzero(prior.free_mask).flatten().tolist()
+    if joint_names is None:
+        return [f"theta_{i:02d}" for i in free]
+    names = [str(j) for j in joint_names]
+    if len(names) != prior.n_joints or len(set(names)) != len(names) or not all(names):
+        raise ValueError(f"joint_names: expected {prior.n_joints} unique non-empty names, got {names}")
+    return [f"{names[i // 2]}_{('lo', 'hi')[i % 2]}" for i in free]
 
 
-def to_pyabc_prior(prior: BoxPrior) -> pyabc.Distribution:
+def to_pyabc_prior(prior: BoxPrior, joint_names=None) -> pyabc.Distribution:
     """The box prior's free coordinates as a `pyabc.Distribution` of independent uniforms.
 
     scipy's (hence pyabc's) ``RV("uniform", loc, scale)`` is uniform on [loc, loc + scale]:
@@ -266,7 +274,8 @@ def to_pyabc_prior(prior: BoxPrior) -> pyabc.Distribution:
     low = prior.low[prior.free_mask].tolist()
     high = prior.high[prior.free_mask].tolist()
     return pyabc.Distribution(
-        **{name: pyabc.RV("uniform", lo, hi - lo) for name, lo, hi in zip(parameter_names(prior), low, high, strict=True)}
+        **{name: pyabc.RV("uniform", lo, hi - lo)
+           for name, lo, hi in zip(parameter_names(prior, joint_names), low, high, strict=True)}
     )
 
 
@@ -325,6 +334,7 @@ class JointDistance:
                  chunk_size: int = 1024, scheduler: str | None = None, noise: NoiseModel | None = None,
                  seed: int = 0):
         self.simulator, self.prior, self.space, self.dtype = simulator, prior, space, dtype
+        self.names = parameter_names(prior, getattr(simulator, "joint_names", None))  # theta order
         self.chunk_size = check_positive_int(chunk_size, "chunk_size")
         self.noise = NoiseModel() if noise is None else noise
         self.seed = check_positive_int(seed, "seed", minimum=0)
@@ -397,10 +407,9 @@ class JointDistance:
 
     def single(self, parameter) -> dict:
         """pyabc model for ``sampler="single"``: one particle, all tasks, sum stat {"d": distance}."""
-        names = sorted(parameter.keys())
         if self.n_tasks > self.remaining:
             raise _OutOfBudget
-        d, _ = self(np.array([[parameter[k] for k in names]]))
+        d, _ = self(np.array([[parameter[k] for k in self.names]]))
         return {_DISTANCE_KEY: float(d[0])}
 
 
@@ -839,8 +848,8 @@ def run_unwarned(task, observations, *, budget: int, seed: int,
     distance = JointDistance(task.simulator, prior, observations, space=config.space,
                              dtype=_DTYPES[config.sim_dtype], budget=budget * k,
                              chunk_size=config.chunk_size, scheduler=config.scheduler, noise=task.noise, seed=seed)
-    names = parameter_names(prior)
-    pyabc_prior = to_pyabc_prior(prior)
+    names = distance.names  # by joint and bound: what pyabc's History shows
+    pyabc_prior = to_pyabc_prior(prior, getattr(task.simulator, "joint_names", None))
     low = prior.low[prior.free_mask].numpy()
     high = prior.high[prior.free_mask].numpy()
     eps = pyabc.MedianEpsilon(

@@ -979,7 +979,7 @@ def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig |
                                          independent_fraction=config.smc_independent_fraction,
                                          max_stages=config.smc_max_stages)
         else:
-            draws = posterior.sample(config.n_posterior_samples, _seed(seed, 5) % (2**32),
+            draws = posterior.sample_is(config.n_posterior_samples, _seed(seed, 5) % (2**32),
                                      is_rounds=config.is_rounds, defensive_fraction=config.defensive_fraction)
     t_sample = time.perf_counter() - t1
     estimate = npe.point_estimate(draws, config.point_estimate, prior)

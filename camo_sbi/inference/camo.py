@@ -345,6 +345,25 @@ class Camo:
             value = weighted_quantile(kept, w, np.tile([a, 1.0 - a], self.prior.n_joints))
         return self.prior.with_known(torch.from_numpy(value)).numpy()
 
+    def density(self):
+        """``theta (B, 2n) or (2n,) -> (B,)``: the unnormalised log joint density of the tasks so
+        far, sum_n log P_n(theta) over the free coordinates (Eq. 6), -inf outside the prior box
+        (and, with ``contain_observed``, outside what the observed postures allow). A snapshot:
+        later tasks do not change it."""
+        kdes, free, support, dim = list(self._kdes), self._free, self._draw_prior, self.prior.dim
+
+        def log_prob(theta) -> torch.Tensor:
+            t = as_tensor(theta, "theta", dtype=torch.float64).cpu()
+            t = t.unsqueeze(0) if t.dim() == 1 else t
+            if t.dim() != 2 or t.shape[1] != dim:
+                raise ValueError(f"theta: expected shape (B, {dim}), got {tuple(t.shape)}")
+            lp = torch.zeros(t.shape[0], dtype=torch.float64)
+            for kde in kdes:
+                lp += kde.log_density(t[:, free])
+            return torch.where(support.contains(t), lp, torch.full_like(lp, -torch.inf))
+
+        return log_prob
+
     def posterior_weights(self) -> np.ndarray:
         """(M,) kept vectors' weights, proportional to their joint density."""
         w = torch.softmax(self._logp, dim=0)
@@ -361,6 +380,7 @@ class Camo:
         return PosteriorResult(
             method=method, samples=self._kept.numpy().copy(), weights=w, estimate=self.estimate(),
             n_simulations=n_simulations, wall_time=wall_time, n_tasks=self.n_tasks, status=status,
+            density=self.density(),
             extras={
                 "kept_per_task": [int(r.kept.shape[0]) for r in self.records],
                 "fallback_tasks": [r.index for r in self.records if r.fallback],

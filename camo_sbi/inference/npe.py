@@ -73,7 +73,12 @@ from camo_sbi._validation import (
 from camo_sbi.distributed import parse_scheduler, run_chunks
 from camo_sbi.inference import sbi_adapter
 from camo_sbi.inference.contract import check_run_args
-from camo_sbi.inference.result import STATUS_OK, PosteriorResult, weighted_median
+from camo_sbi.inference.result import (
+    STATUS_OK,
+    PosteriorResult,
+    check_sample_shape,
+    weighted_median,
+)
 from camo_sbi.priors import BoxPrior
 from camo_sbi.task import NoiseModel, contain
 
@@ -524,8 +529,26 @@ class NpePosterior:
         pool = self._sample_flows(counts)
         return pool, (self._product_gaussian(pool, counts) if k > 1 else None)
 
+    def sample(self, sample_shape=(), seed: int | None = None, *, n_proposals: int | None = None) -> torch.Tensor:
+        """Equally weighted draws, shape (*sample_shape, 2n), like sbi's ``posterior.sample``.
+
+        Sampling-importance-resampling: ``sample_is`` draws ``n_proposals`` weighted draws
+        (default: max(prod(sample_shape), 1000)) and they are resampled by weight. ``seed``:
+        an int; None draws a fresh nondeterministic seed (never the global random state).
+        The weighted draws themselves, with their effective sample size, come from ``sample_is``.
+        """
+        shape = check_sample_shape(sample_shape)
+        if seed is None:
+            seed = int(np.random.SeedSequence().generate_state(1)[0])
+        seed = check_positive_int(seed, "seed", minimum=0)
+        n = int(np.prod(shape, dtype=np.int64))
+        m = max(n, 1000) if n_proposals is None else check_positive_int(n_proposals, "n_proposals", minimum=2)
+        draws = self.sample_is(m, seed)
+        idx = np.random.default_rng(seed).choice(len(draws.weights), size=n, replace=True, p=draws.weights)
+        return torch.from_numpy(np.ascontiguousarray(draws.theta[idx])).reshape(*shape, self.dim)
+
     @torch.no_grad()
-    def sample(self, n: int, seed: int, *, is_rounds: int = 2, defensive_fraction: float = 0.2) -> ImportanceSample:
+    def sample_is(self, n: int, seed: int, *, is_rounds: int = 2, defensive_fraction: float = 0.2) -> ImportanceSample:
         """``n`` weighted draws per round by importance sampling (see the module docstring).
 
         Round 0 proposes from the equal mixture of the k flows. Round 1 (k > 1) proposes from
@@ -984,7 +1007,7 @@ def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed:
     Status "fallback: low effective sample size ..." below ``NPE_MIN_ESS`` (see there).
     """
     t0 = time.perf_counter()
-    draws = posterior.sample(config.n_posterior_samples, _seed_int(seed, 2) % (2**32),
+    draws = posterior.sample_is(config.n_posterior_samples, _seed_int(seed, 2) % (2**32),
                              is_rounds=config.is_rounds, defensive_fraction=config.defensive_fraction)
     t_sample = time.perf_counter() - t0
     w = draws.weights
@@ -1010,6 +1033,7 @@ def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed:
         method="npe", samples=draws.theta, weights=w, estimate=estimate,
         n_simulations=int(getattr(task.simulator, "n_simulations", budget * posterior.n_tasks)),
         wall_time=time.perf_counter() - t_start, n_tasks=posterior.n_tasks, extras=extras, status=status,
+        density=posterior.log_prob,
     )
 
 

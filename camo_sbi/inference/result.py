@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import numbers
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-__all__ = ["STATUS_OK", "PosteriorResult", "check_status", "weighted_median", "weighted_quantile"]
+__all__ = ["STATUS_OK", "PosteriorResult", "check_sample_shape", "check_status", "weighted_median",
+           "weighted_quantile"]
 
 STATUS_OK = "ok"
 _STATUS_PREFIXES = ("fallback: ", "failed: ")
@@ -43,6 +46,13 @@ class PosteriorResult:
         compile_time: seconds of numba compilation (or loading compiled code from its cache)
             during ``run``, measured by the registry and never counted in ``wall_time``: the
             first run in a process pays it, later ones do not.
+        density: ``theta (B, 2n) -> (B,)`` unnormalised log density of the posterior, for
+            the methods that have one (NPE: the combined flows; CAMO: the product of its
+            per-task KDEs); None otherwise. Read through `log_prob`; not compared, not
+            pickled (it may hold trained networks), not written to files.
+
+    Like sbi's posteriors, ``sample(sample_shape, seed=None)`` draws from the result and
+    ``log_prob(theta)`` evaluates its density where one exists.
     """
 
     method: str
@@ -55,6 +65,12 @@ class PosteriorResult:
     extras: dict[str, Any] = field(default_factory=dict)
     status: str = STATUS_OK
     compile_time: float = 0.0
+    density: Callable[[Any], Any] | None = field(default=None, compare=False, repr=False)
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state.pop("density", None)  # a closure over trained networks: never pickled
+        return state
 
     def __post_init__(self):
         check_status(self.status)
@@ -104,10 +120,63 @@ class PosteriorResult:
         idx = np.searchsorted(cw, (np.arange(n) + 0.5) / n * cw[-1], side="right")
         return self.samples[np.minimum(idx, self.samples.shape[0] - 1)]
 
+    def sample(self, sample_shape=(), seed=None):
+        """Draws from the posterior as a float64 torch tensor of shape (*sample_shape, 2n), like sbi's
+        ``posterior.sample(sample_shape)``: multinomial resampling of ``samples`` by ``weights``
+        (a point estimate, one sample, gives that point every time).
+
+        ``seed``: an int or a numpy Generator; None draws from a fresh, nondeterministic
+        Generator (never the global random state).
+        """
+        import torch  # not at import time: reading results needs no torch
+
+        shape = check_sample_shape(sample_shape)
+        rng = np.random.default_rng() if seed is None else _generator(seed)
+        n = int(np.prod(shape, dtype=np.int64))
+        draws = self.resample(n, rng) if n else np.empty((0, self.samples.shape[1]))
+        return torch.from_numpy(np.ascontiguousarray(draws.reshape(*shape, self.samples.shape[1])))
+
+    def log_prob(self, theta):
+        """(B,) unnormalised log posterior density at ``theta`` (B, 2n) or (2n,), as a torch tensor.
+
+        Raises NotImplementedError naming the method when it returns no density (a point
+        estimate such as naive or nominal, or samples without a density, such as ABC-SMC's).
+        """
+        if self.density is None:
+            kind = "a point estimate" if self.samples.shape[0] == 1 else "samples without a density"
+            raise NotImplementedError(f"log_prob: method {self.method!r} returns {kind}; no density to evaluate "
+                                      "(use sample() for draws)")
+        return self.density(theta)
+
     def resample(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """(n, 2n) equally weighted draws (multinomial resampling by ``weights``)."""
         idx = rng.choice(self.samples.shape[0], size=n, replace=True, p=self.normalized_weights())
         return self.samples[idx]
+
+
+def check_sample_shape(sample_shape) -> tuple[int, ...]:
+    """``sample_shape`` (an int, or a sequence of non-negative ints such as ``(100,)`` or a
+    torch.Size) as a tuple of ints."""
+    if isinstance(sample_shape, numbers.Integral) and not isinstance(sample_shape, bool):
+        sample_shape = (sample_shape,)
+    try:
+        shape = tuple(sample_shape)
+    except TypeError:
+        raise TypeError(f"sample_shape: expected a tuple of ints such as (100,), got {type(sample_shape).__name__}") \
+            from None
+    if not all(isinstance(d, numbers.Integral) and not isinstance(d, bool) and d >= 0 for d in shape):
+        raise ValueError(f"sample_shape: expected non-negative ints, got {sample_shape!r}")
+    return tuple(int(d) for d in shape)
+
+
+def _generator(seed) -> np.random.Generator:
+    if isinstance(seed, np.random.Generator):
+        return seed
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise TypeError(f"seed: expected a non-negative int, a numpy Generator or None, got {type(seed).__name__}")
+    if seed < 0:
+        raise ValueError(f"seed: must be >= 0, got {seed}")
+    return np.random.default_rng(int(seed))
 
 
 def weighted_quantile(x: np.ndarray, w: np.ndarray, q) -> np.ndarray:
