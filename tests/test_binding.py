@@ -69,6 +69,7 @@ def test_task_binding_metrics_counts_test_and_training_reaches():
     assert got["binding_test_fraction"] == pytest.approx(float(want_test.mean()))
     assert got["binding_test_reaches"] == float(want_test.sum())
     assert got["binding_train_fraction"] == pytest.approx(float(want_train.mean()))
+    assert got["binding_test_bound_min_fraction"] == pytest.approx(float(want_test.mean()))  # one restricted bound
 
 
 def test_nominal_workspace_goals_span_the_nominal_limits_not_the_true_ones():
