@@ -163,6 +163,9 @@ def test_touched_bounds_finds_a_clamped_joint_and_only_it():
     # the arm at rest at the extreme (no other joint moving) is not evidence of a limit
     rest = torch.tensor([[0.0, 0.0], [0.2, 0.1], [0.2, 0.1], [0.2, 0.1]], dtype=torch.float64)
     assert not touched_bounds([rest])[0].any()
+    # a joint that never leaves its start while the other moves is at both its extremes: not touched
+    still = torch.tensor([[0.0, 0.0], [0.0, 0.1], [0.0, 0.2], [0.0, 0.3]], dtype=torch.float64)
+    assert touched_bounds([still])[0].tolist() == [False, False, False, False]
 
 
 def test_with_touched_replaces_only_touched_bounds():
