@@ -7,12 +7,16 @@ that relaxing that bound alone moves by > 1 mm (`binding_test_bound_min_fraction
 """
 
 import sys
+
 import numpy as np
+
 from camo_sbi._validation import derive_seed
 from camo_sbi.experiments.manipulator import SETTINGS
 from camo_sbi.experiments.models import ModelSpec, true_limits
 from camo_sbi.scenarios.reaching import make_reaching_task, task_binding_metrics
-model = ModelSpec(kind=sys.argv[1]); sim = model.build()
+
+model = ModelSpec(kind=sys.argv[1])
+sim = model.build()
 subjects = list(SETTINGS["informative"].subjects)
 vals = {s: [] for s in subjects}
 for run in range(30):
