@@ -202,7 +202,8 @@ def test_bad_files_exit_2_naming_the_column(recording, tmp_path, capsys, sim):
     f = _csv_edit(recording, tmp_path / "nogoal.csv", drop_goals)
     line = _exit_2([*base, "--observations", str(f)], capsys)
     assert line == f"camo-sbi: error: {f}: column 'goal_x' is missing " \
-                   f"(a recording needs reach, step, goal_x, goal_y, goal_z, then the joint columns and/or " \
+                   f"(a recording needs reach, step (or time in seconds), goal_x, goal_y, goal_z (or --goal final " \
+                   f"for free reaching), then the joint columns and/or " \
                    f"ee_x, ee_y, ee_z)"
     f = _csv_edit(recording, tmp_path / "unknown.csv",
                   lambda lines: [lines[0].replace("wrist_pitch", "wrist_flex"), *lines[1:]])

@@ -38,7 +38,8 @@ if TYPE_CHECKING:
     import numpy as np
     import torch
 
-__all__ = ["add_infer_arguments", "add_simulate_arguments", "infer_main", "limits_table", "simulate_main",
+__all__ = ["add_infer_arguments", "add_recording_arguments", "add_simulate_arguments", "infer_main", "limits_table",
+           "load_from_args", "simulate_main",
            "simulate_recordings"]
 
 PPC_DRAWS = 50
@@ -367,6 +368,7 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
                    help="resample the recording to the controller's step (default: time)")
     p.add_argument("--rate", type=float, default=None,
                    help="recorded samples per controller step (default: estimated from the file)")
+    add_recording_arguments(p)
     p.add_argument("--amortized", type=Path, default=None,
                    help="trained estimator file for npe-amortized (`camo-sbi amortize`)")
     p.add_argument("--predict-goals", type=Path, default=None,
@@ -386,7 +388,7 @@ def infer_main(args) -> int:
     from camo_sbi.experiments.compare import grid_methods
     from camo_sbi.experiments.method_configs import parse_configs
     from camo_sbi.inference.registry import run_method
-    from camo_sbi.io.recordings import load_goals, load_recordings, save_recordings
+    from camo_sbi.io.recordings import load_goals, save_recordings
     from camo_sbi.task import Observation, predict
 
     t0 = time.perf_counter()
@@ -404,8 +406,10 @@ def infer_main(args) -> int:
     model = model_from_args(args)
     sim = model.build()
     start = list(model.start) if model.start is not None else None
-    obs = load_recordings(args.observations, sim, degrees=args.degrees, noise=noise, start=start,
-                          resample=None if args.resample == "none" else args.resample, rate=args.rate)
+    recording = load_from_args(args, args.observations, sim, noise, start)
+    obs = recording.observations
+    for w in recording.warnings:
+        print(f"warning: {w}")
     goals = starts = None
     if args.predict_goals is not None:
         goals, starts = load_goals(args.predict_goals, sim, degrees=args.degrees, noise=noise)
@@ -443,8 +447,9 @@ def infer_main(args) -> int:
                 "samples": sum(o.length for o in obs), "spaces": ",".join(task.spaces),
                 "methods": ",".join(results), "budget": args.budget, "seed": args.seed,
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
-                "config": json.dumps(overrides, sort_keys=True)}
+                "config": json.dumps(overrides, sort_keys=True), **recording.info}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", **settings}, indent=2))
+    notes = notes + [f"warning: {w}" for w in recording.warnings]
     report = _report(out, task, results, notes, table, settings, args.seed,
                      formats=None if formats == ("png",) else formats)
     pd_table = table[table.bound.isin(["lower", "upper"])].pivot_table(
@@ -456,3 +461,51 @@ def infer_main(args) -> int:
     print(f"limits: {out / 'limits.csv'}  posteriors: {out / 'posteriors'}  report: {report}")
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+# ----------------------------------------------------------------------------- recordings from a lab
+
+
+def add_recording_arguments(p: argparse.ArgumentParser) -> None:
+    """Units, frames, markers and goals of a recording (CSV, NPZ or C3D)."""
+    p.add_argument("--ee-units", choices=("m", "mm"), default=None,
+                   help="unit of the ee_* and goal_* columns (default m; a C3D file's POINT:UNITS is used)")
+    p.add_argument("--goal", choices=("columns", "final"), default="columns",
+                   help="columns: the goal_* columns; final: each reach's last end-effector position (free reaching)")
+    p.add_argument("--frame", type=Path, default=None,
+                   help="JSON rigid transform lab -> model base: rotation (3x3) or quaternion [w,x,y,z], "
+                        "translation [m]")
+    p.add_argument("--frame-from-markers", default=None, metavar="A,B,C",
+                   help="estimate the frame from these C3D markers (positions in --marker-positions)")
+    p.add_argument("--marker-positions", type=Path, default=None,
+                   help='JSON {"marker": [x, y, z]} model-frame positions [m] for --frame-from-markers')
+    p.add_argument("--ee-marker", default=None, metavar="NAME[,NAME...]",
+                   help="C3D marker(s) of the end effector (several: their mean)")
+
+
+def load_from_args(args, path, sim, noise, start):
+    """`load_recording` of ``path`` with the recording flags of ``args``."""
+    from camo_sbi.io.frames import load_frame, load_marker_positions
+    from camo_sbi.io.recordings import load_recording
+
+    frame = load_frame(args.frame) if args.frame is not None else None
+    markers = None
+    if args.frame_from_markers is not None:
+        names = [m.strip() for m in str(args.frame_from_markers).split(",") if m.strip()]
+        if len(names) < 3:
+            raise ValueError(f"--frame-from-markers: needs three or more marker names, got {args.frame_from_markers!r}")
+        if frame is not None:
+            raise ValueError("--frame-from-markers: give --frame or --frame-from-markers, not both")
+        if args.marker_positions is None:
+            raise ValueError("--frame-from-markers: needs --marker-positions FILE.json (the markers' model-frame "
+                             "positions)")
+        markers = load_marker_positions(args.marker_positions, names)
+    ee_markers = None
+    if args.ee_marker is not None:
+        ee_markers = [m.strip() for m in str(args.ee_marker).split(",") if m.strip()]
+        if not ee_markers:
+            raise ValueError("--ee-marker: expected one or more marker names")
+    return load_recording(path, sim, degrees=args.degrees, noise=noise, start=start,
+                          resample=None if args.resample == "none" else args.resample, rate=args.rate,
+                          ee_units=args.ee_units, goal=args.goal, frame=frame, ee_markers=ee_markers,
+                          frame_markers=markers)
