@@ -362,6 +362,36 @@ def test_reaches_from_different_starts(tmp_path, sim, capsys):
         assert (est[0::2] <= s.min(axis=0) + 1e-9).all() and (est[1::2] >= s.max(axis=0) - 1e-9).all(), m
 
 
+def test_ee_only_reaches_from_five_start_postures_are_inferred(tmp_path, sim, capsys):
+    """Done-when of issue 27: end-effector-only reaches from 5 start postures. Each start is
+    estimated by IK (starts.csv), and every method's limits contain every estimated start."""
+    import torch
+
+    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.scenarios.reaching import observe, reachable_goals
+    from camo_sbi.task import Observation
+
+    theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)
+    gen = torch.Generator().manual_seed(4)
+    base = torch.tensor([float(v) for v in START.split(",")], dtype=torch.float64)
+    starts = torch.stack([torch.clamp(base + 0.3 * (2 * torch.rand(7, generator=gen, dtype=torch.float64) - 1),
+                                      theta[0::2] + 0.05, theta[1::2] - 0.05) for _ in range(5)])
+    obs = observe(sim, theta, reachable_goals(sim, theta, 5, gen), starts)
+    path = save_recordings(tmp_path / "ee5.csv", tuple(Observation(o.start, o.goal, None, o.ee) for o in obs), sim)
+    out = tmp_path / "out"
+    assert main(["infer", "--observations", str(path), *MODEL, "--methods", "camo,nominal", "--budget", "100",
+                 "--noise-ee-mm", "1", "--out", str(out)]) == 0
+    est = pd.read_csv(out / "starts.csv")
+    assert len(est) == 5 and list(est.columns[:2]) == ["reach", "source"] and (est.source == "IK").all()
+    q = torch.tensor(est[JOINTS].to_numpy())
+    first = torch.stack([o.ee[0] for o in obs])
+    assert float((sim.forward_kinematics(q).to(torch.float64) - first).norm(dim=1).max()) < 1e-3
+    df = pd.read_csv(out / "limits.csv")
+    for m, g in df.groupby("method"):
+        e = g.estimate_rad.to_numpy()
+        assert (e[0::2] <= q.numpy().min(axis=0) + 1e-6).all() and (e[1::2] >= q.numpy().max(axis=0) - 1e-6).all(), m
+
+
 def test_demo_and_calibrate_on_a_urdf(tmp_path):
     assert main(["demo", *MODEL, "--batch", "8", "--out", str(tmp_path / "demo")]) == 0
     assert (tmp_path / "demo" / "demo.png").stat().st_size > 1000

@@ -449,6 +449,7 @@ def infer_main(args) -> int:
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
                 "config": json.dumps(overrides, sort_keys=True), **recording.info}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", **settings}, indent=2))
+    write_starts(out / "starts.csv", obs, sim)
     notes = notes + [f"warning: {w}" for w in recording.warnings]
     report = _report(out, task, results, notes, table, settings, args.seed,
                      formats=None if formats == ("png",) else formats)
@@ -509,3 +510,19 @@ def load_from_args(args, path, sim, noise, start):
                           resample=None if args.resample == "none" else args.resample, rate=args.rate,
                           ee_units=args.ee_units, goal=args.goal, frame=frame, ee_markers=ee_markers,
                           frame_markers=markers)
+
+
+def write_starts(path: Path, obs, sim) -> Path:
+    """starts.csv: each reach's start posture (radians) and where it came from: "observed" (the
+    first joint sample), "model" (the start posture) or "IK" (estimated from the first
+    end-effector sample, `estimate_starts`)."""
+    import pandas as pd
+    import torch
+
+    model_start = torch.as_tensor(sim.start, dtype=torch.float64)
+    rows = []
+    for i, o in enumerate(obs):
+        source = "observed" if o.q is not None else "model" if torch.equal(o.start, model_start) else "IK"
+        rows.append({"reach": i, "source": source, **{j: float(v) for j, v in zip(sim.joint_names, o.start,
+                                                                                 strict=True)}})
+    return atomic_write_text(path, pd.DataFrame(rows).to_csv(index=False))
