@@ -96,8 +96,9 @@ def test_rate_multiplier_writes_more_samples(recording, tmp_path, sim):
 
 def test_infer_limits_table_has_every_joint_and_bound(inferred, sim):
     out, df = inferred
-    assert list(df.columns) == ["method", "joint", "bound", "estimate_rad", "estimate_deg", "lower_90_deg",
-                                "upper_90_deg", "status"]
+    assert list(df.columns) == ["method", "joint", "bound", "estimate_rad", "estimate_deg", "median_deg",
+                                "lower_90_deg", "upper_90_deg", "identifiability", "reaches_at_bound", "exercised",
+                                "calibration", "status"]
     assert set(df.method) == {"camo", "naive", "nominal", "npe"}
     for _, g in df.groupby("method"):
         assert sorted(zip(g.joint, g.bound, strict=True)) == sorted((j, b) for j in JOINTS
@@ -108,6 +109,36 @@ def test_infer_limits_table_has_every_joint_and_bound(inferred, sim):
     for _, r in df.iterrows():
         j = JOINTS.index(r.joint)
         assert b[j, 0] - 1e-9 <= r.estimate_rad <= b[j, 1] + 1e-9
+
+
+def test_limits_csv_median_identifiability_exercised_calibration(inferred, sim, recording):
+    """median inside the 90% interval; identifiability = 90% width / the prior's 90% width (the
+    prior split at the reaches' starts); exercised = a reach's extreme within 4 sigma of the bound
+    (recomputed here from the file); the README's calibration verdict per method."""
+    out, df = inferred
+    assert ((df.lower_90_deg <= df.median_deg + 1e-9) & (df.median_deg <= df.upper_90_deg + 1e-9)).all()
+    obs = load_recordings(recording, sim, noise=load_noise())
+    starts = np.stack([o.start.numpy() for o in obs])
+    b = sim.bounds.numpy()
+    prior_w = np.empty(2 * len(JOINTS))
+    prior_w[0::2] = starts.min(axis=0) - b[:, 0]
+    prior_w[1::2] = b[:, 1] - starts.max(axis=0)
+    for m in ("camo", "npe"):
+        g = df[df.method == m]
+        width = np.radians(g.upper_90_deg - g.lower_90_deg).to_numpy()
+        np.testing.assert_allclose(g.identifiability, width / (0.9 * prior_w), rtol=1e-9)
+    assert df[df.method.isin(["naive", "nominal"])].identifiability.isna().all()
+    lo = np.stack([o.q.numpy().min(axis=0) for o in obs])
+    hi = np.stack([o.q.numpy().max(axis=0) for o in obs])
+    allow = K_SIGMA * np.radians(0.3) + 1e-6
+    nominal = df[df.method == "nominal"]
+    expect = np.empty(2 * len(JOINTS), bool)
+    expect[0::2] = (lo <= b[:, 0] + allow).any(axis=0)
+    expect[1::2] = (hi >= b[:, 1] - allow).any(axis=0)
+    assert nominal.exercised.tolist() == expect.tolist() and not expect.all()
+    verdict = dict(zip(df.method, df.calibration, strict=True))
+    assert verdict["camo"] == "not calibrated on this model (panda: over-confident; human: mildly over-confident)"
+    assert verdict["npe"].startswith("not calibrated on this model (panda: calibrated")
 
 
 def test_infer_point_methods_and_their_values(inferred, sim, recording):
@@ -145,7 +176,10 @@ def test_infer_posterior_interval_is_the_weighted_quantile(inferred):
 def test_infer_writes_report_posteriors_and_predictions(inferred, sim):
     out, df = inferred
     html = (out / "report.html").read_text()
-    assert html.count(PNG) == 4  # one figure per reach
+    assert html.count(PNG) == 5  # the limits figure, then one figure per reach
+    first = html.index(PNG)
+    assert html[first:].split('alt="', 1)[1].startswith("limits figure")  # the report opens with it
+    assert "not exercised" in html
     assert "http://" not in html and "https://" not in html  # self-contained
     for m in ("camo", "naive", "nominal", "npe"):
         assert (out / "posteriors" / f"{m}.nc").is_file()

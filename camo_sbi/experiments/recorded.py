@@ -38,11 +38,14 @@ if TYPE_CHECKING:
     import numpy as np
     import torch
 
-__all__ = ["add_infer_arguments", "add_recording_arguments", "add_simulate_arguments", "infer_main", "limits_table",
-           "load_from_args", "simulate_main",
-           "simulate_recordings"]
+__all__ = ["CALIBRATION_VERDICTS", "add_infer_arguments", "add_recording_arguments", "add_simulate_arguments",
+           "calibration_verdict", "infer_main", "limits_table", "load_from_args", "simulate_main",
+           "simulate_recordings", "wide_limits", "write_starts"]
 
 PPC_DRAWS = 50
+NARROWED = 0.5
+"""`limits_table`: on end-effector-only data a bound is exercised when its 90% interval is below this
+fraction of the prior's."""
 MAX_REPORT_REACHES = 12
 INTERVAL = 0.90
 
@@ -143,32 +146,119 @@ def simulate_main(args) -> int:
 # ----------------------------------------------------------------------------- infer
 
 
-def limits_table(results: dict, sim):
-    """One row per method, joint and bound: estimate [rad], [deg] and the 90% central interval [deg].
+CALIBRATION_VERDICTS = {
+    # README "Calibration (50 synthetic subjects per model)": camo-sbi calibrate, docs/calibration/*/summary.txt
+    "panda": {"npe": "calibrated", "camo-hull": "over-confident", "camo": "over-confident",
+              "abc-smc": "strongly over-confident", "naive": "a point estimate, not a posterior"},
+    "human": {"npe": "calibrated", "camo": "mildly over-confident", "camo-hull": "over-confident",
+              "abc-smc": "strongly over-confident", "naive": "a point estimate, not a posterior"},
+}
+"""The calibration verdicts the README reports (coverage of 50 synthetic subjects per model)."""
 
-    Point methods (one sample) have both interval ends at the estimate. Prismatic joints:
-    ``estimate_rad`` holds metres and the degree columns are empty.
+
+def calibration_verdict(method: str, model: str) -> str:
+    """The README's calibration verdict for ``method`` on ``model`` (or on the models measured)."""
+    if method in ("nominal", "oracle"):
+        return "a point (no posterior)"
+    if model in CALIBRATION_VERDICTS:
+        return CALIBRATION_VERDICTS[model].get(method, "not calibrated")
+    seen = [f"{m}: {v[method]}" for m, v in CALIBRATION_VERDICTS.items() if method in v]
+    return f"not calibrated on this model ({'; '.join(seen)})" if seen else "not calibrated"
+
+
+def limits_table(results: dict, sim, task=None):
+    """One row per method, joint and bound: estimate [rad], [deg], posterior median [deg], the 90%
+    central interval [deg], identifiability, exercised, the calibration verdict and the status.
+
+    Point methods (one sample) have both interval ends and the median at the estimate, and no
+    identifiability. Prismatic joints: ``estimate_rad`` holds metres and the degree columns are
+    empty. With ``task`` (its prior and observations):
+
+    * ``identifiability``: the 90% interval's width over the prior's 90% width for this bound
+      (1: the data taught nothing; a bound fixed by the prior: empty).
+    * ``reaches_at_bound``: reaches whose observed joint angle comes within the noise allowance
+      (`K_SIGMA` sigma) of the bound's 90% interval (the estimate for point methods).
+    * ``exercised``: some reach came that close; with no joint columns (end-effector-only
+      data, nothing to come close with) instead: the posterior narrowed the bound below
+      `NARROWED` of the prior width. With joint columns narrowing alone does not count: an
+      over-confident posterior (CAMO's, see ``calibration``) narrows bounds no reach touched,
+      which is exactly the misreading "not exercised" guards against. An unexercised bound is
+      not evidence of an impairment: the data say nothing about it.
     """
     import numpy as np
     import pandas as pd
 
     from camo_sbi.inference.result import weighted_quantile
+    from camo_sbi.io.recordings import BOUND_SLACK, K_SIGMA
 
     a = (1.0 - INTERVAL) / 2
     types = getattr(getattr(sim, "spec", None), "joint_types", ("revolute",) * sim.n_joints)
+    model = "" if task is None else str(task.name)
+    q_lo = q_hi = None
+    allow = BOUND_SLACK
+    if task is not None:
+        qs = [o.q.numpy() for o in task.observations if o.q is not None]
+        if qs:
+            q_lo = np.stack([q.min(axis=0) for q in qs])  # (reaches, n)
+            q_hi = np.stack([q.max(axis=0) for q in qs])
+        allow += K_SIGMA * task.noise.sigma("joint") if task.noise is not None else 0.0
+        prior_w = INTERVAL * (task.prior.high - task.prior.low).numpy()
     rows = []
     for name, res in results.items():
         w = res.normalized_weights()
         lo, hi = weighted_quantile(res.samples, w, a), weighted_quantile(res.samples, w, 1.0 - a)
+        med = weighted_quantile(res.samples, w, 0.5)
+        point = res.samples.shape[0] <= 1
+        verdict = calibration_verdict(name, model)
         for j, joint in enumerate(sim.joint_names):
             for b, bound in enumerate(("lower", "upper")):
                 k = 2 * j + b
                 deg = (lambda v: float(np.degrees(v))) if types[j] == "revolute" else (lambda v: float("nan"))
+                ident = touching = float("nan")
+                exercised = None
+                if task is not None:
+                    e_lo, e_hi = float(lo[k]), float(hi[k])
+                    if point:
+                        e_lo = e_hi = float(res.estimate[k])
+                    else:
+                        ident = float((e_hi - e_lo) / prior_w[k]) if prior_w[k] > 0 else float("nan")
+                    touching = 0
+                    if q_lo is not None:
+                        x = q_lo[:, j] if b == 0 else q_hi[:, j]
+                        touching = int(((x >= e_lo - allow) & (x <= e_hi + allow)).sum())
+                    narrowed = q_lo is None and bool(np.isfinite(ident) and ident < NARROWED)
+                    exercised = bool(touching > 0 or narrowed)
                 rows.append({"method": name, "joint": joint, "bound": bound,
                              "estimate_rad": float(res.estimate[k]), "estimate_deg": deg(res.estimate[k]),
-                             "lower_90_deg": deg(lo[k]), "upper_90_deg": deg(hi[k]), "status": res.status})
-    return pd.DataFrame(rows, columns=["method", "joint", "bound", "estimate_rad", "estimate_deg",
-                                       "lower_90_deg", "upper_90_deg", "status"])
+                             "median_deg": deg(res.estimate[k] if point else med[k]),
+                             "lower_90_deg": deg(lo[k]), "upper_90_deg": deg(hi[k]), "identifiability": ident,
+                             "reaches_at_bound": touching, "exercised": exercised, "calibration": verdict,
+                             "status": res.status})
+    return pd.DataFrame(rows, columns=["method", "joint", "bound", "estimate_rad", "estimate_deg", "median_deg",
+                                       "lower_90_deg", "upper_90_deg", "identifiability", "reaches_at_bound",
+                                       "exercised", "calibration", "status"])
+
+
+def wide_limits(table):
+    """The limits as a person reads them: one row per joint, one column per method, each cell
+    "lower .. upper" in degrees with 1 decimal; a bound no reach exercised is marked "*"."""
+    import numpy as np
+    import pandas as pd
+
+    def cell(g) -> str:
+        parts = []
+        for bound in ("lower", "upper"):
+            r = g[g["bound"] == bound].iloc[0]
+            v = r["estimate_deg"] if np.isfinite(r["estimate_deg"]) else r["estimate_rad"]
+            mark = "*" if r["exercised"] is not None and not bool(r["exercised"]) else ""
+            parts.append(f"{v:.1f}{mark}")
+        return " .. ".join(parts)
+
+    out = {}
+    for m in dict.fromkeys(table["method"]):
+        t = table[table["method"] == m]
+        out[m] = [cell(t[t["joint"] == j]) for j in dict.fromkeys(table["joint"])]
+    return pd.DataFrame(out, index=pd.Index(list(dict.fromkeys(table["joint"])), name="joint"))
 
 
 def _recorded_task(model, sim, obs, noise):
@@ -258,6 +348,27 @@ def _method_config(name: str, space: str | None, budget: int, workdir: Path, ove
     return cfg
 
 
+def _limits_html(table, sim) -> str:
+    """The limits figure (model range, estimates, 90% intervals, "not exercised") and the wide table."""
+    import numpy as np
+
+    from camo_sbi.diagnostics.figures import plot_limits
+    from camo_sbi.diagnostics.report import figure_html, table_html
+
+    types = getattr(getattr(sim, "spec", None), "joint_types", ("revolute",) * sim.n_joints)
+    b = np.degrees(sim.bounds.double().numpy())
+    ranges = {j: (float(b[i, 0]), float(b[i, 1])) for i, j in enumerate(sim.joint_names) if types[i] == "revolute"}
+    parts = []
+    if ranges:
+        parts.append(figure_html(plot_limits(table, ranges),
+                                 "Inferred joint limits [deg]: the model's range (grey), each method's estimate "
+                                 "(marker) and 90% interval (line); hollow markers: bounds no reach exercised (not "
+                                 "an impairment: the data say nothing about them)", alt="limits figure"))
+    parts.append('<p class="meta">lower .. upper [deg]; * = not exercised</p>'
+                 + table_html(wide_limits(table), index=True))
+    return "".join(parts)
+
+
 def _shown_limits(table):
     """The limits table as a person reads it: degrees only (radians stay in limits.csv),
     unless a prismatic joint (metres, no degree column) needs ``estimate_rad``."""
@@ -345,9 +456,11 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
     esc_notes = "".join(f"<li>{html.escape(n)}</li>" for n in notes)
     settings_html = table_html(pd.DataFrame([{"setting": k, "value": str(v)} for k, v in settings.items()]))
     sections = [
+        ("limits", "Estimated limits", _limits_html(table, sim)),
         ("settings", "Settings", settings_html + (f"<ul>{esc_notes}</ul>" if notes else "")),
-        ("limits", "Estimated limits", '<p class="meta">degrees (limits.csv also holds radians, '
-                                        "estimate_rad)</p>" + table_html(_shown_limits(table), float_format="{:.4g}")),
+        ("limits-table", "All columns of limits.csv",
+         '<p class="meta">degrees (limits.csv also holds radians, estimate_rad)</p>'
+         + table_html(_shown_limits(table), float_format="{:.4g}")),
         ("reaches", "Observed vs posterior-predictive reaches", "".join(reach_html)),
     ]
     return write_page(out / "report.html", f"camo_sbi infer: {settings['observations']}", sections,
@@ -434,7 +547,7 @@ def infer_main(args) -> int:
                                                              str(args.observations)})
         save_netcdf(idata, out / "posteriors" / f"{name}.nc")
     bar.close()
-    table = limits_table(results, sim)
+    table = limits_table(results, sim, task)
     atomic_write_text(out / "limits.csv", table.to_csv(index=False))
     if goals is not None:
         s = obs[0].start if starts is None else starts
@@ -453,9 +566,8 @@ def infer_main(args) -> int:
     notes = notes + [f"warning: {w}" for w in recording.warnings]
     report = _report(out, task, results, notes, table, settings, args.seed,
                      formats=None if formats == ("png",) else formats)
-    pd_table = table[table.bound.isin(["lower", "upper"])].pivot_table(
-        index="joint", columns=["method", "bound"], values="estimate_deg", sort=False)
-    print(pd_table.to_string(float_format=lambda v: f"{v:.1f}"))
+    print("limits [deg], lower .. upper (* = not exercised: no reach came near this bound; limits.csv: exercised)")
+    print(wide_limits(table).to_string())
     for name, res in results.items():
         if res.status != "ok":
             print(f"{name}: {res.status}")
