@@ -426,6 +426,32 @@ def test_ee_only_reaches_from_five_start_postures_are_inferred(tmp_path, sim, ca
         assert (e[0::2] <= q.numpy().min(axis=0) + 1e-6).all() and (e[1::2] >= q.numpy().max(axis=0) - 1e-6).all(), m
 
 
+def test_infer_a_folder_of_subjects_writes_one_limits_csv(recording, tmp_path, capsys):
+    """Done-when of issue 27: ``infer --observations DIR/`` (one subject per file) writes one
+    combined limits.csv with a subject column, and one report."""
+    folder = tmp_path / "session"
+    folder.mkdir()
+    (folder / "alice.csv").write_text(recording.read_text())
+    assert main(["simulate-observations", *MODEL, *LIMITS, "--reaches", "3", "--seed", "9", *NOISE,
+                 "--out", str(folder / "bob.npz")]) == 0
+    (folder / "notes.txt").write_text("not a recording")
+    out = tmp_path / "out"
+    assert main(["infer", "--observations", str(folder), *MODEL, *NOISE, "--methods", "naive,nominal",
+                 "--out", str(out)]) == 0
+    df = pd.read_csv(out / "limits.csv")
+    assert df.columns[0] == "subject" and sorted(set(df.subject)) == ["alice", "bob"]
+    assert len(df) == 2 * 2 * 2 * len(JOINTS)
+    alone = pd.read_csv(out / "subjects" / "alice" / "limits.csv")
+    pd.testing.assert_frame_equal(df[df.subject == "alice"].drop(columns="subject").reset_index(drop=True), alone)
+    html = (out / "report.html").read_text()
+    assert html.count('alt="limits figure"') == 2 and 'href="subjects/bob/report.html"' in html
+    (folder / "carol.csv").write_text("reach,step\n")
+    line = _exit_2(["infer", "--observations", str(folder), *MODEL, *NOISE, "--methods", "naive", "--out",
+                    str(tmp_path / "o2")], capsys)
+    assert line.startswith(f"camo-sbi: error: {folder / 'carol.csv'}: has a header but no samples")
+    assert not (tmp_path / "o2").exists()  # every file is checked before anything runs
+
+
 def test_demo_and_calibrate_on_a_urdf(tmp_path):
     assert main(["demo", *MODEL, "--batch", "8", "--out", str(tmp_path / "demo")]) == 0
     assert (tmp_path / "demo" / "demo.png").stat().st_size > 1000

@@ -468,7 +468,8 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
 
 
 def add_infer_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--observations", type=Path, required=True, help="recording file (.csv or .npz)")
+    p.add_argument("--observations", type=Path, required=True,
+                   help="recording file (.csv, .npz or .c3d), or a folder of them (one subject per file)")
     add_model_arguments(p, limits=False)
     p.add_argument("--methods", default="camo,camo-hull,naive,nominal", help="comma-separated method names")
     p.add_argument("--budget", type=int, default=500, help="simulations per observed reach")
@@ -504,6 +505,8 @@ def infer_main(args) -> int:
     from camo_sbi.io.recordings import load_goals, save_recordings
     from camo_sbi.task import Observation, predict
 
+    if Path(args.observations).is_dir():
+        return infer_folder(args)
     t0 = time.perf_counter()
     formats = figure_formats(args)
     if args.budget < 1:
@@ -560,7 +563,8 @@ def infer_main(args) -> int:
                 "samples": sum(o.length for o in obs), "spaces": ",".join(task.spaces),
                 "methods": ",".join(results), "budget": args.budget, "seed": args.seed,
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
-                "config": json.dumps(overrides, sort_keys=True), **recording.info}
+                "config": json.dumps(overrides, sort_keys=True), **recording.info,
+                "warnings": list(recording.warnings)}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", **settings}, indent=2))
     write_starts(out / "starts.csv", obs, sim)
     notes = notes + [f"warning: {w}" for w in recording.warnings]
@@ -638,3 +642,61 @@ def write_starts(path: Path, obs, sim) -> Path:
         rows.append({"reach": i, "source": source, **{j: float(v) for j, v in zip(sim.joint_names, o.start,
                                                                                  strict=True)}})
     return atomic_write_text(path, pd.DataFrame(rows).to_csv(index=False))
+
+
+RECORDING_SUFFIXES = (".csv", ".npz", ".c3d")
+
+
+def infer_folder(args) -> int:
+    """``infer --observations DIR/``: one subject per recording file in DIR (sorted by name). Every
+    file is loaded and checked first (a bad file stops the run before any method runs, naming
+    it); then each subject is inferred into ``out/subjects/<file stem>/`` as a single file would
+    be, and ``out/limits.csv`` (every subject, a ``subject`` column first) and one
+    ``out/report.html`` (per subject: its limits figure, its table, its warnings and a link to
+    its own report) are written."""
+    import argparse as _argparse
+    import html
+
+    import pandas as pd
+
+    from camo_sbi.diagnostics.report import write_page
+
+    folder = Path(args.observations)
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RECORDING_SUFFIXES)
+    if not files:
+        raise ValueError(f"--observations: {folder} holds no recording ({', '.join(RECORDING_SUFFIXES)} files)")
+    stems = [p.stem for p in files]
+    dup = sorted({x for x in stems if stems.count(x) > 1})
+    if dup:
+        raise ValueError(f"--observations: {folder} holds two recordings of subject {dup[0]!r} (one file per subject)")
+    model = model_from_args(args)
+    sim = model.build()
+    start = list(model.start) if model.start is not None else None
+    noise = _noise(args)
+    for p in tqdm(files, desc="check recordings", unit="file"):
+        load_from_args(args, p, sim, noise, start)
+    out = Path(args.out)
+    tables, sections = [], []
+    for p in files:
+        print(f"subject {p.stem}: {p}")
+        sub = _argparse.Namespace(**{**vars(args), "observations": p, "out": out / "subjects" / p.stem})
+        infer_main(sub)
+        t = pd.read_csv(sub.out / "limits.csv")
+        t.insert(0, "subject", p.stem)
+        tables.append(t)
+        cfg = json.loads((sub.out / "config.json").read_text())
+        warn = "".join(f"<li>{html.escape(w)}</li>" for w in cfg.get("warnings", []))
+        sections.append((f"subject-{len(sections)}", f"Subject {p.stem}",
+                         f'<p class="meta">{html.escape(str(p))}: {cfg["reaches"]} reaches; '
+                         f'<a href="subjects/{html.escape(p.stem)}/report.html">its report</a></p>'
+                         + (f"<ul>{warn}</ul>" if warn else "")
+                         + _limits_html(t.drop(columns="subject"), sim)))
+    table = pd.concat(tables, ignore_index=True)
+    atomic_write_text(out / "limits.csv", table.to_csv(index=False))
+    from camo_sbi.diagnostics.style import paper_style
+
+    with paper_style():
+        report = write_page(out / "report.html", f"camo_sbi infer: {folder}", sections,
+                            meta=f"model {model.name}, {len(files)} subjects, seed {args.seed}")
+    print(f"{len(files)} subjects: limits {out / 'limits.csv'}  report: {report}")
+    return 0
