@@ -4,6 +4,7 @@ the shared model options (--urdf / --limits) on compare and reproduce panda."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -450,6 +451,31 @@ def test_infer_a_folder_of_subjects_writes_one_limits_csv(recording, tmp_path, c
                     str(tmp_path / "o2")], capsys)
     assert line.startswith(f"camo-sbi: error: {folder / 'carol.csv'}: has a header but no samples")
     assert not (tmp_path / "o2").exists()  # every file is checked before anything runs
+
+
+def test_body_scale_free_on_a_body_5_percent_taller(tmp_path, sim, capsys):
+    """Done-when of issue 27: recordings of a body 5% taller report s within 0.02 of 1.05; without
+    --body-scale free the run warns that the body does not fit the model."""
+    from camo_sbi.experiments.recorded import simulate_recordings
+    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.task import NoiseModel
+
+    theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)
+    tall = sim.scaled(1.05)
+    obs = simulate_recordings(tall, theta, 5, seed=1, noise=NoiseModel(joint_deg=0.3, ee_mm=1.5))
+    path = save_recordings(tmp_path / "tall.csv", obs, sim)
+    assert main(["infer", "--observations", str(path), *MODEL, *NOISE, "--methods", "nominal", "--out",
+                 str(tmp_path / "fixed")]) == 0
+    assert re.search(r"warning: .*tall.csv: the recording fits a body 1.0[45]\d times the model's size .* use "
+                     r"--body-scale free", capsys.readouterr().out)
+    out = tmp_path / "out"
+    assert main(["infer", "--observations", str(path), *MODEL, *NOISE, "--body-scale", "free", "--methods",
+                 "camo,naive,nominal", "--budget", "100", "--out", str(out)]) == 0
+    cfg = json.loads((out / "config.json").read_text())
+    assert abs(cfg["body_scale"] - 1.05) < 0.02
+    lo, hi = cfg["body_scale_90"]
+    assert lo <= cfg["body_scale"] <= hi and hi - lo < 0.02
+    assert f"body scale s = {cfg['body_scale']:.3f}" in capsys.readouterr().out
 
 
 def test_demo_and_calibrate_on_a_urdf(tmp_path):

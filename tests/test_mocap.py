@@ -167,3 +167,84 @@ def test_infer_c3d_with_frame_and_goal_final_matches_the_model_frame_csv(tmp_pat
     assert float(np.abs(a.estimate_deg - b.estimate_deg).max()) < 2.0
     cfg = json.loads((tmp_path / "a" / "config.json").read_text())
     assert cfg["ee_units"] == "mm (POINT:UNITS)" and cfg["goal"] == "final"
+
+
+# ----------------------------------------------------------------------------- BVH
+
+
+BVH_CHANNELS = ("Zrotation", "Yrotation")  # the mapped channel of each joint: first and last of the ZXY order
+
+
+def write_bvh(path: Path, observations, joints, *, signs, offsets, dt: float = 0.01) -> tuple[Path, dict]:
+    """A BVH chain of one BVH joint per model joint (CHANNELS Z X Y, degrees), the reaches one after
+    another, and its mapping file (model angle = sign * channel + offset)."""
+    lines = ["HIERARCHY"]
+    for k, _ in enumerate(joints):
+        kind = "ROOT" if k == 0 else "JOINT"
+        lines += ["  " * k + f"{kind} B{k}", "  " * k + "{", "  " * k + "  OFFSET 0 0.1 0",
+                  "  " * k + "  CHANNELS 3 Zrotation Xrotation Yrotation"]
+    lines += ["  " * len(joints) + "End Site", "  " * len(joints) + "{", "  " * len(joints) + "  OFFSET 0 0.1 0",
+              "  " * len(joints) + "}"]
+    lines += ["  " * k + "}" for k in reversed(range(len(joints)))]
+    q = np.concatenate([o.q.numpy() for o in observations])
+    lines += ["MOTION", f"Frames: {q.shape[0]}", f"Frame Time: {dt}"]
+    for row in q:
+        vals = []
+        for k, v in enumerate(row):
+            ch = (np.degrees(v) - offsets[k]) / signs[k]
+            z, y = (ch, 0.0) if BVH_CHANNELS[k % 2] == "Zrotation" else (0.0, ch)
+            vals += [z, 0.0, y]
+        lines.append(" ".join(f"{v:.6f}" for v in vals))
+    path.write_text("\n".join(lines) + "\n")
+    ends = np.cumsum([o.length for o in observations])
+    mapping = {"joints": {j: {"bvh": f"B{k}", "channel": BVH_CHANNELS[k % 2], "sign": signs[k],
+                              "offset_deg": offsets[k]} for k, j in enumerate(joints)},
+               "reaches": [[int(a), int(b) - 1] for a, b in zip(np.r_[0, ends[:-1]], ends, strict=True)]}
+    map_path = path.with_suffix(".json")
+    map_path.write_text(json.dumps(mapping))
+    return path, mapping
+
+
+def test_bvh_with_a_mapping_file_loads_as_the_joint_csv(tmp_path, sim):
+    theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)
+    obs = tuple(Observation(o.start, sim.forward_kinematics(o.q[-1]).double(), o.q, None)
+                for o in simulate_recordings(sim, theta, 3, seed=6))
+    signs = [1, -1, 1, 1, -1, 1, 1]
+    offsets = [0.0, 0.0, 10.0, 0.0, 0.0, -5.0, 0.0]
+    bvh, _ = write_bvh(tmp_path / "arm.bvh", obs, list(sim.joint_names), signs=signs, offsets=offsets)
+    rec = load_recording(bvh, sim, goal="final", bvh_map=bvh.with_suffix(".json"), resample=None)
+    assert len(rec.observations) == 3
+    for got, want in zip(rec.observations, obs, strict=True):
+        np.testing.assert_allclose(got.q.numpy(), want.q.numpy(), atol=1e-6)  # 6 decimals of a degree
+        np.testing.assert_allclose(got.goal.numpy(), want.goal.numpy(), atol=1e-6)
+    with pytest.raises(ValueError, match=r"^--bvh-map: a BVH file .* needs the mapping"):
+        load_recording(bvh, sim, goal="final")
+    bad = json.loads(bvh.with_suffix(".json").read_text())
+    bad["joints"]["elbow"]["bvh"] = "Forearm"
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match=r"^--bvh-map .*bad\.json: joint 'elbow': BVH joint 'Forearm' is not in"):
+        load_recording(bvh, sim, goal="final", bvh_map=tmp_path / "bad.json")
+    del bad["joints"]["elbow"]
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match=r"^--bvh-map .*bad\.json: joint 'elbow' is missing"):
+        load_recording(bvh, sim, goal="final", bvh_map=tmp_path / "bad.json")
+
+
+def test_the_readme_session_c3d(tmp_path, sim, capsys):
+    """README "From a motion-capture session": tests/data/session.c3d with its frame file, or with
+    the frame fitted from its base markers, loads the same 8 reaches; infer runs on it."""
+    from camo_sbi.io.frames import load_marker_positions
+
+    c3d = DATA / "session.c3d"
+    a = load_recording(c3d, sim, goal="final", ee_markers=["TOOL"], frame=load_frame(DATA / "session_frame.json"),
+                       noise=None)
+    names = ["BASE_A", "BASE_B", "BASE_C"]
+    b = load_recording(c3d, sim, goal="final", ee_markers=["TOOL"],
+                       frame_markers=load_marker_positions(DATA / "session_markers.json", names))
+    assert len(a.observations) == 8 and b.info["frame_residual_mm"] < 0.01
+    _assert_same(a.observations, b.observations, atol=1e-5)
+    assert main(["infer", "--observations", str(c3d), "--ee-marker", "TOOL", "--frame-from-markers", ",".join(names),
+                 "--marker-positions", str(DATA / "session_markers.json"), "--goal", "final", *MODEL,
+                 "--noise-ee-mm", "1", "--methods", "nominal", "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "limits [deg], lower .. upper" in out and "base_yaw" in out

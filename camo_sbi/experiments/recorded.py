@@ -469,7 +469,7 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
 
 def add_infer_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--observations", type=Path, required=True,
-                   help="recording file (.csv, .npz or .c3d), or a folder of them (one subject per file)")
+                   help="recording file (.csv, .npz, .c3d or .bvh), or a folder of them (one subject per file)")
     add_model_arguments(p, limits=False)
     p.add_argument("--methods", default="camo,camo-hull,naive,nominal", help="comma-separated method names")
     p.add_argument("--budget", type=int, default=500, help="simulations per observed reach")
@@ -524,6 +524,11 @@ def infer_main(args) -> int:
     start = list(model.start) if model.start is not None else None
     recording = load_from_args(args, args.observations, sim, noise, start)
     obs = recording.observations
+    if recording.scale != 1.0:
+        sim = sim.scaled(recording.scale)
+        lo, hi = recording.info["body_scale_90"]
+        print(f"body scale s = {recording.scale:.3f} (90% interval {lo:.3f}-{hi:.3f}; least squares of ee_* on the "
+              f"model's FK, bootstrap over reaches); every method runs on the scaled body")
     for w in recording.warnings:
         print(f"warning: {w}")
     goals = starts = None
@@ -598,6 +603,11 @@ def add_recording_arguments(p: argparse.ArgumentParser) -> None:
                    help='JSON {"marker": [x, y, z]} model-frame positions [m] for --frame-from-markers')
     p.add_argument("--ee-marker", default=None, metavar="NAME[,NAME...]",
                    help="C3D marker(s) of the end effector (several: their mean)")
+    p.add_argument("--bvh-map", type=Path, default=None,
+                   help="JSON mapping of a BVH file's channels to the model's joints (signs, offsets, reaches)")
+    p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
+                   help="free: estimate the body's segment-length scale s in [0.85, 1.15] from the joint and "
+                        "end-effector columns and infer on the scaled body")
 
 
 def load_from_args(args, path, sim, noise, start):
@@ -625,7 +635,8 @@ def load_from_args(args, path, sim, noise, start):
     return load_recording(path, sim, degrees=args.degrees, noise=noise, start=start,
                           resample=None if args.resample == "none" else args.resample, rate=args.rate,
                           ee_units=args.ee_units, goal=args.goal, frame=frame, ee_markers=ee_markers,
-                          frame_markers=markers)
+                          frame_markers=markers, body_scale=getattr(args, "body_scale", "fixed"),
+                          bvh_map=getattr(args, "bvh_map", None))
 
 
 def write_starts(path: Path, obs, sim) -> Path:
@@ -644,7 +655,7 @@ def write_starts(path: Path, obs, sim) -> Path:
     return atomic_write_text(path, pd.DataFrame(rows).to_csv(index=False))
 
 
-RECORDING_SUFFIXES = (".csv", ".npz", ".c3d")
+RECORDING_SUFFIXES = (".csv", ".npz", ".c3d", ".bvh")
 
 
 def infer_folder(args) -> int:

@@ -79,7 +79,7 @@ from camo_sbi.simulators.controller import ControllerConfig
 from camo_sbi.task import NoiseModel, Observation
 
 __all__ = ["BOUND_SLACK", "EE_COLUMNS", "EE_UNITS", "GOAL_COLUMNS", "GOAL_MODES", "K_SIGMA", "RESAMPLE_MODES",
-           "START_TOL_M", "Recording", "estimate_rate", "estimate_starts", "load_goals", "load_recording",
+           "START_TOL_M", "Recording", "estimate_body_scale", "estimate_rate", "estimate_starts", "load_goals", "load_recording",
            "load_recordings", "reach_radius", "resample_to_controller", "save_recordings"]
 
 REACH, STEP, TIME = "reach", "step", "time"
@@ -443,6 +443,47 @@ class Recording:
     observations: tuple[Observation, ...]
     warnings: tuple[str, ...] = ()
     info: dict = field(default_factory=dict)
+    scale: float = 1.0  # the body's segment-length scale (body_scale="free"), else 1
+
+
+BODY_SCALE_RANGE = (0.85, 1.15)
+BODY_SCALE_BOOTSTRAP = 200
+BODY_SCALE_WARN = 0.01
+"""A body more than 1% larger or smaller than the model (its 90% interval excluding 1) is warned."""
+
+
+def estimate_body_scale(simulator, q: np.ndarray, ee: np.ndarray, reaches) -> tuple[float, float, float]:
+    """The segment-length scale s of a recorded body: least squares of ``ee`` on s * FK(q) (every
+    segment s times as long moves the end effector to exactly s * FK(q) in the base frame,
+    `KinematicSimulator.scaled`), with a 90% interval from a bootstrap over the reaches (fixed
+    seed). Returns (s, lower, upper)."""
+    fk = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
+    num = np.array([float((ee[i] * fk[i]).sum()) for i in reaches])
+    den = np.array([float((fk[i] * fk[i]).sum()) for i in reaches])
+    s = float(num.sum() / den.sum())
+    rng = np.random.default_rng(0)
+    boot = []
+    for _ in range(BODY_SCALE_BOOTSTRAP):
+        k = rng.integers(0, len(reaches), len(reaches))
+        boot.append(num[k].sum() / den[k].sum())
+    lo, hi = np.quantile(boot, [0.05, 0.95])
+    return s, float(lo), float(hi)
+
+
+def _hint_body_scale(table: _Table, simulator, q, ee, reaches, noise) -> None:
+    """A recording that does not fit the model but fits a body of another size: say so."""
+    try:
+        _check_ee_matches_fk(table, simulator, q, ee, noise)
+    except ValueError as exc:
+        s, _, _ = estimate_body_scale(simulator, q, ee, reaches)
+        if abs(s - 1) > 0.01 and BODY_SCALE_RANGE[0] <= s <= BODY_SCALE_RANGE[1] and hasattr(simulator, "scaled"):
+            try:
+                _check_ee_matches_fk(table, simulator.scaled(s), q, ee, noise)
+            except ValueError:
+                raise exc from None
+            raise ValueError(f"{exc} The recording fits a body {s:.3f} times the model's size: use --body-scale "
+                             f"free") from None
+        raise
 
 
 def load_recordings(path, simulator, **kwargs) -> tuple[Observation, ...]:
@@ -453,7 +494,8 @@ def load_recordings(path, simulator, **kwargs) -> tuple[Observation, ...]:
 def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel | None = None,
                    start=None, resample: str | None = "time", rate: float | None = None,
                    ee_units: str | None = None, goal: str = "columns", frame: Frame | None = None,
-                   ee_markers=None, frame_markers: dict | None = None) -> Recording:
+                   ee_markers=None, frame_markers: dict | None = None, body_scale: str = "fixed",
+                   bvh_map=None) -> Recording:
     """The observed reaches in the recording file ``path`` (CSV, .npz or .c3d), for ``simulator``.
 
     Args:
@@ -476,6 +518,12 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         ee_markers: the C3D end-effector marker(s) (their mean).
         frame_markers: {C3D marker: (3,) model-frame position}: the frame estimated from these
             markers (`frame_from_markers`) instead of ``frame``.
+        bvh_map: a BVH file's mapping file (`camo_sbi.io.bvh`: BVH channels -> model joints,
+            signs, offsets, reach frame ranges); a .bvh ``path`` needs it.
+        body_scale: "fixed" (the model's body) or "free": the segment-length scale s of the
+            recorded body is estimated from the joint and end-effector columns
+            (`estimate_body_scale`) and ``Recording.scale`` holds it; the checks use the
+            scaled body (``simulator.scaled(s)``), as the caller should.
 
     Returns:
         A `Recording`: one `Observation` per reach, in file order (float64), the warnings
@@ -494,6 +542,8 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         raise ValueError(f"ee_units: expected one of {tuple(EE_UNITS)}, got {ee_units!r}")
     if goal not in GOAL_MODES:
         raise ValueError(f"goal: expected one of {GOAL_MODES}, got {goal!r}")
+    if body_scale not in ("fixed", "free"):
+        raise ValueError(f"body_scale: expected 'fixed' or 'free', got {body_scale!r}")
     path = Path(path)
     info: dict = {"goal": goal}
     warns: list[str] = []
@@ -507,6 +557,18 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         info["ee_marker"] = "+".join(ee_markers)
         if frame_markers:
             frame = frame_from_markers(c3d["markers"], frame_markers)
+    elif path.suffix.lower() == ".bvh":
+        from camo_sbi.io.bvh import load_bvh_map, read_bvh
+
+        if bvh_map is None:
+            raise ValueError(f"--bvh-map: a BVH file ({path}) needs the mapping from its channels to the model's "
+                             f"joints (see the README: From a motion-capture session)")
+        if not path.is_file():
+            raise ValueError(f"{path}: no such file")
+        d = read_bvh(path, load_bvh_map(bvh_map, list(simulator.joint_names)))
+        frames = d.pop("frames")
+        table = _Table(path, d, frames, "frame")
+        info["bvh_map"] = str(bvh_map)
     else:
         if ee_markers:
             raise ValueError(f"--ee-marker: only a C3D file has markers ({path})")
@@ -574,7 +636,26 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                           f"(the others at the start posture)" if not at_start.all() else "the start posture")
     else:
         info["starts"] = "observed (first row of each reach)"
+    scale = 1.0
+    if body_scale == "free":
+        if not (has_q and has_ee):
+            raise ValueError(f"--body-scale: free estimates the body's size from the joint and the end-effector "
+                             f"columns together; {path} has only {'joint' if has_q else 'end-effector'} columns")
+        scale, lo, hi = estimate_body_scale(simulator, q_all, ee_all, reaches)
+        if not BODY_SCALE_RANGE[0] <= scale <= BODY_SCALE_RANGE[1]:
+            raise ValueError(f"--body-scale: the recorded body is {scale:.3f} times the model's, outside "
+                             f"[{BODY_SCALE_RANGE[0]}, {BODY_SCALE_RANGE[1]}]: another model (--urdf, --height)?")
+        info["body_scale"] = round(scale, 4)
+        info["body_scale_90"] = [round(lo, 4), round(hi, 4)]
+        simulator = simulator.scaled(scale)
     if has_q and has_ee:
+        if body_scale == "fixed":
+            _hint_body_scale(table, simulator, q_all, ee_all, reaches, noise)
+            s_fit, s_lo, s_hi = estimate_body_scale(simulator, q_all, ee_all, reaches)
+            if abs(s_fit - 1) > BODY_SCALE_WARN and not s_lo <= 1.0 <= s_hi:
+                warns.append(f"{table.path}: the recording fits a body {s_fit:.3f} times the model's size (90% "
+                             f"interval {s_lo:.3f}-{s_hi:.3f}): the limits of the model's body will be off; "
+                             f"use --body-scale free")
         w = _check_ee_matches_fk(table, simulator, q_all, ee_all, noise)
         if w:
             warns.append(w)
@@ -606,13 +687,13 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         obs.append(Observation(st, torch.from_numpy(goal_all[idx[0]].copy()), q, ee))
     obs = tuple(obs)
     if resample is None:
-        return Recording(obs, tuple(warns), info)
+        return Recording(obs, tuple(warns), info, scale)
     r = estimate_rate(obs, simulator) if rate is None else float(rate)
     if not (math.isfinite(r) and r > 0):
         raise ValueError(f"rate: expected a number > 0, got {rate!r}")
     info["rate"] = round(r, 4)
     return Recording(tuple(resample_to_controller(o, simulator, mode=resample, rate=r) for o in obs),
-                     tuple(warns), info)
+                     tuple(warns), info, scale)
 
 
 def _read(path) -> _Table:
