@@ -456,18 +456,16 @@ def test_infer_a_folder_of_subjects_writes_one_limits_csv(recording, tmp_path, c
 def test_body_scale_free_on_a_body_5_percent_taller(tmp_path, sim, capsys):
     """Done-when of issue 27: recordings of a body 5% taller report s within 0.02 of 1.05; without
     --body-scale free the run warns that the body does not fit the model."""
-    from camo_sbi.experiments.recorded import simulate_recordings
-    from camo_sbi.io.recordings import save_recordings
-    from camo_sbi.task import NoiseModel
-
-    theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)
-    tall = sim.scaled(1.05)
-    obs = simulate_recordings(tall, theta, 5, seed=1, noise=NoiseModel(joint_deg=0.3, ee_mm=1.5))
-    path = save_recordings(tmp_path / "tall.csv", obs, sim)
+    path = tmp_path / "tall.csv"
+    assert main(["simulate-observations", *MODEL, *LIMITS, "--scale", "1.05", "--reaches", "5", "--seed", "1", *NOISE,
+                 "--out", str(path)]) == 0
+    assert _exit_2(["simulate-observations", *MODEL, *LIMITS, "--scale", "1.5", "--out", str(tmp_path / "x.csv")],
+                   capsys) == "camo-sbi: error: --scale: must lie in [0.85, 1.15], got 1.5"
     assert main(["infer", "--observations", str(path), *MODEL, *NOISE, "--methods", "nominal", "--out",
                  str(tmp_path / "fixed")]) == 0
     assert re.search(r"warning: .*tall.csv: the recording fits a body 1.0[45]\d times the model's size .* use "
                      r"--body-scale free", capsys.readouterr().out)
+    assert "the recording fits a body 1.0" in (tmp_path / "fixed" / "report.html").read_text()  # and the report
     out = tmp_path / "out"
     assert main(["infer", "--observations", str(path), *MODEL, *NOISE, "--body-scale", "free", "--methods",
                  "camo,naive,nominal", "--budget", "100", "--out", str(out)]) == 0

@@ -107,6 +107,8 @@ def add_simulate_arguments(p: argparse.ArgumentParser) -> None:
     _add_noise_arguments(p)
     p.add_argument("--rate-multiplier", type=float, default=1.0,
                    help="the recorder samples R times per controller step (default 1)")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="the subject's segments are F times as long as the model's (default 1; 0.85-1.15)")
     p.add_argument("--space", choices=("both", "joint", "cartesian"), default="both",
                    help="columns written: joint angles, end-effector positions or both")
     p.add_argument("--out", type=Path, required=True, help="recording file to write (.csv or .npz)")
@@ -128,10 +130,13 @@ def simulate_main(args) -> int:
     model = model_from_args(args)
     if model.limits is None:
         raise ValueError("--limits: simulate-observations needs the subject's true limits (--limits FILE.json)")
+    if not (np.isfinite(args.scale) and 0.85 <= args.scale <= 1.15):
+        raise ValueError(f"--scale: must lie in [0.85, 1.15], got {args.scale}")
     sim = model.build()
     theta = true_limits(model, sim, model.limits_name)
+    body = sim if args.scale == 1.0 else sim.scaled(args.scale)
     with tqdm(total=1, desc="simulate-observations", unit="file") as bar:
-        obs = simulate_recordings(sim, theta, args.reaches, seed=args.seed, noise=noise,
+        obs = simulate_recordings(body, theta, args.reaches, seed=args.seed, noise=noise,
                                   rate_multiplier=args.rate_multiplier)
         if args.space != "both":
             obs = tuple(Observation(o.start, o.goal, o.q if args.space == "joint" else None,
