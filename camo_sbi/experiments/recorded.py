@@ -13,6 +13,12 @@ test goals and no truth; its prior is the model's range split at the first reach
 and conditioned on every reach's start lying inside the limits (`BoxPrior.containing`):
 each start is an observed posture. Its noise model is ``--noise-joint-deg`` /
 ``--noise-ee-mm`` (carried in the task for the methods; the loader's range tolerance uses it).
+Recordings from a lab (`add_recording_arguments`, `load_from_args`): C3D markers and BVH
+channels, units, a lab frame, ``--goal final``, starts by IK, ``--body-scale free`` (the
+methods then run on ``model.scaled(s)``); the loader's warnings are printed and go in the
+report. The report and the summary open with the limits (`wide_limits`, `plot_limits`);
+limits.csv adds median, identifiability, exercised and calibration (`limits_table`).
+``--observations DIR/`` runs every recording of the folder (`infer_folder`).
 Methods that need the truth (oracle) are skipped with a note. A method that cannot use the
 file's space is an error naming ``space`` when it is the only method asked for, and skipped
 with a printed reason when several are.
