@@ -516,6 +516,11 @@ def test_infer_with_an_amortized_estimator(recording, sim, tmp_path, capsys):
     line = _exit_2([*base, "--methods", "npe-amortized", "--amortized", str(noisy), "--out", str(tmp_path / "c")],
                    capsys)
     assert line.startswith("camo-sbi: error: task.noise:")
+    tall = save_recordings(tmp_path / "tall.csv", make_reaching_task(sim.scaled(1.05), theta, n_train=3, n_test=1,
+                                                                      seed=0).observations, sim)
+    assert main(["infer", "--observations", str(tall), *MODEL, "--methods", "naive,npe-amortized", "--amortized",
+                 str(clean), "--body-scale", "free", "--out", str(tmp_path / "scaled")]) == 0
+    assert "npe-amortized: skipped (trained on the model's own size" in capsys.readouterr().out
     line = _exit_2([*base, "--methods", "npe-amortized", "--out", str(tmp_path / "d")], capsys)
     assert line.startswith("camo-sbi: error: --amortized: npe-amortized needs a trained estimator file")
     line = _exit_2([*base, "--methods", "npe-amortized", "--amortized", str(tmp_path / "missing.pt"), "--out",

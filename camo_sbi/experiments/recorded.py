@@ -547,6 +547,16 @@ def infer_main(args) -> int:
         goals, starts = load_goals(args.predict_goals, sim, degrees=args.degrees, noise=noise)
     task = _recorded_task(model, sim, obs, noise)
     plan, notes = _plan(methods, task, args.space, str(args.observations))
+    if recording.scale != 1.0:  # an amortized estimator was trained on the model's own size
+        from camo_sbi.inference.registry import capabilities
+
+        for name, _ in [p for p in plan if capabilities(p[0]).amortized]:
+            if len(methods) == 1:
+                raise ValueError(f"--body-scale: {name} was trained on the model's own size; with --body-scale free "
+                                 f"use a per-task method (camo, abc-smc, npe)")
+            notes.append(f"{name}: skipped (trained on the model's own size, not on the scaled body of "
+                         f"--body-scale free)")
+        plan = [p for p in plan if not capabilities(p[0]).amortized]
     plan = _check_amortized(plan, notes, task, obs, overrides, getattr(args, "amortized", None), len(methods) == 1)
     for n in notes:
         print(n)

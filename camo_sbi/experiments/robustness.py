@@ -253,7 +253,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-goals", type=int, default=10)
     p.add_argument("--budget", type=int, default=1000, help="simulations per observed reach")
     p.add_argument("--conditions", default=",".join(DEFAULT_CONDITIONS),
-                   help=f"comma-separated subset of the conditions ({', '.join(c.name for c in CONDITIONS)})")
+                   help="comma-separated subset of the conditions ("  # argparse formats help strings: % as %%
+                        + ", ".join(c.name for c in CONDITIONS).replace("%", "%%") + ")")
     p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
                    help="free: estimate the observed body's segment-length scale s from its joint and end-effector "
                         "recordings (io.recordings.estimate_body_scale) and infer and predict on model.scaled(s)")
