@@ -181,7 +181,7 @@ def _read_csv(path: Path) -> _Table:
             lines.append(reader.line_num)
     except csv.Error as exc:
         why = (f"a field is longer than {CSV_FIELD_LIMIT:,} characters" if "field limit" in str(exc) else str(exc))
-        raise ValueError(f"{path}: line {reader.line_num + 1}: {why}: not a CSV recording") from None
+        raise ValueError(f"{path}: line {reader.line_num}: {why}: not a CSV recording") from None
     if header is None:
         raise ValueError(f"{path}: empty file (expected a header line and one row per sample)")
     if not values:
