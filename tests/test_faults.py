@@ -574,6 +574,8 @@ def test_other_experiment_version_or_foreign_directory_is_refused(clean_run, tmp
                                                                    "camo_sbi 0.0.9 (here 0.1.0); use a new --out")
     (out / "manifest.json").write_text("{garbage")
     assert "manifest.json is unreadable" in _refused([*COMPARE, "--out", str(out)], capsys)
+    (out / "manifest.json").write_bytes(b"\x80\x04garbage\xff" * 7)  # binary: names the file, not the codec only
+    assert _refused([*COMPARE, "--out", str(out)], capsys).startswith(f"--out {out}: its manifest.json is unreadable")
     (out / "manifest.json").unlink()  # results of an older camo-sbi (no manifest)
     assert _refused([*COMPARE, "--out", str(out)], capsys) == (
         f"--out {out}: holds results (results.csv, cells/) without a run manifest (an older camo-sbi?); "

@@ -4,6 +4,7 @@ the shared model options (--urdf / --limits) on compare and reproduce panda."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -96,8 +97,9 @@ def test_rate_multiplier_writes_more_samples(recording, tmp_path, sim):
 
 def test_infer_limits_table_has_every_joint_and_bound(inferred, sim):
     out, df = inferred
-    assert list(df.columns) == ["method", "joint", "bound", "estimate_rad", "estimate_deg", "lower_90_deg",
-                                "upper_90_deg", "status"]
+    assert list(df.columns) == ["method", "joint", "bound", "estimate_rad", "estimate_deg", "median_deg",
+                                "lower_90_deg", "upper_90_deg", "identifiability", "reaches_at_bound", "exercised",
+                                "calibration", "status"]
     assert set(df.method) == {"camo", "naive", "nominal", "npe"}
     for _, g in df.groupby("method"):
         assert sorted(zip(g.joint, g.bound, strict=True)) == sorted((j, b) for j in JOINTS
@@ -108,6 +110,36 @@ def test_infer_limits_table_has_every_joint_and_bound(inferred, sim):
     for _, r in df.iterrows():
         j = JOINTS.index(r.joint)
         assert b[j, 0] - 1e-9 <= r.estimate_rad <= b[j, 1] + 1e-9
+
+
+def test_limits_csv_median_identifiability_exercised_calibration(inferred, sim, recording):
+    """median inside the 90% interval; identifiability = 90% width / the prior's 90% width (the
+    prior split at the reaches' starts); exercised = a reach's extreme within 4 sigma of the bound
+    (recomputed here from the file); the README's calibration verdict per method."""
+    out, df = inferred
+    assert ((df.lower_90_deg <= df.median_deg + 1e-9) & (df.median_deg <= df.upper_90_deg + 1e-9)).all()
+    obs = load_recordings(recording, sim, noise=load_noise())
+    starts = np.stack([o.start.numpy() for o in obs])
+    b = sim.bounds.numpy()
+    prior_w = np.empty(2 * len(JOINTS))
+    prior_w[0::2] = starts.min(axis=0) - b[:, 0]
+    prior_w[1::2] = b[:, 1] - starts.max(axis=0)
+    for m in ("camo", "npe"):
+        g = df[df.method == m]
+        width = np.radians(g.upper_90_deg - g.lower_90_deg).to_numpy()
+        np.testing.assert_allclose(g.identifiability, width / (0.9 * prior_w), rtol=1e-9)
+    assert df[df.method.isin(["naive", "nominal"])].identifiability.isna().all()
+    lo = np.stack([o.q.numpy().min(axis=0) for o in obs])
+    hi = np.stack([o.q.numpy().max(axis=0) for o in obs])
+    allow = K_SIGMA * np.radians(0.3) + 1e-6
+    nominal = df[df.method == "nominal"]
+    expect = np.empty(2 * len(JOINTS), bool)
+    expect[0::2] = (lo <= b[:, 0] + allow).any(axis=0)
+    expect[1::2] = (hi >= b[:, 1] - allow).any(axis=0)
+    assert nominal.exercised.tolist() == expect.tolist() and not expect.all()
+    verdict = dict(zip(df.method, df.calibration, strict=True))
+    assert verdict["camo"] == "not calibrated on this model (panda: over-confident; human: mildly over-confident)"
+    assert verdict["npe"].startswith("not calibrated on this model (panda: calibrated")
 
 
 def test_infer_point_methods_and_their_values(inferred, sim, recording):
@@ -145,7 +177,10 @@ def test_infer_posterior_interval_is_the_weighted_quantile(inferred):
 def test_infer_writes_report_posteriors_and_predictions(inferred, sim):
     out, df = inferred
     html = (out / "report.html").read_text()
-    assert html.count(PNG) == 4  # one figure per reach
+    assert html.count(PNG) == 5  # the limits figure, then one figure per reach
+    first = html.index(PNG)
+    assert html[first:].split('alt="', 1)[1].startswith("limits figure")  # the report opens with it
+    assert "not exercised" in html
     assert "http://" not in html and "https://" not in html  # self-contained
     for m in ("camo", "naive", "nominal", "npe"):
         assert (out / "posteriors" / f"{m}.nc").is_file()
@@ -202,7 +237,8 @@ def test_bad_files_exit_2_naming_the_column(recording, tmp_path, capsys, sim):
     f = _csv_edit(recording, tmp_path / "nogoal.csv", drop_goals)
     line = _exit_2([*base, "--observations", str(f)], capsys)
     assert line == f"camo-sbi: error: {f}: column 'goal_x' is missing " \
-                   f"(a recording needs reach, step, goal_x, goal_y, goal_z, then the joint columns and/or " \
+                   f"(a recording needs reach, step (or time in seconds), goal_x, goal_y, goal_z (or --goal final " \
+                   f"for free reaching), then the joint columns and/or " \
                    f"ee_x, ee_y, ee_z)"
     f = _csv_edit(recording, tmp_path / "unknown.csv",
                   lambda lines: [lines[0].replace("wrist_pitch", "wrist_flex"), *lines[1:]])
@@ -361,6 +397,85 @@ def test_reaches_from_different_starts(tmp_path, sim, capsys):
         assert (est[0::2] <= s.min(axis=0) + 1e-9).all() and (est[1::2] >= s.max(axis=0) - 1e-9).all(), m
 
 
+def test_ee_only_reaches_from_five_start_postures_are_inferred(tmp_path, sim, capsys):
+    """Done-when of issue 27: end-effector-only reaches from 5 start postures. Each start is
+    estimated by IK (starts.csv), and every method's limits contain every estimated start."""
+    import torch
+
+    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.scenarios.reaching import observe, reachable_goals
+    from camo_sbi.task import Observation
+
+    theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)
+    gen = torch.Generator().manual_seed(4)
+    base = torch.tensor([float(v) for v in START.split(",")], dtype=torch.float64)
+    starts = torch.stack([torch.clamp(base + 0.3 * (2 * torch.rand(7, generator=gen, dtype=torch.float64) - 1),
+                                      theta[0::2] + 0.05, theta[1::2] - 0.05) for _ in range(5)])
+    obs = observe(sim, theta, reachable_goals(sim, theta, 5, gen), starts)
+    path = save_recordings(tmp_path / "ee5.csv", tuple(Observation(o.start, o.goal, None, o.ee) for o in obs), sim)
+    out = tmp_path / "out"
+    assert main(["infer", "--observations", str(path), *MODEL, "--methods", "camo,nominal", "--budget", "100",
+                 "--noise-ee-mm", "1", "--out", str(out)]) == 0
+    est = pd.read_csv(out / "starts.csv")
+    assert len(est) == 5 and list(est.columns[:2]) == ["reach", "source"] and (est.source == "IK").all()
+    q = torch.tensor(est[JOINTS].to_numpy())
+    first = torch.stack([o.ee[0] for o in obs])
+    assert float((sim.forward_kinematics(q).to(torch.float64) - first).norm(dim=1).max()) < 1e-3
+    df = pd.read_csv(out / "limits.csv")
+    for m, g in df.groupby("method"):
+        e = g.estimate_rad.to_numpy()
+        assert (e[0::2] <= q.numpy().min(axis=0) + 1e-6).all() and (e[1::2] >= q.numpy().max(axis=0) - 1e-6).all(), m
+
+
+def test_infer_a_folder_of_subjects_writes_one_limits_csv(recording, tmp_path, capsys):
+    """Done-when of issue 27: ``infer --observations DIR/`` (one subject per file) writes one
+    combined limits.csv with a subject column, and one report."""
+    folder = tmp_path / "session"
+    folder.mkdir()
+    (folder / "alice.csv").write_text(recording.read_text())
+    assert main(["simulate-observations", *MODEL, *LIMITS, "--reaches", "3", "--seed", "9", *NOISE,
+                 "--out", str(folder / "bob.npz")]) == 0
+    (folder / "notes.txt").write_text("not a recording")
+    out = tmp_path / "out"
+    assert main(["infer", "--observations", str(folder), *MODEL, *NOISE, "--methods", "naive,nominal",
+                 "--out", str(out)]) == 0
+    df = pd.read_csv(out / "limits.csv")
+    assert df.columns[0] == "subject" and sorted(set(df.subject)) == ["alice", "bob"]
+    assert len(df) == 2 * 2 * 2 * len(JOINTS)
+    alone = pd.read_csv(out / "subjects" / "alice" / "limits.csv")
+    pd.testing.assert_frame_equal(df[df.subject == "alice"].drop(columns="subject").reset_index(drop=True), alone)
+    html = (out / "report.html").read_text()
+    assert html.count('alt="limits figure"') == 2 and 'href="subjects/bob/report.html"' in html
+    (folder / "carol.csv").write_text("reach,step\n")
+    line = _exit_2(["infer", "--observations", str(folder), *MODEL, *NOISE, "--methods", "naive", "--out",
+                    str(tmp_path / "o2")], capsys)
+    assert line.startswith(f"camo-sbi: error: {folder / 'carol.csv'}: has a header but no samples")
+    assert not (tmp_path / "o2").exists()  # every file is checked before anything runs
+
+
+def test_body_scale_free_on_a_body_5_percent_taller(tmp_path, sim, capsys):
+    """Done-when of issue 27: recordings of a body 5% taller report s within 0.02 of 1.05; without
+    --body-scale free the run warns that the body does not fit the model."""
+    path = tmp_path / "tall.csv"
+    assert main(["simulate-observations", *MODEL, *LIMITS, "--scale", "1.05", "--reaches", "5", "--seed", "1", *NOISE,
+                 "--out", str(path)]) == 0
+    assert _exit_2(["simulate-observations", *MODEL, *LIMITS, "--scale", "1.5", "--out", str(tmp_path / "x.csv")],
+                   capsys) == "camo-sbi: error: --scale: must lie in [0.85, 1.15], got 1.5"
+    assert main(["infer", "--observations", str(path), *MODEL, *NOISE, "--methods", "nominal", "--out",
+                 str(tmp_path / "fixed")]) == 0
+    assert re.search(r"warning: .*tall.csv: the recording fits a body 1.0[45]\d times the model's size .* use "
+                     r"--body-scale free", capsys.readouterr().out)
+    assert "the recording fits a body 1.0" in (tmp_path / "fixed" / "report.html").read_text()  # and the report
+    out = tmp_path / "out"
+    assert main(["infer", "--observations", str(path), *MODEL, *NOISE, "--body-scale", "free", "--methods",
+                 "camo,naive,nominal", "--budget", "100", "--out", str(out)]) == 0
+    cfg = json.loads((out / "config.json").read_text())
+    assert abs(cfg["body_scale"] - 1.05) < 0.02
+    lo, hi = cfg["body_scale_90"]
+    assert lo <= cfg["body_scale"] <= hi and hi - lo < 0.02
+    assert f"body scale s = {cfg['body_scale']:.3f}" in capsys.readouterr().out
+
+
 def test_demo_and_calibrate_on_a_urdf(tmp_path):
     assert main(["demo", *MODEL, "--batch", "8", "--out", str(tmp_path / "demo")]) == 0
     assert (tmp_path / "demo" / "demo.png").stat().st_size > 1000
@@ -401,6 +516,11 @@ def test_infer_with_an_amortized_estimator(recording, sim, tmp_path, capsys):
     line = _exit_2([*base, "--methods", "npe-amortized", "--amortized", str(noisy), "--out", str(tmp_path / "c")],
                    capsys)
     assert line.startswith("camo-sbi: error: task.noise:")
+    tall = save_recordings(tmp_path / "tall.csv", make_reaching_task(sim.scaled(1.05), theta, n_train=3, n_test=1,
+                                                                      seed=0).observations, sim)
+    assert main(["infer", "--observations", str(tall), *MODEL, "--methods", "naive,npe-amortized", "--amortized",
+                 str(clean), "--body-scale", "free", "--out", str(tmp_path / "scaled")]) == 0
+    assert "npe-amortized: skipped (trained on the model's own size" in capsys.readouterr().out
     line = _exit_2([*base, "--methods", "npe-amortized", "--out", str(tmp_path / "d")], capsys)
     assert line.startswith("camo-sbi: error: --amortized: npe-amortized needs a trained estimator file")
     line = _exit_2([*base, "--methods", "npe-amortized", "--amortized", str(tmp_path / "missing.pt"), "--out",

@@ -18,6 +18,7 @@ from camo_sbi.io.recordings import (
     K_SIGMA,
     estimate_rate,
     load_goals,
+    load_recording,
     load_recordings,
     resample_to_controller,
     save_recordings,
@@ -255,12 +256,118 @@ def test_ee_must_match_the_joints_forward_kinematics(csv_file, sim, exact):
     load_recordings(csv_file, sim, noise=NoiseModel(ee_mm=10.0))  # within the noise allowance
 
 
-def test_ee_only_reach_must_start_at_the_start_posture(tmp_path, sim, exact):
-    moved = tuple(Observation(o.start, o.goal, None, o.ee + torch.tensor([0.05, 0.0, 0.0], dtype=torch.float64))
+def test_ee_only_reaches_from_other_starts_get_their_start_by_ik(tmp_path, sim, theta):
+    """Five reaches from five start postures, end-effector columns only: each start is estimated
+    (IK of the first sample within the model's range) and lands on the first sample."""
+    from camo_sbi.scenarios.reaching import observe, reachable_goals
+
+    gen = torch.Generator().manual_seed(1)
+    base = torch.tensor(ARM7_START, dtype=torch.float64)
+    lo, hi = theta[0::2], theta[1::2]
+    starts = torch.stack([torch.clamp(base + 0.3 * (2 * torch.rand(7, generator=gen, dtype=torch.float64) - 1),
+                                      lo + 0.05, hi - 0.05) for _ in range(5)])
+    goals = reachable_goals(sim, theta, 5, gen)
+    obs = observe(sim, theta, goals, starts)
+    path = save_recordings(tmp_path / "ee.csv", tuple(Observation(o.start, o.goal, None, o.ee) for o in obs), sim)
+    rec = load_recording(path, sim, resample=None)
+    got = torch.stack([o.start for o in rec.observations])
+    fk = sim.forward_kinematics(got).to(torch.float64)
+    first = torch.stack([o.ee[0] for o in rec.observations])
+    assert float((fk - first).norm(dim=1).max()) < 1e-4
+    assert float((got - starts).abs().max()) > 0.05  # not the model's start: each reach has its own
+    assert "5 of 5 estimated by IK" in rec.info["starts"]
+
+
+def test_ee_only_start_out_of_reach_is_refused(tmp_path, sim, exact):
+    moved = tuple(Observation(o.start, o.goal, None, o.ee + torch.tensor([2.0, 0.0, 0.0], dtype=torch.float64))
                   for o in exact)
     path = save_recordings(tmp_path / "ee.csv", moved, sim)
-    with pytest.raises(ValueError, match=_err(path, r"column 'ee_x', line 2: reach 0 starts 50.0 mm from .*--start")):
+    with pytest.raises(ValueError, match=_err(path, r"column 'ee_x', line 2: reach 0 starts .* mm from any posture "
+                                                    r"the model reaches .*--ee-units")):
         load_recordings(path, sim)
+
+
+# ----------------------------------------------------------------------------- hostile and foreign files
+
+
+def test_utf8_bom_is_accepted(csv_file, sim, exact):
+    csv_file.write_bytes(b"\xef\xbb\xbf" + csv_file.read_bytes())
+    obs = load_recordings(csv_file, sim, resample=None)
+    assert torch.equal(obs[0].q, exact[0].q)
+
+
+def test_binary_oversized_and_non_zip_files_name_the_file(tmp_path, sim):
+    binary = tmp_path / "bin.csv"
+    binary.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(ValueError, match=_err(binary, "is a binary file")):
+        load_recordings(binary, sim)
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes(b"reach,step,goal_x\n\xff\xfe,1,2\n")
+    with pytest.raises(ValueError, match=_err(latin, "is not UTF-8 text")):
+        load_recordings(latin, sim)
+    huge = tmp_path / "huge.csv"
+    huge.write_text('reach,step\n"' + "1" * 140_000 + '",0\n')
+    with pytest.raises(ValueError, match=_err(huge, "line 2: a field is longer than 131,072 characters")):
+        load_recordings(huge, sim)
+    fake = tmp_path / "fake.npz"
+    fake.write_bytes(b"not a zip at all" * 10)
+    with pytest.raises(ValueError, match=_err(fake, r"cannot read as NPZ \(not a zip")):
+        load_recordings(fake, sim)
+
+
+def test_millimetres_get_a_hint_and_load_with_ee_units_mm(tmp_path, sim, exact):
+    ee = tuple(Observation(o.start, o.goal * 1000, None, o.ee * 1000) for o in exact)
+    path = save_recordings(tmp_path / "mm.csv", ee, sim)
+    with pytest.raises(ValueError, match=_err(path, r"column 'ee_x', line \d+: -?[\d.]+ m is \d+x as far as "
+                                                    r"the model reaches .* look like millimetres: "
+                                                    r"use --ee-units mm")):
+        load_recordings(path, sim)
+    obs = load_recordings(path, sim, ee_units="mm", resample=None)
+    assert torch.allclose(obs[0].ee, exact[0].ee, atol=1e-12)
+
+
+def test_time_column_in_seconds_replaces_step(tmp_path, sim, exact):
+    """A ``time`` column (seconds, jittered) with ``--ee-units mm``: each reach is put on a uniform
+    grid at the file's median interval, then resampled as a step file is."""
+    ref = save_recordings(tmp_path / "ref.csv", exact, sim)
+    lines = _lines(ref)
+    header = lines[0].split(",")
+    out = ["reach,time," + ",".join(header[2:])]
+    rng = np.random.default_rng(0)
+    for line in lines[1:]:
+        c = line.split(",")
+        t = int(c[1]) * 0.01 + (rng.uniform(-0.001, 0.001) if int(c[1]) else 0.0)
+        vals = [float(v) for v in c[2:]]
+        vals = [v * 1000 if h.startswith(("goal_", "ee_")) else v for h, v in zip(header[2:], vals, strict=True)]
+        out.append(",".join([c[0], repr(t)] + [repr(v) for v in vals]))
+    path = _write(tmp_path / "timed.csv", out)
+    rec = load_recording(path, sim, ee_units="mm")
+    assert [o.length for o in rec.observations] == [o.length for o in exact]
+    assert rec.info["sample_interval_s"] == pytest.approx(0.01, abs=2e-4)
+    for o, e in zip(rec.observations, exact, strict=True):
+        assert float((o.ee - e.ee).abs().max()) < 5e-3  # the jitter (1 ms of a 10 ms step) moves samples < 5 mm
+    both = _write(tmp_path / "both.csv", [out[0].replace("reach,time", "reach,step,time")]
+                  + [line.replace(",", ",0,", 1) for line in out[1:]])
+    with pytest.raises(ValueError, match=_err(both, "column 'time': give step or time, not both")):
+        load_recordings(both, sim)
+
+
+def test_out_of_reach_goal_and_systematic_offset_are_warned(csv_file, sim, exact):
+    lines = _lines(csv_file)
+    header = lines[0].split(",")
+    cells = [line.split(",") for line in lines]
+    for row in cells[1:]:
+        if row[0] == "1":
+            for c in ("goal_x", "goal_y", "goal_z"):
+                row[header.index(c)] = "5.0"
+        row[header.index("ee_x")] = repr(float(row[header.index("ee_x")]) + 0.02)
+    _write(csv_file, [",".join(r) for r in cells])
+    rec = load_recording(csv_file, sim, resample=None, noise=NoiseModel(ee_mm=5.0))  # 2 cm: within the noise
+    text = "\n".join(rec.warnings)
+    assert re.search(r"1 of 4 goals out of the model's reach: reach 1's goal is 8.660 m from the base", text)
+    assert re.search(r"a systematic 20.0 mm from the model's end effector", text)
+    clean = load_recording(save_recordings(csv_file.parent / "clean.csv", exact, sim), sim, resample=None)
+    assert clean.warnings == ()
 
 
 def test_empty_and_missing_files(tmp_path, sim):

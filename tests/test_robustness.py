@@ -46,6 +46,23 @@ def test_robustness_command_small(tmp_path):
         main([*argv[:-2], "--budget", "50", "--out", str(out)])
 
 
+def test_robustness_body_scale_free(tmp_path):
+    """--body-scale free: s estimated from the observed body's joint and end-effector recordings
+    (within 0.01 of 1.10 / 0.95), and the oracle, on the rescaled model, predicts the mis-sized body's
+    reaches far better than on the model's own size."""
+    out = tmp_path / "rob"
+    argv = ["robustness", "--methods", "oracle", "--seeds", "1", "--tasks", "2", "--test-goals", "3", "--budget",
+            "20", "--conditions", "clean,taller 10%,shorter 5%"]
+    assert main([*argv, "--body-scale", "free", "--out", str(out)]) == 0
+    assert main([*argv, "--out", str(tmp_path / "fixed")]) == 0
+    df = pd.read_csv(out / "results.csv").set_index(["condition", "metric"]).value
+    assert abs(df[("taller 10%", "body_scale")] - 1.10) < 0.01 and abs(df[("shorter 5%", "body_scale")] - 0.95) < 0.01
+    fixed = pd.read_csv(tmp_path / "fixed" / "results.csv").set_index(["condition", "metric"]).value
+    assert "body_scale" not in set(pd.read_csv(tmp_path / "fixed" / "results.csv").metric)
+    for cond in ("taller 10%", "shorter 5%"):
+        assert df[(cond, "cartesian_error_mm")] < 0.2 * fixed[(cond, "cartesian_error_mm")]
+
+
 def test_summary_table_ratio():
     rows = [{"method": m, "condition": c, "metric": "cartesian_error_mm", "value": v, "seed": 0}
             for m, c, v in (("a", "clean", 2.0), ("a", "rate x3", 5.0), ("b", "clean", 1.0), ("b", "rate x3", 1.5))]

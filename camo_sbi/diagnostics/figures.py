@@ -5,6 +5,10 @@
   posterior-predictive plots (``plot_ppc``) draw distributions of scalar observations,
   not paths in space.
 
+* `plot_limits`: the inferred limits a clinician reads first: per joint the model's range
+  (grey bar), each method's estimate and 90% interval in degrees, bounds no reach exercised
+  drawn hollow and labelled "not exercised".
+
 The forest and corner plots of the limits are arviz's (`camo_sbi.diagnostics.arviz_io`:
 ``plot_forest``, ``plot_corner`` over ``arviz.plot_pair``).
 """
@@ -25,7 +29,7 @@ from camo_sbi.diagnostics.style import (
     paper_figure,
 )
 
-__all__ = ["plot_predictive"]
+__all__ = ["plot_limits", "plot_predictive"]
 
 
 @paper_figure
@@ -70,6 +74,52 @@ def plot_predictive(observed: Sequence[np.ndarray], predicted: Mapping[str, Sequ
                Line2D([], [], color="k", marker="*", ls="none", ms=10, mfc="white", label="goal")]
     figure_legend(fig, axes)
     fig.legend(handles=handles, loc="outside lower right", frameon=False, ncols=3)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+@paper_figure
+def plot_limits(table, ranges: Mapping[str, tuple[float, float]], *, title: str = "") -> Figure:
+    """Per joint (one row), the model's range ``ranges[joint]`` (degrees) as a grey bar, and for
+    each method of ``table`` (the limits table: method, joint, bound, estimate_deg, lower_90_deg,
+    upper_90_deg, exercised) its two bounds: a marker at the estimate and a line over the 90%
+    interval. A bound with ``exercised`` False is drawn hollow and labelled "not exercised"."""
+    joints = [j for j in ranges if j in set(table["joint"])]
+    if not joints:
+        raise ValueError("table: no joint with a range in degrees to draw")
+    methods = method_order(table["method"].unique())
+    n = len(joints)
+    fig, axes = new_figure(1, 1, width="double", figsize=(7.0, 0.9 + 0.42 * n * max(1, len(methods)) ** 0.5))
+    ax = axes[0, 0]
+    span = max(1, len(methods))
+    labelled = False
+    for r, joint in enumerate(joints):
+        y0 = n - 1 - r
+        lo, hi = ranges[joint]
+        ax.barh(y0, hi - lo, left=lo, height=0.8, color="0.85", edgecolor="0.6", lw=0.5,
+                label="model range" if r == 0 else None, zorder=1)
+        for k, m in enumerate(methods):
+            st = method_style(m)
+            y = y0 + 0.3 - 0.6 * (k + 0.5) / span
+            rows = table[(table["method"] == m) & (table["joint"] == joint)]
+            for _, row in rows.iterrows():
+                ax.plot([row["lower_90_deg"], row["upper_90_deg"]], [y, y], color=st.color, lw=1.4, zorder=2)
+                hollow = not bool(row["exercised"])
+                ax.plot(row["estimate_deg"], y, marker=st.marker, ms=5, ls="none", color=st.color,
+                        mfc="white" if hollow else st.color, zorder=3)
+            if r == 0:
+                ax.plot([], [], marker=st.marker, ms=5, color=st.color, lw=1.4, label=m)
+                if hollow and not labelled:
+                    ax.annotate("not exercised", (row["estimate_deg"], y), xytext=(0, 5), textcoords="offset points",
+                                ha="center", fontsize=6, color="0.3")
+                    labelled = True
+    ax.plot([], [], marker="o", ls="none", color="0.3", mfc="white", label="not exercised (hollow)")
+    ax.set_yticks(range(n), list(reversed(joints)))
+    ax.set_ylim(-0.6, n - 0.4)
+    ax.set_xlabel("joint angle [deg]; marker: estimate, line: 90% interval")
+    ax.grid(axis="x", alpha=0.3)
+    figure_legend(fig, ax)
     if title:
         fig.suptitle(title)
     return fig

@@ -13,6 +13,12 @@ test goals and no truth; its prior is the model's range split at the first reach
 and conditioned on every reach's start lying inside the limits (`BoxPrior.containing`):
 each start is an observed posture. Its noise model is ``--noise-joint-deg`` /
 ``--noise-ee-mm`` (carried in the task for the methods; the loader's range tolerance uses it).
+Recordings from a lab (`add_recording_arguments`, `load_from_args`): C3D markers and BVH
+channels, units, a lab frame, ``--goal final``, starts by IK, ``--body-scale free`` (the
+methods then run on ``model.scaled(s)``); the loader's warnings are printed and go in the
+report. The report and the summary open with the limits (`wide_limits`, `plot_limits`);
+limits.csv adds median, identifiability, exercised and calibration (`limits_table`).
+``--observations DIR/`` runs every recording of the folder (`infer_folder`).
 Methods that need the truth (oracle) are skipped with a note. A method that cannot use the
 file's space is an error naming ``space`` when it is the only method asked for, and skipped
 with a printed reason when several are.
@@ -38,10 +44,14 @@ if TYPE_CHECKING:
     import numpy as np
     import torch
 
-__all__ = ["add_infer_arguments", "add_simulate_arguments", "infer_main", "limits_table", "simulate_main",
-           "simulate_recordings"]
+__all__ = ["CALIBRATION_VERDICTS", "add_infer_arguments", "add_recording_arguments", "add_simulate_arguments",
+           "calibration_verdict", "infer_main", "limits_table", "load_from_args", "simulate_main",
+           "simulate_recordings", "wide_limits", "write_starts"]
 
 PPC_DRAWS = 50
+NARROWED = 0.5
+"""`limits_table`: on end-effector-only data a bound is exercised when its 90% interval is below this
+fraction of the prior's."""
 MAX_REPORT_REACHES = 12
 INTERVAL = 0.90
 
@@ -103,6 +113,8 @@ def add_simulate_arguments(p: argparse.ArgumentParser) -> None:
     _add_noise_arguments(p)
     p.add_argument("--rate-multiplier", type=float, default=1.0,
                    help="the recorder samples R times per controller step (default 1)")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="the subject's segments are F times as long as the model's (default 1; 0.85-1.15)")
     p.add_argument("--space", choices=("both", "joint", "cartesian"), default="both",
                    help="columns written: joint angles, end-effector positions or both")
     p.add_argument("--out", type=Path, required=True, help="recording file to write (.csv or .npz)")
@@ -127,10 +139,13 @@ def simulate_main(args) -> int:
     model = model_from_args(args)
     if model.limits is None:
         raise ValueError("--limits: simulate-observations needs the subject's true limits (--limits FILE.json)")
+    if not (np.isfinite(args.scale) and 0.85 <= args.scale <= 1.15):
+        raise ValueError(f"--scale: must lie in [0.85, 1.15], got {args.scale}")
     sim = model.build()
     theta = true_limits(model, sim, model.limits_name)
+    body = sim if args.scale == 1.0 else sim.scaled(args.scale)
     with tqdm(total=1, desc="simulate-observations", unit="file") as bar:
-        obs = simulate_recordings(sim, theta, args.reaches, seed=args.seed, noise=noise,
+        obs = simulate_recordings(body, theta, args.reaches, seed=args.seed, noise=noise,
                                   rate_multiplier=args.rate_multiplier)
         if args.space != "both":
             obs = tuple(Observation(o.start, o.goal, o.q if args.space == "joint" else None,
@@ -151,32 +166,119 @@ def simulate_main(args) -> int:
 # ----------------------------------------------------------------------------- infer
 
 
-def limits_table(results: dict, sim):
-    """One row per method, joint and bound: estimate [rad], [deg] and the 90% central interval [deg].
+CALIBRATION_VERDICTS = {
+    # README "Calibration (50 synthetic subjects per model)": camo-sbi calibrate, docs/calibration/*/summary.txt
+    "panda": {"npe": "calibrated", "camo-hull": "over-confident", "camo": "over-confident",
+              "abc-smc": "strongly over-confident", "naive": "a point estimate, not a posterior"},
+    "human": {"npe": "calibrated", "camo": "mildly over-confident", "camo-hull": "over-confident",
+              "abc-smc": "strongly over-confident", "naive": "a point estimate, not a posterior"},
+}
+"""The calibration verdicts the README reports (coverage of 50 synthetic subjects per model)."""
 
-    Point methods (one sample) have both interval ends at the estimate. Prismatic joints:
-    ``estimate_rad`` holds metres and the degree columns are empty.
+
+def calibration_verdict(method: str, model: str) -> str:
+    """The README's calibration verdict for ``method`` on ``model`` (or on the models measured)."""
+    if method in ("nominal", "oracle"):
+        return "a point (no posterior)"
+    if model in CALIBRATION_VERDICTS:
+        return CALIBRATION_VERDICTS[model].get(method, "not calibrated")
+    seen = [f"{m}: {v[method]}" for m, v in CALIBRATION_VERDICTS.items() if method in v]
+    return f"not calibrated on this model ({'; '.join(seen)})" if seen else "not calibrated"
+
+
+def limits_table(results: dict, sim, task=None):
+    """One row per method, joint and bound: estimate [rad], [deg], posterior median [deg], the 90%
+    central interval [deg], identifiability, exercised, the calibration verdict and the status.
+
+    Point methods (one sample) have both interval ends and the median at the estimate, and no
+    identifiability. Prismatic joints: ``estimate_rad`` holds metres and the degree columns are
+    empty. With ``task`` (its prior and observations):
+
+    * ``identifiability``: the 90% interval's width over the prior's 90% width for this bound
+      (1: the data taught nothing; a bound fixed by the prior: empty).
+    * ``reaches_at_bound``: reaches whose observed joint angle comes within the noise allowance
+      (`K_SIGMA` sigma) of the bound's 90% interval (the estimate for point methods).
+    * ``exercised``: some reach came that close; with no joint columns (end-effector-only
+      data, nothing to come close with) instead: the posterior narrowed the bound below
+      `NARROWED` of the prior width. With joint columns narrowing alone does not count: an
+      over-confident posterior (CAMO's, see ``calibration``) narrows bounds no reach touched,
+      which is exactly the misreading "not exercised" guards against. An unexercised bound is
+      not evidence of an impairment: the data say nothing about it.
     """
     import numpy as np
     import pandas as pd
 
     from camo_sbi.inference.result import weighted_quantile
+    from camo_sbi.io.recordings import BOUND_SLACK, K_SIGMA
 
     a = (1.0 - INTERVAL) / 2
     types = getattr(getattr(sim, "spec", None), "joint_types", ("revolute",) * sim.n_joints)
+    model = "" if task is None else str(task.name)
+    q_lo = q_hi = None
+    allow = BOUND_SLACK
+    if task is not None:
+        qs = [o.q.numpy() for o in task.observations if o.q is not None]
+        if qs:
+            q_lo = np.stack([q.min(axis=0) for q in qs])  # (reaches, n)
+            q_hi = np.stack([q.max(axis=0) for q in qs])
+        allow += K_SIGMA * task.noise.sigma("joint") if task.noise is not None else 0.0
+        prior_w = INTERVAL * (task.prior.high - task.prior.low).numpy()
     rows = []
     for name, res in results.items():
         w = res.normalized_weights()
         lo, hi = weighted_quantile(res.samples, w, a), weighted_quantile(res.samples, w, 1.0 - a)
+        med = weighted_quantile(res.samples, w, 0.5)
+        point = res.samples.shape[0] <= 1
+        verdict = calibration_verdict(name, model)
         for j, joint in enumerate(sim.joint_names):
             for b, bound in enumerate(("lower", "upper")):
                 k = 2 * j + b
                 deg = (lambda v: float(np.degrees(v))) if types[j] == "revolute" else (lambda v: float("nan"))
+                ident = touching = float("nan")
+                exercised = None
+                if task is not None:
+                    e_lo, e_hi = float(lo[k]), float(hi[k])
+                    if point:
+                        e_lo = e_hi = float(res.estimate[k])
+                    else:
+                        ident = float((e_hi - e_lo) / prior_w[k]) if prior_w[k] > 0 else float("nan")
+                    touching = 0
+                    if q_lo is not None:
+                        x = q_lo[:, j] if b == 0 else q_hi[:, j]
+                        touching = int(((x >= e_lo - allow) & (x <= e_hi + allow)).sum())
+                    narrowed = q_lo is None and bool(np.isfinite(ident) and ident < NARROWED)
+                    exercised = bool(touching > 0 or narrowed)
                 rows.append({"method": name, "joint": joint, "bound": bound,
                              "estimate_rad": float(res.estimate[k]), "estimate_deg": deg(res.estimate[k]),
-                             "lower_90_deg": deg(lo[k]), "upper_90_deg": deg(hi[k]), "status": res.status})
-    return pd.DataFrame(rows, columns=["method", "joint", "bound", "estimate_rad", "estimate_deg",
-                                       "lower_90_deg", "upper_90_deg", "status"])
+                             "median_deg": deg(res.estimate[k] if point else med[k]),
+                             "lower_90_deg": deg(lo[k]), "upper_90_deg": deg(hi[k]), "identifiability": ident,
+                             "reaches_at_bound": touching, "exercised": exercised, "calibration": verdict,
+                             "status": res.status})
+    return pd.DataFrame(rows, columns=["method", "joint", "bound", "estimate_rad", "estimate_deg", "median_deg",
+                                       "lower_90_deg", "upper_90_deg", "identifiability", "reaches_at_bound",
+                                       "exercised", "calibration", "status"])
+
+
+def wide_limits(table):
+    """The limits as a person reads them: one row per joint, one column per method, each cell
+    "lower .. upper" in degrees with 1 decimal; a bound no reach exercised is marked "*"."""
+    import numpy as np
+    import pandas as pd
+
+    def cell(g) -> str:
+        parts = []
+        for bound in ("lower", "upper"):
+            r = g[g["bound"] == bound].iloc[0]
+            v = r["estimate_deg"] if np.isfinite(r["estimate_deg"]) else r["estimate_rad"]
+            mark = "*" if r["exercised"] is not None and not bool(r["exercised"]) else ""
+            parts.append(f"{v:.1f}{mark}")
+        return " .. ".join(parts)
+
+    out = {}
+    for m in dict.fromkeys(table["method"]):
+        t = table[table["method"] == m]
+        out[m] = [cell(t[t["joint"] == j]) for j in dict.fromkeys(table["joint"])]
+    return pd.DataFrame(out, index=pd.Index(list(dict.fromkeys(table["joint"])), name="joint"))
 
 
 def _recorded_task(model, sim, obs, noise):
@@ -266,6 +368,27 @@ def _method_config(name: str, space: str | None, budget: int, workdir: Path, ove
     return cfg
 
 
+def _limits_html(table, sim) -> str:
+    """The limits figure (model range, estimates, 90% intervals, "not exercised") and the wide table."""
+    import numpy as np
+
+    from camo_sbi.diagnostics.figures import plot_limits
+    from camo_sbi.diagnostics.report import figure_html, table_html
+
+    types = getattr(getattr(sim, "spec", None), "joint_types", ("revolute",) * sim.n_joints)
+    b = np.degrees(sim.bounds.double().numpy())
+    ranges = {j: (float(b[i, 0]), float(b[i, 1])) for i, j in enumerate(sim.joint_names) if types[i] == "revolute"}
+    parts = []
+    if ranges:
+        parts.append(figure_html(plot_limits(table, ranges),
+                                 "Inferred joint limits [deg]: the model's range (grey), each method's estimate "
+                                 "(marker) and 90% interval (line); hollow markers: bounds no reach exercised (not "
+                                 "an impairment: the data say nothing about them)", alt="limits figure"))
+    parts.append('<p class="meta">lower .. upper [deg]; * = not exercised</p>'
+                 + table_html(wide_limits(table), index=True))
+    return "".join(parts)
+
+
 def _shown_limits(table):
     """The limits table as a person reads it: degrees only (radians stay in limits.csv),
     unless a prismatic joint (metres, no degree column) needs ``estimate_rad``."""
@@ -353,9 +476,11 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
     esc_notes = "".join(f"<li>{html.escape(n)}</li>" for n in notes)
     settings_html = table_html(pd.DataFrame([{"setting": k, "value": str(v)} for k, v in settings.items()]))
     sections = [
+        ("limits", "Estimated limits", _limits_html(table, sim)),
         ("settings", "Settings", settings_html + (f"<ul>{esc_notes}</ul>" if notes else "")),
-        ("limits", "Estimated limits", '<p class="meta">degrees (limits.csv also holds radians, '
-                                        "estimate_rad)</p>" + table_html(_shown_limits(table), float_format="{:.4g}")),
+        ("limits-table", "All columns of limits.csv",
+         '<p class="meta">degrees (limits.csv also holds radians, estimate_rad)</p>'
+         + table_html(_shown_limits(table), float_format="{:.4g}")),
         ("reaches", "Observed vs posterior-predictive reaches", "".join(reach_html)),
     ]
     return write_page(out / "report.html", f"camo_sbi infer: {settings['observations']}", sections,
@@ -363,7 +488,8 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
 
 
 def add_infer_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--observations", type=Path, required=True, help="recording file (.csv or .npz)")
+    p.add_argument("--observations", type=Path, required=True,
+                   help="recording file (.csv, .npz, .c3d or .bvh), or a folder of them (one subject per file)")
     add_model_arguments(p, limits=False)
     p.add_argument("--methods", default="camo,camo-hull,naive,nominal", help="comma-separated method names")
     p.add_argument("--budget", type=int, default=500, help="simulations per observed reach")
@@ -376,6 +502,7 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
                    help="resample the recording to the controller's step (default: time)")
     p.add_argument("--rate", type=float, default=None,
                    help="recorded samples per controller step (default: estimated from the file)")
+    add_recording_arguments(p)
     p.add_argument("--amortized", type=Path, default=None,
                    help="trained estimator file for npe-amortized (`camo-sbi amortize`)")
     p.add_argument("--predict-goals", type=Path, default=None,
@@ -395,9 +522,11 @@ def infer_main(args) -> int:
     from camo_sbi.experiments.compare import grid_methods
     from camo_sbi.experiments.method_configs import parse_configs
     from camo_sbi.inference.registry import run_method
-    from camo_sbi.io.recordings import load_goals, load_recordings, save_recordings
+    from camo_sbi.io.recordings import load_goals, save_recordings
     from camo_sbi.task import Observation, predict
 
+    if Path(args.observations).is_dir():
+        return infer_folder(args)
     t0 = time.perf_counter()
     formats = figure_formats(args)
     if args.budget < 1:
@@ -413,13 +542,30 @@ def infer_main(args) -> int:
     model = model_from_args(args)
     sim = model.build()
     start = list(model.start) if model.start is not None else None
-    obs = load_recordings(args.observations, sim, degrees=args.degrees, noise=noise, start=start,
-                          resample=None if args.resample == "none" else args.resample, rate=args.rate)
+    recording = load_from_args(args, args.observations, sim, noise, start)
+    obs = recording.observations
+    if recording.scale != 1.0:
+        sim = sim.scaled(recording.scale)
+        lo, hi = recording.info["body_scale_90"]
+        print(f"body scale s = {recording.scale:.3f} (90% interval {lo:.3f}-{hi:.3f}; least squares of ee_* on the "
+              f"model's FK, bootstrap over reaches); every method runs on the scaled body")
+    for w in recording.warnings:
+        print(f"warning: {w}")
     goals = starts = None
     if args.predict_goals is not None:
         goals, starts = load_goals(args.predict_goals, sim, degrees=args.degrees, noise=noise)
     task = _recorded_task(model, sim, obs, noise)
     plan, notes = _plan(methods, task, args.space, str(args.observations))
+    if recording.scale != 1.0:  # an amortized estimator was trained on the model's own size
+        from camo_sbi.inference.registry import capabilities
+
+        for name, _ in [p for p in plan if capabilities(p[0]).amortized]:
+            if len(methods) == 1:
+                raise ValueError(f"--body-scale: {name} was trained on the model's own size; with --body-scale free "
+                                 f"use a per-task method (camo, abc-smc, npe)")
+            notes.append(f"{name}: skipped (trained on the model's own size, not on the scaled body of "
+                         f"--body-scale free)")
+        plan = [p for p in plan if not capabilities(p[0]).amortized]
     plan = _check_amortized(plan, notes, task, obs, overrides, getattr(args, "amortized", None), len(methods) == 1)
     for n in notes:
         print(n)
@@ -440,7 +586,7 @@ def infer_main(args) -> int:
                                   attrs={"task": model.name, "observations": str(args.observations)})
         save_netcdf(idata, out / "posteriors" / f"{name}.nc")
     bar.close()
-    table = limits_table(results, sim)
+    table = limits_table(results, sim, task)
     atomic_write_text(out / "limits.csv", table.to_csv(index=False))
     if goals is not None:
         s = obs[0].start if starts is None else starts
@@ -453,16 +599,146 @@ def infer_main(args) -> int:
                 "samples": sum(o.length for o in obs), "spaces": ",".join(task.spaces),
                 "methods": ",".join(results), "budget": args.budget, "seed": args.seed,
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
-                "config": json.dumps(overrides, sort_keys=True)}
+                "config": json.dumps(overrides, sort_keys=True), **recording.info,
+                "warnings": list(recording.warnings)}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", **settings}, indent=2))
+    write_starts(out / "starts.csv", obs, sim)
+    notes = notes + [f"warning: {w}" for w in recording.warnings]
     report = _report(out, task, results, notes, table, settings, args.seed,
                      formats=None if formats == ("png",) else formats)
-    pd_table = table[table.bound.isin(["lower", "upper"])].pivot_table(
-        index="joint", columns=["method", "bound"], values="estimate_deg", sort=False)
-    print(pd_table.to_string(float_format=lambda v: f"{v:.1f}"))
+    print("limits [deg], lower .. upper (* = not exercised: no reach came near this bound; limits.csv: exercised)")
+    print(wide_limits(table).to_string())
     for name, res in results.items():
         if res.status != "ok":
             print(f"{name}: {res.status}")
     print(f"limits: {out / 'limits.csv'}  posteriors: {out / 'posteriors'}  report: {report}")
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+# ----------------------------------------------------------------------------- recordings from a lab
+
+
+def add_recording_arguments(p: argparse.ArgumentParser) -> None:
+    """Units, frames, markers and goals of a recording (CSV, NPZ or C3D)."""
+    p.add_argument("--ee-units", choices=("m", "mm"), default=None,
+                   help="unit of the ee_* and goal_* columns (default m; a C3D file's POINT:UNITS is used)")
+    p.add_argument("--goal", choices=("columns", "final"), default="columns",
+                   help="columns: the goal_* columns; final: each reach's last end-effector position (free reaching)")
+    p.add_argument("--frame", type=Path, default=None,
+                   help="JSON rigid transform lab -> model base: rotation (3x3) or quaternion [w,x,y,z], "
+                        "translation [m]")
+    p.add_argument("--frame-from-markers", default=None, metavar="A,B,C",
+                   help="estimate the frame from these C3D markers (positions in --marker-positions)")
+    p.add_argument("--marker-positions", type=Path, default=None,
+                   help='JSON {"marker": [x, y, z]} model-frame positions [m] for --frame-from-markers')
+    p.add_argument("--ee-marker", default=None, metavar="NAME[,NAME...]",
+                   help="C3D marker(s) of the end effector (several: their mean)")
+    p.add_argument("--bvh-map", type=Path, default=None,
+                   help="JSON mapping of a BVH file's channels to the model's joints (signs, offsets, reaches)")
+    p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
+                   help="free: estimate the body's segment-length scale s in [0.85, 1.15] from the joint and "
+                        "end-effector columns and infer on the scaled body")
+
+
+def load_from_args(args, path, sim, noise, start):
+    """`load_recording` of ``path`` with the recording flags of ``args``."""
+    from camo_sbi.io.frames import load_frame, load_marker_positions
+    from camo_sbi.io.recordings import load_recording
+
+    frame = load_frame(args.frame) if args.frame is not None else None
+    markers = None
+    if args.frame_from_markers is not None:
+        names = [m.strip() for m in str(args.frame_from_markers).split(",") if m.strip()]
+        if len(names) < 3:
+            raise ValueError(f"--frame-from-markers: needs three or more marker names, got {args.frame_from_markers!r}")
+        if frame is not None:
+            raise ValueError("--frame-from-markers: give --frame or --frame-from-markers, not both")
+        if args.marker_positions is None:
+            raise ValueError("--frame-from-markers: needs --marker-positions FILE.json (the markers' model-frame "
+                             "positions)")
+        markers = load_marker_positions(args.marker_positions, names)
+    ee_markers = None
+    if args.ee_marker is not None:
+        ee_markers = [m.strip() for m in str(args.ee_marker).split(",") if m.strip()]
+        if not ee_markers:
+            raise ValueError("--ee-marker: expected one or more marker names")
+    return load_recording(path, sim, degrees=args.degrees, noise=noise, start=start,
+                          resample=None if args.resample == "none" else args.resample, rate=args.rate,
+                          ee_units=args.ee_units, goal=args.goal, frame=frame, ee_markers=ee_markers,
+                          frame_markers=markers, body_scale=getattr(args, "body_scale", "fixed"),
+                          bvh_map=getattr(args, "bvh_map", None))
+
+
+def write_starts(path: Path, obs, sim) -> Path:
+    """starts.csv: each reach's start posture (radians) and where it came from: "observed" (the
+    first joint sample), "model" (the start posture) or "IK" (estimated from the first
+    end-effector sample, `estimate_starts`)."""
+    import pandas as pd
+    import torch
+
+    model_start = torch.as_tensor(sim.start, dtype=torch.float64)
+    rows = []
+    for i, o in enumerate(obs):
+        source = "observed" if o.q is not None else "model" if torch.equal(o.start, model_start) else "IK"
+        rows.append({"reach": i, "source": source, **{j: float(v) for j, v in zip(sim.joint_names, o.start,
+                                                                                 strict=True)}})
+    return atomic_write_text(path, pd.DataFrame(rows).to_csv(index=False))
+
+
+RECORDING_SUFFIXES = (".csv", ".npz", ".c3d", ".bvh")
+
+
+def infer_folder(args) -> int:
+    """``infer --observations DIR/``: one subject per recording file in DIR (sorted by name). Every
+    file is loaded and checked first (a bad file stops the run before any method runs, naming
+    it); then each subject is inferred into ``out/subjects/<file stem>/`` as a single file would
+    be, and ``out/limits.csv`` (every subject, a ``subject`` column first) and one
+    ``out/report.html`` (per subject: its limits figure, its table, its warnings and a link to
+    its own report) are written."""
+    import argparse as _argparse
+    import html
+
+    import pandas as pd
+
+    from camo_sbi.diagnostics.report import write_page
+
+    folder = Path(args.observations)
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RECORDING_SUFFIXES)
+    if not files:
+        raise ValueError(f"--observations: {folder} holds no recording ({', '.join(RECORDING_SUFFIXES)} files)")
+    stems = [p.stem for p in files]
+    dup = sorted({x for x in stems if stems.count(x) > 1})
+    if dup:
+        raise ValueError(f"--observations: {folder} holds two recordings of subject {dup[0]!r} (one file per subject)")
+    model = model_from_args(args)
+    sim = model.build()
+    start = list(model.start) if model.start is not None else None
+    noise = _noise(args)
+    for p in tqdm(files, desc="check recordings", unit="file"):
+        load_from_args(args, p, sim, noise, start)
+    out = Path(args.out)
+    tables, sections = [], []
+    for p in files:
+        print(f"subject {p.stem}: {p}")
+        sub = _argparse.Namespace(**{**vars(args), "observations": p, "out": out / "subjects" / p.stem})
+        infer_main(sub)
+        t = pd.read_csv(sub.out / "limits.csv")
+        t.insert(0, "subject", p.stem)
+        tables.append(t)
+        cfg = json.loads((sub.out / "config.json").read_text())
+        warn = "".join(f"<li>{html.escape(w)}</li>" for w in cfg.get("warnings", []))
+        sections.append((f"subject-{len(sections)}", f"Subject {p.stem}",
+                         f'<p class="meta">{html.escape(str(p))}: {cfg["reaches"]} reaches; '
+                         f'<a href="subjects/{html.escape(p.stem)}/report.html">its report</a></p>'
+                         + (f"<ul>{warn}</ul>" if warn else "")
+                         + _limits_html(t.drop(columns="subject"), sim)))
+    table = pd.concat(tables, ignore_index=True)
+    atomic_write_text(out / "limits.csv", table.to_csv(index=False))
+    from camo_sbi.diagnostics.style import paper_style
+
+    with paper_style():
+        report = write_page(out / "report.html", f"camo_sbi infer: {folder}", sections,
+                            meta=f"model {model.name}, {len(files)} subjects, seed {args.seed}")
+    print(f"{len(files)} subjects: limits {out / 'limits.csv'}  report: {report}")
     return 0

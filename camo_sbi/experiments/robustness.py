@@ -8,9 +8,13 @@ Conditions (each seed's subject and goals are the same in every condition, so re
   honour it (`camo_sbi.task.NoiseModel`);
 * ``rate x3``: recorded at 3 times the controller's rate, then resampled to the controller's
   step as the recording loader does (the rate estimated from the reaches, normalised time);
-* ``taller 5%`` / ``shorter 5%``: the observed person's segments 5% longer / shorter than the
-  model's (`KinematicSimulator.scaled`); observations and the true held-out reaches come from
-  that body, inference and predictions from the model.
+* ``taller 5%`` / ``shorter 5%`` (and, not in the default list, ``taller 10%`` / ``shorter
+  10%``): the observed person's segments longer / shorter than the model's
+  (`KinematicSimulator.scaled`); observations and the true held-out reaches come from that
+  body, inference and predictions from the model. With ``--body-scale free`` the model is
+  first rescaled by the scale s estimated from the observations (joint and end-effector
+  recordings together, `camo_sbi.io.recordings.estimate_body_scale`), for every method; the
+  ``body_scale`` metric records s.
 
 Per (seed, condition, method): ``cartesian_error_mm`` of the held-out reaches (the true body's
 reaches vs the model's prediction from the estimate), ``limit_error_binding_deg`` (binding on
@@ -75,7 +79,10 @@ CONDITIONS = (
     Condition("rate x3", rate=3.0),
     Condition("taller 5%", scale=1.05),
     Condition("shorter 5%", scale=0.95),
+    Condition("taller 10%", scale=1.10),
+    Condition("shorter 10%", scale=0.90),
 )
+DEFAULT_CONDITIONS = ("clean", "noise 1deg/5mm", "noise 3deg/15mm", "rate x3", "taller 5%", "shorter 5%")
 _DEFAULT_METHODS = "camo-js,camo-cs,camo-hull,npe,naive,nominal,oracle"
 _CONFIGS = {"abc-smc": {"population_size": 100}}
 
@@ -108,6 +115,7 @@ def _observations(sim, theta, n, seed, cond: Condition):
 
 def run_cell(spec: dict, out: str) -> str:
     """One (seed, condition): every method on the same imperfect observations; writes its rows."""
+    import numpy as np
     import torch
 
     from camo_sbi._validation import derive_seed, torch_generator
@@ -123,6 +131,16 @@ def run_cell(spec: dict, out: str) -> str:
     body = sim if cond.scale == 1.0 else sim.scaled(cond.scale)
     theta = true_limits(model, sim, spec["subject"])
     obs = _observations(body, theta, spec["tasks"], derive_seed(spec["base_seed"], spec["seed"]), cond)
+    scale = 1.0
+    if spec.get("body_scale") == "free":
+        from camo_sbi.io.recordings import estimate_body_scale
+
+        q = np.concatenate([o.q.numpy() for o in obs])
+        ee = np.concatenate([o.ee.numpy() for o in obs])
+        ends = np.cumsum([o.length for o in obs])
+        scale = estimate_body_scale(sim, q, ee, [np.arange(a, b) for a, b in zip(np.r_[0, ends[:-1]], ends,
+                                                                                   strict=True)])[0]
+        sim = sim.scaled(scale)  # the model the methods infer on and predict with
     start = sim.start.to(torch.float64)
     goals = reachable_goals(body, theta, spec["test_goals"],
                             torch_generator(derive_seed(spec["base_seed"], spec["seed"], 5)), start)
@@ -146,6 +164,8 @@ def run_cell(spec: dict, out: str) -> str:
                    "coverage90": coverage90(res, theta, prior), "wall_time": res.wall_time,
                    "compile_time": res.compile_time, **limit_errors(res.estimate, theta, prior, binding),
                    **informative}
+        if spec.get("body_scale") == "free":
+            metrics["body_scale"] = scale
         rows += [{**base, "method": method, "metric": k, "value": v, "status": res.status} for k, v in metrics.items()]
     ResultStore(out).put(spec["key"], rows)
     return spec["key"]
@@ -234,8 +254,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tasks", type=int, default=5, help="observed reaches per subject")
     p.add_argument("--test-goals", type=int, default=10)
     p.add_argument("--budget", type=int, default=1000, help="simulations per observed reach")
-    p.add_argument("--conditions", default=",".join(c.name for c in CONDITIONS),
-                   help="comma-separated subset of the conditions")
+    p.add_argument("--conditions", default=",".join(DEFAULT_CONDITIONS),
+                   help="comma-separated subset of the conditions ("  # argparse formats help strings: % as %%
+                        + ", ".join(c.name for c in CONDITIONS).replace("%", "%%") + ")")
+    p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
+                   help="free: estimate the observed body's segment-length scale s from its joint and end-effector "
+                        "recordings (io.recordings.estimate_body_scale) and infer and predict on model.scaled(s)")
     p.add_argument("--seed", type=int, default=0, help="base seed")
     p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     add_figure_format_argument(p)
@@ -277,11 +301,14 @@ def main(args) -> int:
             spec = {"task": model.name, "subject": subject, "seed": seed, "condition": cond, "tasks": args.tasks,
                     "test_goals": args.test_goals, "budget": args.budget, "base_seed": args.seed,
                     "methods": methods}
+            if getattr(args, "body_scale", "fixed") == "free":  # the keys of fixed-scale cells stay as they were
+                spec["body_scale"] = "free"
             spec["key"] = cell_key({**{k: v for k, v in spec.items() if k != "methods"},
                                     "methods": ",".join(methods), "model": str(model.key())})
             spec["model"] = model
             specs.append(spec)
     settings = run_settings(args, methods=methods, conditions=conditions, subjects=[subject],
+                            ignore=("body_scale",) if getattr(args, "body_scale", "fixed") == "fixed" else (),
                             model=model.name if model.is_default else str(model.key()))
     with RunDirectory(out, "robustness", settings, wait=getattr(args, "wait", False)) as rundir:
         store = rundir.store

@@ -176,12 +176,12 @@ class RunDirectory:
     def _check_manifest(self) -> None:
         path = self.path / MANIFEST
         try:
-            text = path.read_text()
+            text = path.read_bytes()
         except FileNotFoundError:
             self._create_manifest()
             return
         try:
-            old = json.loads(text)
+            old = json.loads(text.decode("utf-8"))  # a binary file: UnicodeDecodeError, a ValueError
             if not isinstance(old, dict) or not isinstance(old.get("settings"), dict):
                 raise ValueError("not a manifest object")
         except ValueError as exc:

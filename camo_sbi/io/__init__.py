@@ -4,12 +4,15 @@ from camo_sbi.io.recordings import (
     EE_COLUMNS,
     GOAL_COLUMNS,
     K_SIGMA,
+    Recording,
     estimate_rate,
     load_goals,
+    load_recording,
     load_recordings,
     resample_to_controller,
     save_recordings,
 )
 
-__all__ = ["EE_COLUMNS", "GOAL_COLUMNS", "K_SIGMA", "estimate_rate", "load_goals", "load_recordings",
+__all__ = ["EE_COLUMNS", "GOAL_COLUMNS", "K_SIGMA", "Recording", "estimate_rate", "load_goals", "load_recording",
+           "load_recordings",
            "resample_to_controller", "save_recordings"]

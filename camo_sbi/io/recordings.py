@@ -27,6 +27,28 @@ farther ones are an error. ``degrees=True`` reads the revolute joint columns in 
 (prismatic ones stay in metres). Joint values beyond the range that would fit it after a
 degrees-to-radians conversion are reported as "use --degrees".
 
+Lab recordings (`load_recording`):
+
+* ``time`` (seconds) may replace ``step``: each reach is first interpolated onto a uniform
+  grid at the file's median sample interval (jittered or dropped samples), then resampled to
+  the controller's step like a step file.
+* ``ee_units="mm"`` reads ee_* and goal_* in millimetres; positions more than `UNITS_FACTOR`
+  times farther than the model reaches are refused, with a "use --ee-units mm" hint when they
+  would fit in millimetres.
+* ``frame`` (`camo_sbi.io.frames`) maps every position from the lab to the model's base;
+  C3D files (`camo_sbi.io.c3d`) come through the same checks as CSV.
+* ``goal="final"``: each reach's last end-effector position is its goal (free reaching).
+* An end-effector-only reach that does not start where the model's start posture puts the
+  end effector gets its start by IK of its first sample (`estimate_starts`), recorded in its
+  `Observation.start`.
+* Warnings (not errors), returned in `Recording.warnings` for the run summary and the
+  report: goals out of the model's reach (distance measured against `reach_radius`), a
+  systematic offset between ee_* and the FK of the joint columns (mean over the samples),
+  a marker-frame fit residual above `OFFSET_WARN_M`.
+
+A CSV is read as UTF-8 (a BOM is accepted); a binary file, a non-UTF-8 file, a field over
+131,072 characters, or an .npz that is not a zip archive is one error naming the file.
+
 Every error is a ValueError that starts with the file name and names the column and the
 row: the CSV line number (the header is line 1), or the array index in an NPZ file.
 
@@ -42,21 +64,33 @@ the default), or re-walked along its path with the controller's step law
 from __future__ import annotations
 
 import csv
+import io
 import math
-from dataclasses import dataclass
+import zipfile
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from camo_sbi._io import atomic_write_bytes, atomic_write_text
+from camo_sbi.io.frames import Frame, frame_from_markers
 from camo_sbi.simulators.controller import ControllerConfig
 from camo_sbi.task import NoiseModel, Observation
 
-__all__ = ["BOUND_SLACK", "EE_COLUMNS", "GOAL_COLUMNS", "K_SIGMA", "RESAMPLE_MODES", "START_TOL_M",
-           "estimate_rate", "load_goals", "load_recordings", "resample_to_controller", "save_recordings"]
+__all__ = ["BOUND_SLACK", "EE_COLUMNS", "EE_UNITS", "GOAL_COLUMNS", "GOAL_MODES", "K_SIGMA", "RESAMPLE_MODES",
+           "START_TOL_M", "Recording", "estimate_body_scale", "estimate_rate", "estimate_starts", "load_goals", "load_recording",
+           "load_recordings", "reach_radius", "resample_to_controller", "save_recordings"]
 
-REACH, STEP = "reach", "step"
+REACH, STEP, TIME = "reach", "step", "time"
+EE_UNITS = {"m": 1.0, "mm": 1e-3}
+GOAL_MODES = ("columns", "final")
+OFFSET_WARN_M = 0.005
+"""A mean offset between ee_* and the FK of the joint columns (or a marker-frame RMS residual)
+beyond this is a warning in the run summary and the report."""
+UNITS_FACTOR = 10.0
+"""A position this many times farther from the base than the model reaches is refused (with a
+hint when it would fit in millimetres)."""
 GOAL_COLUMNS = ("goal_x", "goal_y", "goal_z")
 EE_COLUMNS = ("ee_x", "ee_y", "ee_z")
 K_SIGMA = 4.0
@@ -103,16 +137,27 @@ class _Table:
         return f"{self.path}: column {column!r}, {self.row_word} {int(self.rows[i])}"
 
 
+CSV_FIELD_LIMIT = 131_072
+"""Python's csv module refuses longer fields; a recording's numbers are never that long."""
+
+
 def _read_csv(path: Path) -> _Table:
     try:
-        fh = path.open(newline="")
+        raw = path.read_bytes()
     except OSError as exc:
         raise ValueError(f"{path}: cannot read ({exc.strerror or exc})") from exc
-    with fh:
-        reader = csv.reader(fh)
-        header = None
-        values: list[list[float]] = []
-        lines: list[int] = []
+    if b"\0" in raw[:65536]:
+        raise ValueError(f"{path}: is a binary file, not a CSV recording (it holds NUL bytes)")
+    try:
+        text = raw.decode("utf-8-sig")  # a UTF-8 BOM (every Excel export) is accepted
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: is not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}): "
+                         f"expected a CSV recording") from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header = None
+    values: list[list[float]] = []
+    lines: list[int] = []
+    try:
         for row in reader:
             if not row or all(not c.strip() for c in row):
                 continue
@@ -131,9 +176,12 @@ def _read_csv(path: Path) -> _Table:
                     parsed.append(float(cell))
                 except ValueError:
                     raise ValueError(f"{path}: column {c!r}, line {reader.line_num}: not a number: "
-                                     f"{cell.strip()!r}") from None
+                                     f"{cell.strip()[:40]!r}") from None
             values.append(parsed)
             lines.append(reader.line_num)
+    except csv.Error as exc:
+        why = (f"a field is longer than {CSV_FIELD_LIMIT:,} characters" if "field limit" in str(exc) else str(exc))
+        raise ValueError(f"{path}: line {reader.line_num}: {why}: not a CSV recording") from None
     if header is None:
         raise ValueError(f"{path}: empty file (expected a header line and one row per sample)")
     if not values:
@@ -143,11 +191,13 @@ def _read_csv(path: Path) -> _Table:
 
 
 def _read_npz(path: Path) -> _Table:
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"{path}: cannot read as NPZ (not a zip archive of .npy arrays)")
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: cannot read as NPZ ({exc})") from exc
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"{path}: cannot read as NPZ ({exc})") from None
     if not arrays:
         raise ValueError(f"{path}: holds no arrays")
     n = None
@@ -165,20 +215,41 @@ def _read_npz(path: Path) -> _Table:
     return _Table(path, {k: a.astype(np.float64) for k, a in arrays.items()}, np.arange(n), "row")
 
 
-def _layout(table: _Table, joint_names: list[str]) -> tuple[bool, bool]:
+def _read_c3d(path: Path, ee_markers, frame_markers) -> tuple[_Table, dict]:
+    from camo_sbi.io.c3d import read_c3d
+
+    d = read_c3d(path, ee_markers, list(frame_markers or ()))
+    cols = {REACH: d["reach"], TIME: d["time"]}
+    for k, c in enumerate(EE_COLUMNS):
+        cols[c] = d["ee"][:, k]
+    return _Table(path, cols, d["frames"], "frame"), d
+
+
+def _layout(table: _Table, joint_names: list[str], goal: str = "columns") -> tuple[bool, bool]:
     """Check the columns against the schema: (has joint columns, has ee columns)."""
     cols = table.columns
     path = table.path
-    need = f"a recording needs {REACH}, {STEP}, {', '.join(GOAL_COLUMNS)}, then the joint columns and/or " \
-           f"{', '.join(EE_COLUMNS)}"
-    for c in (REACH, STEP, *GOAL_COLUMNS):
-        if c not in cols:
-            raise ValueError(f"{path}: column {c!r} is missing ({need})")
-    known = {REACH, STEP, *GOAL_COLUMNS, *EE_COLUMNS, *joint_names}
+    need = f"a recording needs {REACH}, {STEP} (or {TIME} in seconds), {', '.join(GOAL_COLUMNS)} (or --goal " \
+           f"final for free reaching), then the joint columns and/or {', '.join(EE_COLUMNS)}"
+    if REACH not in cols:
+        raise ValueError(f"{path}: column {REACH!r} is missing ({need})")
+    if STEP in cols and TIME in cols:
+        raise ValueError(f"{path}: column {TIME!r}: give {STEP} or {TIME}, not both")
+    if STEP not in cols and TIME not in cols:
+        raise ValueError(f"{path}: column {STEP!r} is missing ({need})")
+    has_goal = any(c in cols for c in GOAL_COLUMNS)
+    if goal == "final" and has_goal:
+        raise ValueError(f"--goal: final takes each reach's last position as its goal; {path} has goal columns "
+                         f"(drop --goal final to use them)")
+    if goal != "final":
+        for c in GOAL_COLUMNS:
+            if c not in cols:
+                raise ValueError(f"{path}: column {c!r} is missing ({need})")
+    known = {REACH, STEP, TIME, *GOAL_COLUMNS, *EE_COLUMNS, *joint_names}
     for c in cols:
         if c not in known:
             raise ValueError(f"{path}: column {c!r} is unknown: not a joint of the model (its joints: "
-                             f"{', '.join(joint_names)}) nor one of {REACH}, {STEP}, goal_*, ee_*")
+                             f"{', '.join(joint_names)}) nor one of {REACH}, {STEP}, {TIME}, goal_*, ee_*")
     has_q = any(j in cols for j in joint_names)
     has_ee = any(c in cols for c in EE_COLUMNS)
     for group, present in ((joint_names, has_q), (EE_COLUMNS, has_ee)):
@@ -194,6 +265,8 @@ def _layout(table: _Table, joint_names: list[str]) -> tuple[bool, bool]:
         if bad.size:
             raise ValueError(f"{table.where(c, bad[0])}: NaN or inf ({a[bad[0]]!r})")
     for c in (REACH, STEP):
+        if c not in cols:
+            continue
         a = cols[c]
         bad = np.flatnonzero(a != np.round(a))
         if bad.size:
@@ -201,9 +274,10 @@ def _layout(table: _Table, joint_names: list[str]) -> tuple[bool, bool]:
     return has_q, has_ee
 
 
-def _reaches(table: _Table) -> list[np.ndarray]:
-    """Row indices of each reach (consecutive rows, steps strictly increasing, >= 2 samples)."""
-    reach, step = table.columns[REACH], table.columns[STEP]
+def _reaches(table: _Table, goal: str = "columns") -> list[np.ndarray]:
+    """Row indices of each reach (consecutive rows, steps or times strictly increasing, >= 2 samples)."""
+    order = STEP if STEP in table.columns else TIME
+    reach, step = table.columns[REACH], table.columns[order]
     starts = np.flatnonzero(np.r_[True, reach[1:] != reach[:-1]])
     bounds = np.r_[starts, reach.shape[0]]
     seen: dict[float, int] = {}
@@ -216,15 +290,15 @@ def _reaches(table: _Table) -> list[np.ndarray]:
         seen[rid] = int(table.rows[a])
         idx = np.arange(a, b)
         if idx.size < 2:
-            raise ValueError(f"{table.where(STEP, a)}: reach {int(rid)} has a single sample; a reach needs its "
+            raise ValueError(f"{table.where(order, a)}: reach {int(rid)} has a single sample; a reach needs its "
                              f"start posture and at least one more sample")
         d = np.diff(step[idx])
         bad = np.flatnonzero(d <= 0)
         if bad.size:
             i = idx[bad[0] + 1]
-            raise ValueError(f"{table.where(STEP, i)}: step {int(step[i])} does not increase (previous step "
-                             f"{int(step[i - 1])}) within reach {int(rid)}")
-        for c in GOAL_COLUMNS:
+            raise ValueError(f"{table.where(order, i)}: {order} {step[i]:g} does not increase (previous {order} "
+                             f"{step[i - 1]:g}) within reach {int(rid)}")
+        for c in (GOAL_COLUMNS if goal != "final" else ()):
             g = table.columns[c][idx]
             bad = np.flatnonzero(np.abs(g - g[0]) > GOAL_TOL)
             if bad.size:
@@ -262,9 +336,11 @@ def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel) ->
     return np.clip(q, b[:, 0], b[:, 1])
 
 
-def _check_ee_matches_fk(table: _Table, simulator, q: np.ndarray, ee: np.ndarray, noise: NoiseModel) -> None:
+def _check_ee_matches_fk(table: _Table, simulator, q: np.ndarray, ee: np.ndarray, noise: NoiseModel) -> str | None:
     """With both spaces recorded, the model's FK of the joint values must land near ee_*: a file
-    recorded at another link than ``--ee`` (or for another robot) is refused, not inferred on."""
+    recorded at another link than ``--ee`` (or for another robot) is refused, not inferred on.
+    Returns a warning when the mean of ee_* - FK (a systematic offset: a marker placed off the
+    end effector, or a frame a little off) exceeds `OFFSET_WARN_M`, else None."""
     fk = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
     dist = np.linalg.norm(fk - ee, axis=1)
     lever = float(np.linalg.norm(ee, axis=1).max())  # joint noise moves the end effector by ~ lever * sigma
@@ -276,73 +352,348 @@ def _check_ee_matches_fk(table: _Table, simulator, q: np.ndarray, ee: np.ndarray
                          f"{dist[i] * 1000:.1f} mm from ee_x, ee_y, ee_z (tolerance {tol * 1000:.1f} mm): was the "
                          f"recording made at another link than the model's end effector (--ee), or is it noisier than "
                          f"the noise model says (--noise-joint-deg {noise.joint_deg:g}, --noise-ee-mm {noise.ee_mm:g})?")
+    off = (ee - fk).mean(axis=0)
+    if float(np.linalg.norm(off)) > OFFSET_WARN_M:
+        return (f"{table.path}: ee_x, ee_y, ee_z lie a systematic {np.linalg.norm(off) * 1000:.1f} mm from the model's "
+                f"end effector at the recorded joint values (mean offset ({off[0] * 1000:.1f}, {off[1] * 1000:.1f}, "
+                f"{off[2] * 1000:.1f}) mm over {ee.shape[0]} samples): a marker off the end effector, or a frame a "
+                f"little off?")
+    return None
 
 
-def load_recordings(path, simulator, *, degrees: bool = False, noise: NoiseModel | None = None,
-                    start=None, resample: str | None = "time", rate: float | None = None,
-                    ) -> tuple[Observation, ...]:
-    """The observed reaches in the recording file ``path`` (CSV or .npz), for ``simulator``.
+REACH_SAMPLES = 4096
+REACH_MARGIN = 0.02
+"""A goal farther from the base than (1 + REACH_MARGIN) x the farthest sampled end-effector
+position (plus 1 cm) is reported as out of reach."""
+
+
+def reach_radius(simulator) -> float:
+    """The farthest distance from the base origin of the end effector over `REACH_SAMPLES`
+    postures uniform in the model's range (fixed seed), and the start posture [m]."""
+    b = simulator.bounds.to(torch.float64).numpy()
+    q = np.random.default_rng(0).uniform(b[:, 0], b[:, 1], size=(REACH_SAMPLES, b.shape[0]))
+    q = np.vstack([q, np.asarray(simulator.start, dtype=np.float64)[None]])
+    fk = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
+    return float(np.linalg.norm(fk, axis=1).max())
+
+
+def _check_units(table: _Table, radius: float, ee_units: str) -> None:
+    """Positions far beyond the model's reach: with a hint when they would fit in millimetres."""
+    for c in (*EE_COLUMNS, *GOAL_COLUMNS):
+        if c not in table.columns:
+            continue
+        a = np.abs(table.columns[c])
+        i = int(np.argmax(a))
+        if a[i] > UNITS_FACTOR * max(radius, 0.05):
+            hint = (" the positions look like millimetres: use --ee-units mm" if ee_units == "m"
+                    and a[i] / 1000 <= 2 * radius else " check the units (--ee-units) and the frame (--frame)")
+            raise ValueError(f"{table.where(c, i)}: {table.columns[c][i]:.6g} m is {a[i] / radius:.0f}x as far as the "
+                             f"model reaches ({radius:.3g} m from the base);{hint}")
+
+
+IK_ITERATIONS = 300
+IK_DAMPING = 0.02
+IK_MAX_STEP = 0.2
+
+
+def estimate_starts(simulator, targets, initial, bounds=None) -> tuple[np.ndarray, np.ndarray]:
+    """Start postures whose end effector is at ``targets`` (R, 3): damped least squares from
+    ``initial`` (n,) within ``bounds`` (default: the model's range), with a null-space pull
+    back towards ``initial`` (the posture nearest the model's start that reaches the point).
+    Returns (postures (R, n), residual distances (R,) [m])."""
+    b = (simulator.bounds if bounds is None else torch.as_tensor(bounds)).to(torch.float64).numpy()
+    x_t = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
+    q0 = np.asarray(initial, dtype=np.float64)
+    n, r = q0.shape[0], x_t.shape[0]
+    q = np.broadcast_to(q0, (r, n)).copy()
+    eps = 1e-6
+    eye = np.eye(n)
+    for _ in range(IK_ITERATIONS):
+        pert = np.concatenate([q[:, None, :], q[:, None, :] + eps * eye[None]], axis=1)  # (r, n+1, n)
+        fk = simulator.forward_kinematics(torch.from_numpy(pert.reshape(-1, n))).to(torch.float64).numpy()
+        fk = fk.reshape(r, n + 1, 3)
+        x = fk[:, 0]
+        e = x_t - x
+        if float(np.linalg.norm(e, axis=1).max()) < 1e-6:
+            break
+        jac = np.transpose(fk[:, 1:] - x[:, None], (0, 2, 1)) / eps  # (r, 3, n)
+        jjt = jac @ np.transpose(jac, (0, 2, 1)) + IK_DAMPING ** 2 * np.eye(3)
+        dq = np.einsum("rjn,rj->rn", jac, np.linalg.solve(jjt, e[..., None])[..., 0])
+        pinv = np.transpose(jac, (0, 2, 1)) @ np.linalg.inv(jjt)  # (r, n, 3)
+        null = eye[None] - pinv @ jac
+        dq += 0.1 * np.einsum("rnm,rm->rn", null, q0[None] - q)
+        step = np.abs(dq).max(axis=1, keepdims=True)
+        dq *= np.minimum(1.0, IK_MAX_STEP / np.maximum(step, 1e-12))
+        q = np.clip(q + dq, b[:, 0], b[:, 1])
+    x = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
+    return q, np.linalg.norm(x_t - x, axis=1)
+
+
+def _uniform_in_time(t: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(times, new times) of a reach resampled on a uniform grid of step ``dt`` from its first sample."""
+    n = max(2, int(round((t[-1] - t[0]) / dt)) + 1)
+    return t, np.minimum(t[0] + dt * np.arange(n), t[-1])
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A loaded recording: its reaches, the warnings to show in the run summary and the report, and
+    what the loader did (``info``: units, frame and its residual, starts, goals, rate, offsets)."""
+
+    observations: tuple[Observation, ...]
+    warnings: tuple[str, ...] = ()
+    info: dict = field(default_factory=dict)
+    scale: float = 1.0  # the body's segment-length scale (body_scale="free"), else 1
+
+
+BODY_SCALE_RANGE = (0.85, 1.15)
+BODY_SCALE_BOOTSTRAP = 200
+BODY_SCALE_WARN = 0.01
+"""A body more than 1% larger or smaller than the model (its 90% interval excluding 1) is warned."""
+
+
+def estimate_body_scale(simulator, q: np.ndarray, ee: np.ndarray, reaches) -> tuple[float, float, float]:
+    """The segment-length scale s of a recorded body: least squares of ``ee`` on s * FK(q) (every
+    segment s times as long moves the end effector to exactly s * FK(q) in the base frame,
+    `KinematicSimulator.scaled`), with a 90% interval from a bootstrap over the reaches (fixed
+    seed). Returns (s, lower, upper)."""
+    fk = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
+    num = np.array([float((ee[i] * fk[i]).sum()) for i in reaches])
+    den = np.array([float((fk[i] * fk[i]).sum()) for i in reaches])
+    s = float(num.sum() / den.sum())
+    rng = np.random.default_rng(0)
+    boot = []
+    for _ in range(BODY_SCALE_BOOTSTRAP):
+        k = rng.integers(0, len(reaches), len(reaches))
+        boot.append(num[k].sum() / den[k].sum())
+    lo, hi = np.quantile(boot, [0.05, 0.95])
+    return s, float(lo), float(hi)
+
+
+def _hint_body_scale(table: _Table, simulator, q, ee, reaches, noise) -> None:
+    """A recording that does not fit the model but fits a body of another size: say so."""
+    try:
+        _check_ee_matches_fk(table, simulator, q, ee, noise)
+    except ValueError as exc:
+        s, _, _ = estimate_body_scale(simulator, q, ee, reaches)
+        if abs(s - 1) > 0.01 and BODY_SCALE_RANGE[0] <= s <= BODY_SCALE_RANGE[1] and hasattr(simulator, "scaled"):
+            try:
+                _check_ee_matches_fk(table, simulator.scaled(s), q, ee, noise)
+            except ValueError:
+                raise exc from None
+            raise ValueError(f"{exc} The recording fits a body {s:.3f} times the model's size: use --body-scale "
+                             f"free") from None
+        raise
+
+
+def load_recordings(path, simulator, **kwargs) -> tuple[Observation, ...]:
+    """The observed reaches in ``path``: `load_recording` (same arguments) without its warnings."""
+    return load_recording(path, simulator, **kwargs).observations
+
+
+def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel | None = None,
+                   start=None, resample: str | None = "time", rate: float | None = None,
+                   ee_units: str | None = None, goal: str = "columns", frame: Frame | None = None,
+                   ee_markers=None, frame_markers: dict | None = None, body_scale: str = "fixed",
+                   bvh_map=None) -> Recording:
+    """The observed reaches in the recording file ``path`` (CSV, .npz or .c3d), for ``simulator``.
 
     Args:
-        path: a CSV file (one row per sample, header line) or an .npz file (the same names as
-            1-D arrays); the schema is in the module docstring.
+        path: a CSV file (one row per sample, header line), an .npz file (the same names as
+            1-D arrays), or a C3D motion-capture file (``ee_markers`` name the end effector);
+            the schema is in the module docstring.
         simulator: the body model; its joint names name the joint columns, its range bounds them.
         degrees: the revolute joint columns are in degrees.
         noise: the `NoiseModel` of the recording (the tolerance beyond the model's range).
-        start: (n,) start posture of an end-effector-only recording (default: the model's).
+        start: (n,) the model's start posture (default: the model's); an end-effector-only
+            reach that starts elsewhere gets its start by IK from it (`estimate_starts`).
         resample: "time" (default), "arclength" or None (no resampling): see
             `resample_to_controller`.
         rate: recorded samples per controller step (default: estimated from the file with
             `estimate_rate`).
+        ee_units: "m" (default) or "mm": the unit of ee_* and goal_* (a C3D file's own
+            ``POINT:UNITS`` is used instead).
+        goal: "columns" (goal_* columns) or "final" (each reach's last end-effector position).
+        frame: a `Frame` (lab -> model base) applied to every position.
+        ee_markers: the C3D end-effector marker(s) (their mean).
+        frame_markers: {C3D marker: (3,) model-frame position}: the frame estimated from these
+            markers (`frame_from_markers`) instead of ``frame``.
+        bvh_map: a BVH file's mapping file (`camo_sbi.io.bvh`: BVH channels -> model joints,
+            signs, offsets, reach frame ranges); a .bvh ``path`` needs it.
+        body_scale: "fixed" (the model's body) or "free": the segment-length scale s of the
+            recorded body is estimated from the joint and end-effector columns
+            (`estimate_body_scale`) and ``Recording.scale`` holds it; the checks use the
+            scaled body (``simulator.scaled(s)``), as the caller should.
 
     Returns:
-        One `Observation` per reach, in file order (float64).
+        A `Recording`: one `Observation` per reach, in file order (float64), the warnings
+        (out-of-reach goals, a systematic ee offset) and ``info``.
 
     Raises:
-        ValueError starting with the file name and naming the column and the CSV line (the
-        header is line 1) or NPZ row, for every malformed file (see the module docstring).
+        ValueError starting with the file name (or the flag) and naming the column and the CSV
+        line (the header is line 1), NPZ row or C3D frame, for every malformed file.
     """
     noise = NoiseModel() if noise is None else noise
     if not isinstance(noise, NoiseModel):
         raise TypeError(f"noise: expected a NoiseModel, got {type(noise).__name__}")
     if resample is not None and resample not in RESAMPLE_MODES:
         raise ValueError(f"resample: expected one of {RESAMPLE_MODES} or None, got {resample!r}")
-    table = _read(path)
+    if ee_units is not None and ee_units not in EE_UNITS:
+        raise ValueError(f"ee_units: expected one of {tuple(EE_UNITS)}, got {ee_units!r}")
+    if goal not in GOAL_MODES:
+        raise ValueError(f"goal: expected one of {GOAL_MODES}, got {goal!r}")
+    if body_scale not in ("fixed", "free"):
+        raise ValueError(f"body_scale: expected 'fixed' or 'free', got {body_scale!r}")
+    path = Path(path)
+    info: dict = {"goal": goal}
+    warns: list[str] = []
+    if path.suffix.lower() == ".c3d":
+        if ee_units is not None:
+            raise ValueError(f"--ee-units: a C3D file's units come from its POINT:UNITS ({path}); drop --ee-units")
+        if not path.is_file():
+            raise ValueError(f"{path}: no such file")
+        table, c3d = _read_c3d(path, ee_markers, frame_markers)
+        info["ee_units"] = f"{c3d['units']} (POINT:UNITS)"
+        info["ee_marker"] = "+".join(ee_markers)
+        if frame_markers:
+            frame = frame_from_markers(c3d["markers"], frame_markers)
+    elif path.suffix.lower() == ".bvh":
+        from camo_sbi.io.bvh import load_bvh_map, read_bvh
+
+        if bvh_map is None:
+            raise ValueError(f"--bvh-map: a BVH file ({path}) needs the mapping from its channels to the model's "
+                             f"joints (see the README: From a motion-capture session)")
+        if not path.is_file():
+            raise ValueError(f"{path}: no such file")
+        d = read_bvh(path, load_bvh_map(bvh_map, list(simulator.joint_names)))
+        frames = d.pop("frames")
+        table = _Table(path, d, frames, "frame")
+        info["bvh_map"] = str(bvh_map)
+    else:
+        if ee_markers:
+            raise ValueError(f"--ee-marker: only a C3D file has markers ({path})")
+        if frame_markers:
+            raise ValueError(f"--frame-from-markers: only a C3D file has markers ({path})")
+        table = _read(path)
+        info["ee_units"] = ee_units or "m"
+        scale = EE_UNITS[ee_units or "m"]
+        if scale != 1.0:
+            for c in (*EE_COLUMNS, *GOAL_COLUMNS):
+                if c in table.columns:
+                    table.columns[c] = table.columns[c] * scale
     names = list(simulator.joint_names)
-    has_q, has_ee = _layout(table, names)
-    reaches = _reaches(table)
+    has_q, has_ee = _layout(table, names, goal)
+    if frame is not None:
+        for cols in (EE_COLUMNS, GOAL_COLUMNS):
+            if cols[0] in table.columns:
+                p = frame.apply(np.stack([table.columns[c] for c in cols], axis=1))
+                for k, c in enumerate(cols):
+                    table.columns[c] = p[:, k]
+        info["frame"] = frame.source
+        if math.isfinite(frame.residual_m):
+            info["frame_residual_mm"] = round(frame.residual_m * 1000, 2)
+            if frame.residual_m > OFFSET_WARN_M:
+                warns.append(f"--frame-from-markers: the markers lie {frame.residual_m * 1000:.1f} mm (RMS) from "
+                             f"their model positions after the best rigid transform: check the marker positions")
+    radius = reach_radius(simulator)
+    _check_units(table, radius, ee_units or "m")
+    reaches = _reaches(table, goal)
     q_all = _joint_values(table, simulator, degrees, noise) if has_q else None
     ee_all = np.stack([table.columns[c] for c in EE_COLUMNS], axis=1) if has_ee else None
-    goal_all = np.stack([table.columns[c] for c in GOAL_COLUMNS], axis=1)
+    if goal == "final":
+        last = np.array([i[-1] for i in reaches])
+        ends = (ee_all[last] if has_ee else
+                simulator.forward_kinematics(torch.from_numpy(q_all[last])).to(torch.float64).numpy())
+        goal_all = np.zeros((table.rows.shape[0], 3))
+        for idx, g in zip(reaches, ends, strict=True):
+            goal_all[idx] = g
+    else:
+        goal_all = np.stack([table.columns[c] for c in GOAL_COLUMNS], axis=1)
+    starts = None
     if not has_q:
         s = simulator.start if start is None else start
-        s = torch.as_tensor(np.asarray(s, dtype=np.float64))
+        s = np.asarray(torch.as_tensor(s, dtype=torch.float64).numpy(), dtype=np.float64)
         if s.shape != (simulator.n_joints,):
             raise ValueError(f"start: expected shape ({simulator.n_joints},), got {tuple(s.shape)}")
-        ee0 = simulator.forward_kinematics(s).to(torch.float64).numpy()
+        ee0 = simulator.forward_kinematics(torch.from_numpy(s)).to(torch.float64).numpy()
         tol = START_TOL_M + K_SIGMA * math.sqrt(3) * noise.sigma("cartesian")
-        for idx in reaches:
-            dist = float(np.linalg.norm(ee_all[idx[0]] - ee0))
-            if dist > tol:
-                raise ValueError(f"{table.where('ee_x', idx[0])}: reach {int(table.columns[REACH][idx[0]])} "
-                                 f"starts {dist * 1000:.1f} mm from where the start posture puts the end "
-                                 f"effector (tolerance {tol * 1000:.1f} mm): an end-effector-only recording "
-                                 f"starts at the model's start posture (give it with --start)")
+        first = ee_all[[i[0] for i in reaches]]
+        at_start = np.linalg.norm(first - ee0, axis=1) <= tol
+        starts = np.broadcast_to(s, (len(reaches), s.shape[0])).copy()
+        if not at_start.all():
+            moved = np.flatnonzero(~at_start)
+            q_ik, resid = estimate_starts(simulator, first[moved], s)
+            for k, i in enumerate(moved):
+                if resid[k] > tol:
+                    row = reaches[i][0]
+                    raise ValueError(f"{table.where('ee_x', row)}: reach {int(table.columns[REACH][row])} starts "
+                                     f"{resid[k] * 1000:.1f} mm from any posture the model reaches (IK from the start "
+                                     f"posture; tolerance {tol * 1000:.1f} mm): check the units (--ee-units), the "
+                                     f"frame (--frame) and the end effector (--ee)")
+            starts[moved] = q_ik
+            info["ik_residual_mm"] = round(float(resid.max()) * 1000, 3)
+        info["starts"] = (f"{int((~at_start).sum())} of {len(reaches)} estimated by IK of the first sample "
+                          f"(the others at the start posture)" if not at_start.all() else "the start posture")
+    else:
+        info["starts"] = "observed (first row of each reach)"
+    scale = 1.0
+    if body_scale == "free":
+        if not (has_q and has_ee):
+            raise ValueError(f"--body-scale: free estimates the body's size from the joint and the end-effector "
+                             f"columns together; {path} has only {'joint' if has_q else 'end-effector'} columns")
+        scale, lo, hi = estimate_body_scale(simulator, q_all, ee_all, reaches)
+        if not BODY_SCALE_RANGE[0] <= scale <= BODY_SCALE_RANGE[1]:
+            raise ValueError(f"--body-scale: the recorded body is {scale:.3f} times the model's, outside "
+                             f"[{BODY_SCALE_RANGE[0]}, {BODY_SCALE_RANGE[1]}]: another model (--urdf, --height)?")
+        info["body_scale"] = round(scale, 4)
+        info["body_scale_90"] = [round(lo, 4), round(hi, 4)]
+        simulator = simulator.scaled(scale)
     if has_q and has_ee:
-        _check_ee_matches_fk(table, simulator, q_all, ee_all, noise)
+        if body_scale == "fixed":
+            _hint_body_scale(table, simulator, q_all, ee_all, reaches, noise)
+            s_fit, s_lo, s_hi = estimate_body_scale(simulator, q_all, ee_all, reaches)
+            if abs(s_fit - 1) > BODY_SCALE_WARN and not s_lo <= 1.0 <= s_hi:
+                warns.append(f"{table.path}: the recording fits a body {s_fit:.3f} times the model's size (90% "
+                             f"interval {s_lo:.3f}-{s_hi:.3f}): the limits of the model's body will be off; "
+                             f"use --body-scale free")
+        w = _check_ee_matches_fk(table, simulator, q_all, ee_all, noise)
+        if w:
+            warns.append(w)
+    gnorm = np.linalg.norm(goal_all[[i[0] for i in reaches]], axis=1)
+    far = np.flatnonzero(gnorm > radius * (1 + REACH_MARGIN) + 0.01)
+    if far.size:
+        k = int(far[np.argmax(gnorm[far])])
+        warns.append(f"{table.where(GOAL_COLUMNS[0] if goal != 'final' else EE_COLUMNS[0], reaches[k][0])}: "
+                     f"{far.size} of {len(reaches)} goals out of the model's reach: reach "
+                     f"{int(table.columns[REACH][reaches[k][0]])}'s goal is {gnorm[k]:.3f} m from the base, "
+                     f"{gnorm[k] - radius:.3f} m beyond the farthest point the model reaches ({radius:.3f} m over "
+                     f"{REACH_SAMPLES} sampled postures)")
+    timed = TIME in table.columns
+    if timed:
+        dts = np.concatenate([np.diff(table.columns[TIME][i]) for i in reaches])
+        dt = float(np.median(dts))
+        info["sample_interval_s"] = dt
     obs = []
-    for idx in reaches:
-        q = torch.from_numpy(q_all[idx].copy()) if has_q else None
-        st = q[0].clone() if has_q else s.clone()
-        ee = torch.from_numpy(ee_all[idx].copy()) if has_ee else None
+    for r, idx in enumerate(reaches):
+        q = q_all[idx].copy() if has_q else None
+        ee = ee_all[idx].copy() if has_ee else None
+        if timed:
+            t_old, t_new = _uniform_in_time(table.columns[TIME][idx], dt)
+            q = None if q is None else np.vstack([q[:1], _interp_rows(q, t_old, t_new)[1:]])
+            ee = None if ee is None else _interp_rows(ee, t_old, t_new)
+        q = None if q is None else torch.from_numpy(q)
+        st = q[0].clone() if has_q else torch.from_numpy(starts[r].copy())
+        ee = None if ee is None else torch.from_numpy(ee)
         obs.append(Observation(st, torch.from_numpy(goal_all[idx[0]].copy()), q, ee))
     obs = tuple(obs)
     if resample is None:
-        return obs
+        return Recording(obs, tuple(warns), info, scale)
     r = estimate_rate(obs, simulator) if rate is None else float(rate)
     if not (math.isfinite(r) and r > 0):
         raise ValueError(f"rate: expected a number > 0, got {rate!r}")
-    return tuple(resample_to_controller(o, simulator, mode=resample, rate=r) for o in obs)
+    info["rate"] = round(r, 4)
+    return Recording(tuple(resample_to_controller(o, simulator, mode=resample, rate=r) for o in obs),
+                     tuple(warns), info, scale)
 
 
 def _read(path) -> _Table:
