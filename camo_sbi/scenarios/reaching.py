@@ -16,7 +16,7 @@ from camo_sbi.priors import BoxPrior
 from camo_sbi.simulators.base import theta_to_limits
 from camo_sbi.task import NoiseModel, Observation, Task
 
-__all__ = ["make_reaching_task", "observe", "reachable_goals"]
+__all__ = ["make_reaching_task", "nominal_workspace_goals", "observe", "reachable_goals"]
 
 
 def observe(simulator, theta, goals, start=None) -> tuple[Observation, ...]:
@@ -64,6 +64,15 @@ def reachable_goals(simulator, true_theta, n: int, generator, start=None, *, max
         if total >= n:
             return torch.cat(found)[:n]
     raise ValueError(f"true_theta: only {total} of {2 * n * max_rounds} sampled goals were reachable")
+
+
+def nominal_workspace_goals(simulator, n: int, generator) -> torch.Tensor:
+    """(n, 3) float64 goals: FK of configurations drawn uniformly inside the NOMINAL limits
+    (``simulator.bounds``), with ``generator`` (a torch.Generator or an int seed). A subject with
+    restricted limits may not reach some of them: that is the point of the informative design."""
+    from camo_sbi.simulators import sample_goals
+
+    return sample_goals(simulator, simulator.bounds.to(torch.float64), n, generator).to(torch.float64)
 
 
 def make_reaching_task(simulator, true_theta, *, n_train: int = 10, n_test: int = 20, seed,
