@@ -2,31 +2,30 @@
 
 Given K equally weighted posterior draws theta_k (resampled from a `PosteriorResult` with
 ``seed``) and a candidate goal g, every draw is simulated reaching g from the next reach's
-start. Its outcome y_k is the predicted end point and whether the goal is reached. Draws j
-and k are told apart by a reach to g with the plug-in likelihood
-
-    L_kj = exp(-|e_k - e_j|^2 / (2 sigma^2)) * [reached_k == reached_j]
-
-(``sigma`` = ``resolution_mm``: what an observed end point can resolve; observation noise or
-finer). Two criteria use the same K x K matrix:
+start. Its outcome y_k is the predicted end point, with a draw that reaches the goal put at
+the goal (a reached goal says "reached"; where inside the controller's tolerance it stopped
+is not used), so y separates draws by whether and where a limit stops the reach. The end
+point is observed with resolution ``sigma`` (``resolution_mm``: the observation noise, or at
+least `MIN_RESOLUTION_MM`). Two criteria:
 
 * ``"variance"`` (the default): the expected reduction of the posterior variance of the
-  limits, ``sum_d Var(theta_d) - E_k[sum_d Var(theta_d | y_k)]``, in rad^2 (the posterior after
-  y_k weights draw j by L_kj). Chosen because it is what the toolkit is judged on: the error
-  of the limits, in their own unit. A reach that only separates draws whose limits are
-  already close scores little, and it does not saturate: once a reach tells every draw
-  apart, its score is the whole variance, so goals are ranked by how much of the limits'
-  spread they resolve rather than by how many draws they separate.
+  limits, ``sum_d Var(theta_d) - E_y[sum_d Var(theta_d | y)]`` (rad^2), in its linear-Gaussian
+  (ensemble Kalman) form ``tr(C_ty (C_yy + sigma^2 I)^-1 C_yt)`` with the draws' covariances.
+  Chosen because it is what the toolkit is judged on, the error of the limits in their own
+  unit, and because a 3-number outcome can only explain the part of the limits' spread that
+  it co-varies with: with K discrete draws, the exact plug-in update would "identify" a whole
+  draw (all 2n limits) from any outcome that differs between draws, and every goal a
+  restriction touches would tie at the whole variance.
 * ``"eig"``: the expected information gain on the outcome in the BALD / disagreement form,
-  ``-E_k log E_j L_kj`` (nats; the pairwise estimate of the mutual information between the
-  outcome and theta for a deterministic simulator). It is at most log K, and treats two
-  draws a hair apart like two draws a joint's range apart.
+  ``-E_k log E_j L_kj`` with ``L_kj = exp(-|y_k - y_j|^2 / (2 sigma^2))`` (nats; the pairwise
+  estimate of the mutual information between outcome and theta for a deterministic
+  simulator). It is at most log K and saturates there on every goal that tells all K draws
+  apart.
 
-A goal that every draw reaches the same way (well inside every draw's limits) scores 0 under
-both. The cost is K simulations per candidate, counted by a `CountingSimulator` capped at
-``budget`` (reported as ``n_simulations``: design simulations, apart from the method's).
-Only posterior draws and the simulator are used, so any registered method that returns
-draws can drive it; the fastest posterior (npe-amortized) makes a choice take seconds.
+A goal that every draw reaches (well inside every draw's limits) scores ~0 under both. The
+cost is K simulations per candidate, counted by a `CountingSimulator` capped at ``budget``
+(reported as ``n_simulations``: design simulations, apart from the method's). Only posterior
+draws and the simulator are used, so any registered method that returns draws can drive it.
 """
 
 from __future__ import annotations
@@ -96,19 +95,19 @@ def _draws(result: PosteriorResult, k: int, seed) -> np.ndarray:
     return result.resample(k, numpy_generator(seed))
 
 
-def _scores(theta: np.ndarray, end: np.ndarray, reached: np.ndarray, sigma: float, criterion: str) -> np.ndarray:
-    """(m,) scores of m candidates from K draws theta (K, D), end points (m, K, 3), reached (m, K)."""
-    sq = (end * end).sum(-1)
-    d2 = np.maximum(sq[:, :, None] + sq[:, None, :] - 2.0 * end @ end.transpose(0, 2, 1), 0.0)  # (m, K, K)
-    lik = np.exp(-d2 / (2.0 * sigma * sigma)) * (reached[:, :, None] == reached[:, None, :])
+def _scores(theta: np.ndarray, y: np.ndarray, sigma: float, criterion: str) -> np.ndarray:
+    """(m,) scores of m candidates from K draws theta (K, D) and their outcomes y (m, K, 3)."""
+    k = theta.shape[0]
     if criterion == "eig":
-        return np.maximum(-np.log(lik.mean(axis=2)).mean(axis=1), 0.0)
-    p = lik / lik.sum(axis=2, keepdims=True)  # (m, K, K): posterior over draws j after outcome k
-    m1 = p @ theta
-    m2 = p @ (theta * theta)
-    after = np.maximum(m2 - m1 * m1, 0.0).sum(-1).mean(-1)  # (m,)
-    before = theta.var(axis=0).sum()
-    return np.maximum(before - after, 0.0)
+        sq = (y * y).sum(-1)
+        d2 = np.maximum(sq[:, :, None] + sq[:, None, :] - 2.0 * y @ y.transpose(0, 2, 1), 0.0)  # (m, K, K)
+        return np.maximum(-np.log(np.exp(-d2 / (2.0 * sigma * sigma)).mean(axis=2)).mean(axis=1), 0.0)
+    tc = theta - theta.mean(axis=0)
+    yc = y - y.mean(axis=1, keepdims=True)
+    c_ty = np.einsum("kd,mke->mde", tc, yc) / (k - 1)  # (m, D, 3)
+    c_yy = np.einsum("mke,mkf->mef", yc, yc) / (k - 1) + sigma * sigma * np.eye(3)
+    gain = np.linalg.solve(c_yy, c_ty.transpose(0, 2, 1))  # (m, 3, D)
+    return np.maximum(np.einsum("mde,med->m", c_ty, gain), 0.0)
 
 
 def rank_goals(task: Task, result: PosteriorResult, candidates, *, seed, budget: int, start=None,
@@ -162,17 +161,18 @@ def rank_goals(task: Task, result: PosteriorResult, candidates, *, seed, budget:
     for i in range(0, c, per):
         g = cand[i:i + per]
         m = g.shape[0]
-        traj = counter.simulate(theta.repeat(m, 1), g.repeat_interleave(k, dim=0), start)
-        end = traj.ee[:, -1].to(torch.float64).numpy().reshape(m, k, 3)
-        reached = traj.reached.numpy().reshape(m, k)
-        scores[i:i + m] = _scores(th, end, reached, resolution_mm / 1000.0, criterion)
-    order = np.argsort(-scores, kind="stable")
+        goals = g.repeat_interleave(k, dim=0)
+        traj = counter.simulate(theta.repeat(m, 1), goals, start)
+        end = torch.where(traj.reached.unsqueeze(-1), goals, traj.ee[:, -1].to(torch.float64))
+        scores[i:i + m] = _scores(th, end.numpy().reshape(m, k, 3), resolution_mm / 1000.0, criterion)
+    cn = cand.numpy()
+    order = np.lexsort((cn[:, 2], cn[:, 1], cn[:, 0], -scores))  # ties by the goal's coordinates: order-free
     status = "ok"
-    ceiling = th.var(axis=0).sum() if criterion == "variance" else np.log(k)
+    ceiling = th.var(axis=0, ddof=1).sum() if criterion == "variance" else np.log(k)
     if not scores.max() > NEGLIGIBLE * ceiling:
         status = ("fallback: no candidate separates the posterior draws (every score is ~0); "
                   "the best-scored candidate is kept, chosen by next to nothing")
-    return DesignInfo(goals=cand.numpy()[order].copy(), scores=scores[order], index=order, criterion=criterion,
+    return DesignInfo(goals=cn[order].copy(), scores=scores[order], index=order, criterion=criterion,
                       method=result.method, n_draws=k, n_simulations=counter.n_simulations,
                       resolution_mm=float(resolution_mm), wall_time=time.perf_counter() - t0, status=status)
 
