@@ -2,7 +2,8 @@
 
 Every reproduction writes ``claims.csv`` with the columns
 
-    claim, setting, method, baseline, statistic, value, ci_low, ci_high, p_value, p_raw, test, holds
+    claim, setting, method, baseline, statistic, value, ci_low, ci_high, p_value, p_raw, test, holds,
+    binding_test_reaches_min, few_reaches
 
 one row per (claim, method, baseline[, metric]). The unit of replication is the run: each
 run has its own random draws (and, in the toolkit setting, its own subject and goals), and
@@ -20,6 +21,10 @@ within runs.
   reproduction); ``p_raw`` is unadjusted. ``holds`` is decided on ``p_value`` < 0.05 (and the
   effect in the claimed direction), or, for equivalence and level claims, as stated in the
   row's ``statistic``.
+* ``binding_test_reaches_min``: the fewest held-out reaches the restriction touches in any run
+  of the table (``binding_test_reaches``, `scenarios.reaching.binding_reaches`);
+  ``few_reaches`` is True when that is below 3: the claim rests on a few reaches
+  (`mark_few_reaches`; NaN and False for a table without the count).
 """
 
 from __future__ import annotations
@@ -28,12 +33,14 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-__all__ = ["ALPHA", "CLAIM_COLUMNS", "bootstrap_ci", "holm", "hrc_claims", "manipulator_claims",
-           "paired_less", "paired_table"]
+__all__ = ["ALPHA", "CLAIM_COLUMNS", "FEW_REACHES", "binding_line", "bootstrap_ci", "holm", "hrc_claims",
+           "informative_claims", "manipulator_claims", "mark_few_reaches", "paired_less", "paired_table"]
 
 ALPHA = 0.05
 CLAIM_COLUMNS = ("claim", "setting", "method", "baseline", "statistic", "value", "ci_low", "ci_high",
-                 "p_value", "p_raw", "test", "holds")
+                 "p_value", "p_raw", "test", "holds", "binding_test_reaches_min", "few_reaches")
+FEW_REACHES = 3
+"""A claim computed on runs where fewer held-out reaches than this bind rests on few reaches."""
 _BOOT = 10_000
 _WILCOXON = "paired Wilcoxon signed-rank (one-sided)"
 
@@ -85,13 +92,45 @@ def _row(claim, setting, method, baseline, statistic, values, p, test, holds_if)
             "p_raw": float(p), "test": test, "_holds": holds_if}
 
 
-def _finish(rows: list[dict]) -> pd.DataFrame:
+def _finish(rows: list[dict], df: pd.DataFrame | None = None) -> pd.DataFrame:
     table = pd.DataFrame(rows)
     if table.empty:
         return pd.DataFrame(columns=list(CLAIM_COLUMNS))
     table["p_value"] = holm(table["p_raw"].to_numpy())
     table["holds"] = [bool(f(r)) for f, (_, r) in zip(table["_holds"], table.iterrows(), strict=True)]
-    return table[list(CLAIM_COLUMNS)]
+    return mark_few_reaches(table, df)[list(CLAIM_COLUMNS)]
+
+
+def mark_few_reaches(claims: pd.DataFrame, df: pd.DataFrame | None) -> pd.DataFrame:
+    """``claims`` with ``binding_test_reaches_min`` (the fewest binding held-out reaches in any run
+    of the results ``df``) and ``few_reaches`` (that minimum < `FEW_REACHES`) set on every row."""
+    claims = claims.copy()
+    counts = None if df is None or "metric" not in df else df.loc[df.metric == "binding_test_reaches", "value"]
+    least = float(counts.min()) if counts is not None and len(counts) else float("nan")
+    claims["binding_test_reaches_min"] = least
+    claims["few_reaches"] = bool(np.isfinite(least) and least < FEW_REACHES)
+    return claims
+
+
+def binding_line(df: pd.DataFrame) -> str:
+    """One summary line: how many held-out (and training) reaches the restriction touches per run."""
+    if df is None or "metric" not in df or not (df.metric == "binding_test_reaches").any():
+        return "binding reaches: not recorded"
+    keys = [k for k in ("run", "prior", "seed", "subject", "condition", "budget") if k in df.columns]
+    parts = []
+    for which in ("test", "train"):
+        frac = df[df.metric == f"binding_{which}_fraction"]
+        cnt = df[df.metric == f"binding_{which}_reaches"]
+        if frac.empty:
+            continue
+        per_run = frac.groupby(keys)["value"].first() if keys else frac["value"]
+        per_cnt = cnt.groupby(keys)["value"].first() if keys else cnt["value"]
+        parts.append(f"{which} {per_run.mean():.2f} of reaches bind (runs: {per_run.min():.2f}-{per_run.max():.2f}; "
+                     f"fewest {int(per_cnt.min())} reaches)")
+    few = int((df[df.metric == "binding_test_reaches"].groupby(keys)["value"].first() < FEW_REACHES).sum()) \
+        if keys else 0
+    note = f"; {few} run(s) with < {FEW_REACHES} binding test reaches: claims there rest on few reaches" if few else ""
+    return "binding reaches (> 1 mm moved when the restriction is relaxed): " + "; ".join(parts) + note
 
 
 def _significant(r) -> bool:
@@ -173,7 +212,36 @@ def manipulator_claims(df: pd.DataFrame, *, setting: str) -> pd.DataFrame:
                     "CAMO is significantly better than the baseline in joint space after all tasks (Fig. 3)",
                     setting, m, b, f"{metric} after {K} tasks: mean paired difference (method - baseline)",
                     d, paired_less(d), _WILCOXON, _significant))
-    return _finish(rows)
+    return _finish(rows, df)
+
+
+def informative_claims(df: pd.DataFrame, *, setting: str = "informative") -> pd.DataFrame:
+    """The informative setting's claims: every method (not a baseline) better than naive and
+    than nominal on ``cartesian_error_mm`` and on ``limit_error_binding_deg`` after all tasks,
+    paired over runs (one-sided Wilcoxon), Holm-corrected over the table."""
+    if df.empty:
+        return _finish([])
+    from camo_sbi.inference.registry import names
+
+    known, trivial = set(names()), set(names(baseline=True)) | {"naive"}
+    methods = [m for m in dict.fromkeys(df.method) if m in known and m not in trivial]
+    baselines = [b for b in ("naive", "nominal") if b in set(df.method)]
+    K = int(df.n_tasks.max())
+    rows = []
+    for metric in ("cartesian_error_mm", "limit_error_binding_deg"):
+        if not (df.metric == metric).any():
+            continue
+        t = paired_table(df, metric, K)
+        for m in methods:
+            for b in baselines:
+                if m not in t or b not in t:
+                    continue
+                d = (t[m] - t[b]).dropna().to_numpy()
+                rows.append(_row(
+                    f"the method is better than the baseline on {metric} (informative setting)", setting, m, b,
+                    f"{metric} after {K} tasks: mean paired difference (method - baseline)",
+                    d, paired_less(d), _WILCOXON, _significant))
+    return _finish(rows, df)
 
 
 def hrc_claims(df: pd.DataFrame, *, setting: str = "hrc") -> pd.DataFrame:
@@ -217,4 +285,4 @@ def hrc_claims(df: pd.DataFrame, *, setting: str = "hrc") -> pd.DataFrame:
                 "majority", "f1 averaged over tasks: naive - majority class; holds if the upper CI end <= 0.05",
                 d, paired_less(d - 0.05), "paired Wilcoxon (one-sided, vs margin 0.05)",
                 lambda r: np.isfinite(r["ci_high"]) and r["ci_high"] <= 0.05))
-    return _finish(rows)
+    return _finish(rows, df)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from camo_sbi.evaluation.metrics import cartesian_error_mm, limit_errors, prediction_metrics
+from camo_sbi.evaluation.metrics import cartesian_error_mm, limit_errors, prediction_metrics, reachability_metrics
 from camo_sbi.inference.result import PosteriorResult
 from camo_sbi.simulators.base import Trajectories
 from camo_sbi.task import Task, contain, predict
@@ -70,14 +70,17 @@ def posterior_predictive(task: Task, result: PosteriorResult, true_test: Traject
 
 def evaluate_result(task: Task, result: PosteriorResult, true_test: Trajectories | None,
                     binding: np.ndarray | None = None, *, posterior_predictive_draws: int | None = None,
-                    ) -> dict[str, float]:
+                    reachability: bool = False) -> dict[str, float]:
     """Every metric of one result: prediction metrics on the held-out reaches (when the
     task has them), limit errors (when it has the truth) and, for a posterior with
-    ``posterior_predictive_draws``, the posterior-predictive scores."""
+    ``posterior_predictive_draws``, the posterior-predictive scores; with ``reachability``
+    the predicted reached/not-reached labels scored against the true ones."""
     out: dict[str, float] = {}
     if true_test is not None:
         pred = predict(task.simulator, result.estimate, task.test_starts, task.test_goals)
         out.update(prediction_metrics(true_test, pred))
+        if reachability:
+            out.update(reachability_metrics(true_test, pred))
         if posterior_predictive_draws and result.samples.shape[0] > 1:
             out.update(posterior_predictive(task, result, true_test, posterior_predictive_draws))
     if task.true_theta is not None:

@@ -21,6 +21,13 @@ same goals and starts, reach b of one against reach b of the other):
     ``np.sum(np.linalg.norm(true - pred, axis=0))`` on a (T, D) trajectory, i.e. the L2
     norm over time of each axis, summed over the axes; over all ``T`` points like Eq. 2.
 
+Reachability (informative setting: goals from the nominal workspace, some beyond the subject):
+``reachability_precision`` / ``reachability_recall`` / ``reachability_f1`` / ``reachability_accuracy``
+    Predicted reached / not reached (the controller stops within its tolerance) against the
+    true labels, "reached" being the positive class as "person" is in the block-stacking
+    scene, with its zero-denominator rule: precision with no predicted reach is 1 if no goal
+    is truly reached and 0 otherwise; recall likewise.
+
 Limit metrics (degrees; prismatic joints: their value in metres times 180/pi) cover the
 prior's free coordinates only (known limits are never estimated):
 
@@ -52,6 +59,7 @@ __all__ = [
     "joint_error_deg",
     "limit_errors",
     "prediction_metrics",
+    "reachability_metrics",
     "reference_cartesian",
     "reference_joint",
 ]
@@ -148,6 +156,20 @@ def prediction_metrics(true: Trajectories, pred: Trajectories) -> dict[str, floa
         "reference_cartesian": float(reference_cartesian(true, pred).sum()),
         "reference_joint": float(reference_joint(true, pred).sum()),
     }
+
+
+def reachability_metrics(true: Trajectories, pred: Trajectories) -> dict[str, float]:
+    """Precision, recall, F1 and accuracy of the predicted reached labels against the true ones
+    (module docstring; "reached" is the positive class)."""
+    _pair(true, pred)
+    t, p = true.reached.bool(), pred.reached.bool()
+    tp, fp = int((t & p).sum()), int((~t & p).sum())
+    fn, tn = int((t & ~p).sum()), int((~t & ~p).sum())
+    precision = tp / (tp + fp) if tp + fp else float(fn == 0)
+    recall = tp / (tp + fn) if tp + fn else float(fp == 0)
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    return {"reachability_precision": precision, "reachability_recall": recall, "reachability_f1": f1,
+            "reachability_accuracy": (tp + tn) / max(1, tp + fp + fn + tn)}
 
 
 def binding_bounds(simulator, true_theta, starts, goals, prior, *, tol: float = BINDING_TOL_RAD) -> np.ndarray:

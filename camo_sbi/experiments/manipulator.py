@@ -19,6 +19,20 @@ text); the 5-level grid prior; the plain Eq. 2 distance with epsilon acceptance 
 KDE bandwidth 0.5 (variance 0.25); the same training and test goals in every run (runs
 differ in the methods' random draws only); ``camo-seq``: their sequential proposals.
 
+``--setting informative`` (issue 23: a setting in which the limits matter): the toolkit's
+controller; training and test goals drawn from the NOMINAL workspace (FK of configurations
+inside the model's full range), so some are beyond the subject's reach; at least half of the
+test goals bind (`informative_test_goals`); the subjects of
+`subjects.INFORMATIVE_PROFILES` (or the ``--limits`` file); a uniform continuous prior; the
+reachability metrics (``reachability_f1``, ...) next to every other; claims: every method
+against naive and nominal on ``cartesian_error_mm`` and ``limit_error_binding_deg``.
+``--design random`` (default) draws the training goals; ``--design active`` chooses each next
+goal with ``camo_sbi.design`` (not available yet in this build: exit 2).
+
+Every run records how informative it is: ``binding_test_fraction`` / ``binding_train_fraction``
+(and the counts ``binding_*_reaches``), the share of reaches whose true path moves by > 1 mm
+when the restriction is relaxed to the nominal limits (`scenarios.reaching.binding_reaches`).
+
 Each run writes ``claims.csv`` (`camo_sbi.evaluation.claims`): every paper claim tested with
 paired tests across runs against naive and against nominal, Holm-corrected.
 """
@@ -43,7 +57,7 @@ from camo_sbi.experiments.models import (
     subject_list,
     true_limits,
 )
-from camo_sbi.experiments.subjects import ONE_JOINT
+from camo_sbi.experiments.subjects import INFORMATIVE_PROFILES, ONE_JOINT
 
 __all__ = ["SETTINGS", "Setting", "add_arguments", "main", "make_figures", "method_config", "run_one"]
 
@@ -60,6 +74,8 @@ class Setting:
         camo: CAMO config fields for every CAMO variant.
         epsilon: per observation space, CAMO's acceptance threshold (overrides ``camo``).
         methods: default ``--methods``.
+        workspace: "true" (goals inside the subject's limits) or "nominal" (the informative design).
+        min_binding_test: with workspace "nominal", the least share of test goals that bind.
     """
 
     controller: dict | None
@@ -69,6 +85,8 @@ class Setting:
     camo: dict
     epsilon: dict = field(default_factory=dict)
     methods: tuple[str, ...] = ()
+    workspace: str = "true"
+    min_binding_test: float | None = None
 
 
 SETTINGS = {
@@ -85,8 +103,14 @@ SETTINGS = {
               "distance": "euclidean", "fallback_keep": 20},
         epsilon={"joint": 0.02, "cartesian": 0.01},
         methods=("camo-js", "camo-cs", "camo-seq", "camo-hull", "naive", "nominal", "oracle")),
+    "informative": Setting(
+        controller=None, subjects=tuple(INFORMATIVE_PROFILES), fixed_goals=False, require_reached=False,
+        camo={"keep_best": 100, "bandwidth": 0.2, "bandwidth_mode": "fixed", "sampling": "uniform",
+              "distance": "dtw"},
+        methods=("camo-js", "camo-cs", "camo-hull", "camo-seq", "naive", "nominal", "oracle"),
+        workspace="nominal", min_binding_test=0.5),
 }
-"""The two designs of ``reproduce panda``. The paper setting's epsilons are the authors'
+"""The designs of ``reproduce panda``. The paper setting's epsilons are the authors'
 ``THRESH`` (0.02, joint) and ``THRESH_CARTESIAN`` (0.01, here in metres): with the grid prior and
 clamp-only limits about a third of the draws reproduce a reach exactly (distance 0) and the
 next-closest lie beyond 0.05, so acceptance is "does not bind on this reach"."""
@@ -136,21 +160,24 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
     from camo_sbi.evaluation.evaluate import evaluate_result, true_test_trajectories
     from camo_sbi.evaluation.metrics import binding_bounds
     from camo_sbi.inference.registry import run_method_sequence
-    from camo_sbi.scenarios.reaching import make_reaching_task
+    from camo_sbi.scenarios.reaching import make_reaching_task, task_binding_metrics
 
     st = _setting(args)
     true_theta = true_limits(model, sim, subject)
     goal_seed = derive_seed(args.seed) if st.fixed_goals else derive_seed(args.seed, run)
     task = make_reaching_task(sim, true_theta, n_train=args.tasks, n_test=args.test_goals, seed=goal_seed,
-                              name=model.name, subject=subject, require_reached=st.require_reached)
+                              name=model.name, subject=subject, require_reached=st.require_reached,
+                              workspace=st.workspace, min_binding_test=st.min_binding_test)
     true_test = true_test_trajectories(task)
     binding = binding_bounds(sim, true_theta, task.test_starts, task.test_goals, task.prior)
+    informative = task_binding_metrics(task)
     rows = []
     for name in args.methods:
         results = run_method_sequence(name, task, budget=args.samples, seed=derive_seed(args.seed, run, 1),
                                       config=method_config(name, args))
         for res in results:
-            metrics = evaluate_result(task, res, true_test, binding)
+            metrics = evaluate_result(task, res, true_test, binding, reachability=st.workspace == "nominal")
+            metrics.update(informative)
             metrics["n_simulations"] = res.n_simulations
             metrics["wall_time"] = res.wall_time  # without numba compilation, which is compile_time
             metrics["compile_time"] = res.compile_time
@@ -212,7 +239,10 @@ def _make_figures(df, out: Path, formats) -> list[Path]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--setting", choices=tuple(SETTINGS), default="toolkit",
-                   help="toolkit: the toolkit's harder design (default); paper: the authors' published design")
+                   help="toolkit: the toolkit's harder design (default); paper: the authors' published design; "
+                        "informative: goals from the nominal workspace, restrictions that bind (issue 23)")
+    p.add_argument("--design", choices=("random", "active"), default="random",
+                   help="training goals: random draws (default) or chosen one by one (active; --setting informative)")
     add_model_arguments(p)
     p.add_argument("--runs", type=int, default=30, help="independent runs (paper: 30)")
     p.add_argument("--tasks", type=int, default=10, help="observed training goals per run")
@@ -255,6 +285,11 @@ def _check(args) -> None:
     for name in ("runs", "tasks", "test_goals", "samples"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
+    design = getattr(args, "design", "random")
+    if design == "active" and args.setting != "informative":
+        raise ValueError("--design: active design needs --setting informative")
+    if design == "active":
+        raise ValueError("--design: active is not available in this build yet (issue 23 item 3); use random")
     if args.setting == "paper" and args.horizon is None:
         args.horizon = 21
     if args.horizon is not None and args.horizon < 2:
@@ -267,12 +302,14 @@ def _check(args) -> None:
 
 def main(args) -> int:
     from camo_sbi.distributed import dask_client
-    from camo_sbi.evaluation.claims import manipulator_claims
+    from camo_sbi.evaluation.claims import binding_line, informative_claims, manipulator_claims
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
     from camo_sbi.experiments.store import cell_key
 
     if not hasattr(args, "setting"):
         args.setting = "toolkit"
+    if not hasattr(args, "design"):
+        args.design = "random"
     _check(args)
     formats = figure_formats(args)
     t0 = time.perf_counter()
@@ -293,21 +330,26 @@ def main(args) -> int:
         with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
             for run in tqdm(range(args.runs), desc=f"reproduce {model.name} ({args.setting})", unit="run"):
                 subject = subjects[run % len(subjects)]
-                key = cell_key({"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}})
+                cell = {"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}}
+                if args.design != "random":  # random keeps the cell keys it always had
+                    cell["design"] = args.design
+                key = cell_key(cell)
                 if store.done(key):
                     continue
                 store.put(key, run_one(sim, model, subject, run, args))
         df = store.write_table()
         figs = make_figures(df, out, formats)
-        claims = manipulator_claims(df, setting=args.setting)
+        claims = (informative_claims(df, setting=args.setting) if args.setting == "informative"
+                  else manipulator_claims(df, setting=args.setting))
         atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     wall = time.perf_counter() - t0
     metrics = ["cartesian_error_mm", "joint_error_deg", "reference_cartesian", "limit_error_binding_deg",
-               "limit_error_free_deg"]
+               "limit_error_free_deg", "reachability_f1"]
     last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(metrics)]
     summary = last.groupby(["method", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
     print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
-    print(claims[["claim", "method", "baseline", "value", "p_value", "holds"]].to_string(index=False))
+    print(binding_line(df))
+    print(claims[["claim", "method", "baseline", "value", "p_value", "holds", "few_reaches"]].to_string(index=False))
     bad = df[df.status != "ok"]
     if len(bad):
         print(f"non-ok statuses: {bad.groupby(['method', 'status']).size().to_dict()}")

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:  # imported where limits are built: the CLI's --help lists the profiles below
     import torch
 
-__all__ = ["HUMAN_PROFILES", "ONE_JOINT", "PANDA_PROFILES", "PAPER_JOINT", "build_model", "subject_names",
+__all__ = ["HUMAN_PROFILES", "INFORMATIVE_PROFILES", "ONE_JOINT", "PANDA_PROFILES", "PAPER_JOINT", "build_model", "subject_names",
            "subject_theta"]
 
 # Panda profiles: {joint index: fraction of the range kept on each side of the start posture}.
@@ -30,6 +30,29 @@ HUMAN_PROFILES = ("frozen_shoulder", "elbow_flexion_contracture", "restricted_wr
 """The names of `camo_sbi.simulators.human.IMPAIRED_PROFILES` (defined there, with their limits),
 repeated here so that ``--help`` lists them without importing the model (torch);
 ``tests/test_cli.py`` checks that the two agree."""
+
+
+INFORMATIVE_PROFILES: dict[str, dict[str, dict[int, float]]] = {
+    "informative_shoulder": {"panda": PANDA_PROFILES["shoulder_restricted"], "human": {2: 0.3, 3: 0.3}},
+    "informative_elbow": {"panda": PANDA_PROFILES["elbow_restricted"], "human": {5: 0.3}},
+}
+"""The subjects of ``reproduce panda --setting informative``, per model, with the fraction rule
+of `PANDA_PROFILES`: each restricted bound, relaxed alone, moves >= 1 mm of about half or more
+of the reaches to goals from the nominal workspace (measured on 40 goals, seed 1: Panda shoulder
+0.55-0.68 per bound, elbow 0.57-0.72; human shoulder flexion+abduction 0.50-0.65, elbow 0.53-0.68;
+every run reports its own ``binding_test_fraction``)."""
+
+
+def _fraction_limits(sim, fractions: dict[int, float]):
+    import torch
+
+    b = sim.bounds.to(torch.float64)
+    s = sim.start.to(torch.float64)
+    lo, hi = b[:, 0].clone(), b[:, 1].clone()
+    for j, f in fractions.items():
+        lo[j] = s[j] - f * (s[j] - b[j, 0])
+        hi[j] = s[j] + f * (b[j, 1] - s[j])
+    return torch.stack([lo, hi], dim=1).reshape(-1)
 
 
 def build_model(model: str):
@@ -66,16 +89,14 @@ def subject_theta(sim, model: str, name: str) -> torch.Tensor:
         lim[j, 0] = max(float(b[j, 0]), float(s[j]) - _ONE_JOINT_HALF_WIDTH)
         lim[j, 1] = min(float(b[j, 1]), float(s[j]) + _ONE_JOINT_HALF_WIDTH)
         return lim.reshape(-1)
+    if name in INFORMATIVE_PROFILES:
+        if model not in INFORMATIVE_PROFILES[name]:
+            raise ValueError(f"model: expected one of {sorted(INFORMATIVE_PROFILES[name])}, got {model!r}")
+        return _fraction_limits(sim, INFORMATIVE_PROFILES[name][model])
     if model == "human":
         from camo_sbi.simulators import impaired_limits
 
         return torch.as_tensor(impaired_limits(sim, name), dtype=torch.float64)
     if name not in PANDA_PROFILES:
         raise ValueError(f"subject: unknown Panda profile {name!r}; known: {', '.join(PANDA_PROFILES)}")
-    b = sim.bounds.to(torch.float64)
-    s = sim.start.to(torch.float64)
-    lo, hi = b[:, 0].clone(), b[:, 1].clone()
-    for j, f in PANDA_PROFILES[name].items():
-        lo[j] = s[j] - f * (s[j] - b[j, 0])
-        hi[j] = s[j] + f * (b[j, 1] - s[j])
-    return torch.stack([lo, hi], dim=1).reshape(-1)
+    return _fraction_limits(sim, PANDA_PROFILES[name])

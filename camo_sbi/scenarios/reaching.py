@@ -5,6 +5,11 @@ uniformly inside the subject's TRUE limits, mapped through FK, and kept only if 
 subject's controller reaches them (the paper's "reachable random goals"). Goals therefore
 depend on the true limits (a reach is only attempted where the person can go), which
 the methods ignore: they treat goals as given.
+
+The informative design (``workspace="nominal"``, `nominal_workspace_goals`) draws goals inside
+the NOMINAL limits instead, so some lie beyond the subject's reach and the restriction shapes
+many reaches. `binding_reaches` / `binding_fraction` measure how many reaches a restriction
+actually touches: every experiment records it (``binding_test_fraction``).
 """
 
 from __future__ import annotations
@@ -13,10 +18,14 @@ import torch
 
 from camo_sbi._validation import as_tensor, check_positive_int, check_theta, torch_generator
 from camo_sbi.priors import BoxPrior
-from camo_sbi.simulators.base import theta_to_limits
+from camo_sbi.simulators.base import Trajectories, theta_to_limits
 from camo_sbi.task import NoiseModel, Observation, Task
 
-__all__ = ["make_reaching_task", "nominal_workspace_goals", "observe", "reachable_goals"]
+__all__ = ["BINDING_TOL_M", "binding_fraction", "binding_reaches", "informative_test_goals", "make_reaching_task",
+           "nominal_workspace_goals", "observe", "reachable_goals", "task_binding_metrics"]
+
+BINDING_TOL_M = 1e-3
+"""A reach binds if relaxing the restriction moves its end-effector path by more than this (metres)."""
 
 
 def observe(simulator, theta, goals, start=None) -> tuple[Observation, ...]:
@@ -75,10 +84,138 @@ def nominal_workspace_goals(simulator, n: int, generator) -> torch.Tensor:
     return sample_goals(simulator, simulator.bounds.to(torch.float64), n, generator).to(torch.float64)
 
 
+def _max_path_move(a, b) -> torch.Tensor:
+    """(M,) largest end-effector distance between reach i of ``a`` and of ``b`` (Trajectories) over
+    the steps either uses, each reach holding its final valid point after it stops."""
+    la, lb = a.length.long(), b.length.long()
+    steps = int(torch.maximum(la, lb).max())
+    t = torch.arange(steps).expand(la.shape[0], steps)
+
+    def held(x, length):
+        idx = torch.minimum(t, (length - 1).unsqueeze(-1))
+        return x.to(torch.float64).gather(1, idx.unsqueeze(-1).expand(-1, -1, 3))
+
+    return (held(a.ee, la) - held(b.ee, lb)).norm(dim=-1).amax(dim=1)
+
+
+def binding_reaches(simulator, true_theta, nominal_theta, starts, goals, *, tol_m: float = BINDING_TOL_M,
+                    per_bound: bool = False) -> torch.Tensor:
+    """Which reaches the subject's restriction touches.
+
+    Reach i (from ``starts`` (M, n) or (n,) to ``goals`` (M, 3)) binds if its TRUE end-effector
+    path (limits ``true_theta`` (2n,)) moves by more than ``tol_m`` metres at some step when
+    every restricted bound (those differing from ``nominal_theta`` (2n,)) is relaxed to its
+    nominal value. Returns (M,) bool; with ``per_bound=True`` a (2n, M) bool instead, row c
+    relaxing bound c alone (rows of unrestricted bounds are all False). One batched simulate.
+    """
+    truth = check_theta(as_tensor(true_theta, "true_theta", dtype=torch.float64), simulator.n_joints,
+                        "true_theta")[0]
+    nominal = check_theta(as_tensor(nominal_theta, "nominal_theta", dtype=torch.float64), simulator.n_joints,
+                          "nominal_theta")[0]
+    goals = as_tensor(goals, "goals", dtype=torch.float64)
+    if goals.dim() != 2 or goals.shape[1] != 3:
+        raise ValueError(f"goals: expected shape (M, 3), got {tuple(goals.shape)}")
+    if not tol_m > 0:
+        raise ValueError(f"tol_m: must be > 0, got {tol_m}")
+    m = goals.shape[0]
+    starts = as_tensor(starts, "starts", dtype=torch.float64)
+    starts = starts.expand(m, -1) if starts.dim() == 1 else starts
+    restricted = [c for c in range(truth.shape[0]) if abs(float(truth[c] - nominal[c])) > 1e-12]
+    if per_bound:
+        out = torch.zeros(truth.shape[0], m, dtype=torch.bool)
+        rows = []
+        for c in restricted:
+            r = truth.clone()
+            r[c] = nominal[c]
+            rows.append(r)
+    else:
+        out = torch.zeros(m, dtype=torch.bool)
+        relaxed = truth.clone()
+        relaxed[restricted] = nominal[restricted]
+        rows = [relaxed]
+    if not restricted:
+        return out
+    k = len(rows)
+    thetas = torch.cat([truth.expand(m, -1)] + [r.expand(m, -1) for r in rows])
+    sims = simulator.simulate(thetas, goals.repeat(k + 1, 1), starts.repeat(k + 1, 1))
+    moved = torch.stack([_max_path_move(_rows(sims, 0, m), _rows(sims, (j + 1) * m, m)) > tol_m
+                         for j in range(k)])
+    if not per_bound:
+        return moved[0]
+    out[restricted] = moved
+    return out
+
+
+def _rows(traj: Trajectories, first: int, m: int) -> Trajectories:
+    sl = slice(first, first + m)
+    return Trajectories(traj.q[sl], traj.ee[sl], traj.length[sl], traj.reached[sl])
+
+
+def binding_fraction(simulator, true_theta, nominal_theta, starts, goals, *, tol_m: float = BINDING_TOL_M) -> float:
+    """The share of reaches the restriction touches (`binding_reaches`), in [0, 1]."""
+    return float(binding_reaches(simulator, true_theta, nominal_theta, starts, goals, tol_m=tol_m)
+                 .to(torch.float64).mean())
+
+
+def task_binding_metrics(task: Task, simulator=None, *, test_goals=None, test_starts=None) -> dict[str, float]:
+    """``binding_test_fraction``, ``binding_test_reaches`` (count) and ``binding_train_fraction``,
+    ``binding_train_reaches`` of a synthetic task: its held-out goals (or ``test_goals``/``test_starts``)
+    and its observed reaches' goals, the nominal limits being the prior's outer bounds.
+    ``simulator``: the subject's body when it differs from ``task.simulator`` (robustness)."""
+    sim = task.simulator if simulator is None else simulator
+    truth = task.require_truth("task_binding_metrics")
+    nominal = task.prior.outer_theta()
+    out = {}
+    goals = task.test_goals if test_goals is None else test_goals
+    starts = task.test_starts if test_starts is None else test_starts
+    sets = [("test", starts, goals)]
+    if task.observations and all(o.goal is not None for o in task.observations):
+        sets.append(("train", torch.stack([o.start for o in task.observations]),
+                     torch.stack([o.goal for o in task.observations])))
+    for which, s, g in sets:
+        if g is None:
+            continue
+        hit = binding_reaches(sim, truth, nominal, s, torch.as_tensor(g, dtype=torch.float64))
+        out[f"binding_{which}_fraction"] = float(hit.to(torch.float64).mean())
+        out[f"binding_{which}_reaches"] = float(hit.sum())
+    return out
+
+
+def informative_test_goals(simulator, true_theta, n: int, generator, start, *, min_binding: float = 0.5,
+                           max_rounds: int = 50) -> torch.Tensor:
+    """(n, 3) goals from the nominal workspace of which at least ``min_binding`` bind (`binding_reaches`).
+
+    Candidates are drawn in rounds of 2n (`nominal_workspace_goals`) and kept in draw order
+    until n are kept, a non-binding one only while fewer than ``n - ceil(min_binding * n)`` are
+    kept: the plain draw whenever its first n bind often enough, else later binding goals
+    replace the surplus non-binding ones (a quota; every table states ``binding_test_fraction``).
+    """
+    import math
+
+    n = check_positive_int(n, "n")
+    if not 0.0 <= min_binding <= 1.0:
+        raise ValueError(f"min_binding: expected a value in [0, 1], got {min_binding}")
+    need = math.ceil(min_binding * n)
+    nominal = simulator.bounds.to(torch.float64).reshape(-1)
+    kept, n_free = [], 0
+    for _ in range(max_rounds):
+        cand = nominal_workspace_goals(simulator, 2 * n, generator)
+        hit = binding_reaches(simulator, true_theta, nominal, start, cand)
+        for g, h in zip(cand, hit.tolist(), strict=True):
+            if not h and n_free >= n - need:
+                continue
+            kept.append(g)
+            n_free += not h
+            if len(kept) == n:
+                return torch.stack(kept)
+    raise ValueError(f"true_theta: fewer than {need} of {2 * n * max_rounds} nominal-workspace goals bind")
+
+
 def make_reaching_task(simulator, true_theta, *, n_train: int = 10, n_test: int = 20, seed,
                        prior: BoxPrior | None = None, name: str = "reaching",
                        subject: str = "custom", start=None, noise: NoiseModel | None = None,
-                       require_reached: bool = True) -> Task:
+                       require_reached: bool = True, workspace: str = "true",
+                       min_binding_test: float | None = None) -> Task:
     """A synthetic subject with limits ``true_theta`` (2n,) observed on ``n_train`` goals.
 
     Goals (train and test) are joint configurations drawn uniformly inside the true
@@ -90,7 +227,13 @@ def make_reaching_task(simulator, true_theta, *, n_train: int = 10, n_test: int 
     add noise with `NoiseModel.perturb`). ``require_reached=False`` keeps every sampled
     goal (the authors' design: their fixed-horizon controller does not converge, so no goal
     is "reached"; goals are FK images of configurations inside the true limits all the same).
+    ``workspace="nominal"``: goals are drawn inside the NOMINAL limits (`nominal_workspace_goals`)
+    and all kept, reached or not (the informative design); ``require_reached`` is then ignored.
+    ``min_binding_test``: with ``workspace="nominal"``, at least this share of the test goals
+    bind (`informative_test_goals`; None: the plain draw).
     """
+    if workspace not in ("true", "nominal"):
+        raise ValueError(f"workspace: expected 'true' or 'nominal', got {workspace!r}")
     n_train = check_positive_int(n_train, "n_train")
     n_test = check_positive_int(n_test, "n_test")
     true_theta = check_theta(as_tensor(true_theta, "true_theta", dtype=torch.float64),
@@ -100,7 +243,13 @@ def make_reaching_task(simulator, true_theta, *, n_train: int = 10, n_test: int 
     if bool(((start < lim[:, 0] - 1e-9) | (start > lim[:, 1] + 1e-9)).any()):
         raise ValueError("start: posture lies outside true_theta's limits")
     gen = torch_generator(seed)
-    if require_reached:
+    if workspace == "nominal" and min_binding_test is not None:
+        goals = torch.cat([nominal_workspace_goals(simulator, n_train, gen),
+                           informative_test_goals(simulator, true_theta, n_test, gen, start,
+                                                  min_binding=min_binding_test)])
+    elif workspace == "nominal":
+        goals = nominal_workspace_goals(simulator, n_train + n_test, gen)
+    elif require_reached:
         goals = reachable_goals(simulator, true_theta, n_train + n_test, gen, start)
     else:
         from camo_sbi.simulators import sample_goals

@@ -1,0 +1,144 @@
+"""Issue 23: how many reaches a restriction touches, the informative goal design, reachability
+scores and the claims that mark few binding reaches. Hand computations on the toy point robot."""
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from camo_sbi.evaluation.claims import binding_line, informative_claims, mark_few_reaches
+from camo_sbi.evaluation.metrics import reachability_metrics
+from camo_sbi.scenarios.reaching import (
+    binding_fraction,
+    binding_reaches,
+    informative_test_goals,
+    make_reaching_task,
+    nominal_workspace_goals,
+    task_binding_metrics,
+)
+from camo_sbi.simulators.base import Trajectories
+from tests.toy_sim import ToySimulator
+
+NOMINAL = torch.tensor([-1.0, 1.0, -1.0, 1.0], dtype=torch.float64)
+TRUTH = torch.tensor([-1.0, 0.5, -1.0, 1.0], dtype=torch.float64)  # x0 <= 0.5: one restricted bound
+START = torch.zeros(2, dtype=torch.float64)
+
+
+def _goals(*x0):
+    return torch.tensor([[x, 0.0, 0.0] for x in x0], dtype=torch.float64)
+
+
+def test_binding_reaches_against_a_hand_computation():
+    """The point robot moves straight to its goal, clamped at x0 = 0.5. Relaxing the bound to 1
+    moves a reach by (goal - 0.5) if its goal lies beyond 0.5: 0.3 m, 2 mm (binds), 0.5 mm (does
+    not: below 1 mm), and 0 for the goals inside the restriction."""
+    sim = ToySimulator(2, max_steps=30)
+    goals = _goals(0.3, 0.8, 0.5005, 0.502, -0.9)
+    hit = binding_reaches(sim, TRUTH, NOMINAL, START, goals)
+    assert hit.tolist() == [False, True, False, True, False]
+    assert binding_fraction(sim, TRUTH, NOMINAL, START, goals) == pytest.approx(2 / 5)
+    # a looser tolerance (1 cm) keeps only the 0.3 m move
+    assert binding_reaches(sim, TRUTH, NOMINAL, START, goals, tol_m=1e-2).tolist() == [False, True, False, False,
+                                                                                      False]
+    per = binding_reaches(sim, TRUTH, NOMINAL, START, goals, per_bound=True)
+    assert per.shape == (4, 5)
+    assert per[1].tolist() == hit.tolist() and not per[[0, 2, 3]].any()  # only the restricted bound binds
+    # no restriction: nothing binds
+    assert not binding_reaches(sim, NOMINAL, NOMINAL, START, goals).any()
+
+
+def test_binding_reaches_bad_input_names_the_argument():
+    sim = ToySimulator(2)
+    with pytest.raises(ValueError, match="goals"):
+        binding_reaches(sim, TRUTH, NOMINAL, START, torch.zeros(3, 2))
+    with pytest.raises(ValueError, match="tol_m"):
+        binding_reaches(sim, TRUTH, NOMINAL, START, _goals(0.1), tol_m=0.0)
+    with pytest.raises(ValueError, match="nominal_theta"):
+        binding_reaches(sim, TRUTH, NOMINAL[:3], START, _goals(0.1))
+
+
+def test_task_binding_metrics_counts_test_and_training_reaches():
+    sim = ToySimulator(2, max_steps=30)
+    task = make_reaching_task(sim, TRUTH, n_train=4, n_test=6, seed=0, workspace="nominal")
+    got = task_binding_metrics(task)
+    train = torch.stack([o.goal for o in task.observations])
+    want_test = (task.test_goals[:, 0] > 0.5 + 1e-3).to(torch.float64)  # hand rule of the toy (x1 never binds)
+    want_train = (train[:, 0] > 0.5 + 1e-3).to(torch.float64)
+    assert got["binding_test_fraction"] == pytest.approx(float(want_test.mean()))
+    assert got["binding_test_reaches"] == float(want_test.sum())
+    assert got["binding_train_fraction"] == pytest.approx(float(want_train.mean()))
+
+
+def test_nominal_workspace_goals_span_the_nominal_limits_not_the_true_ones():
+    sim = ToySimulator(2)
+    g = nominal_workspace_goals(sim, 400, 1)
+    assert g.shape == (400, 3) and g.dtype == torch.float64
+    assert float(g[:, 0].max()) > 0.9 and float(g[:, 0].min()) < -0.9  # beyond the subject's 0.5
+    torch.testing.assert_close(nominal_workspace_goals(sim, 400, 1), g, rtol=0, atol=0)  # seeded
+
+
+@pytest.mark.parametrize("n", [5, 20])
+def test_informative_test_goals_bind_on_at_least_half(n):
+    """The toy subject binds on 25% of the nominal workspace (x0 > 0.5): the quota keeps at least
+    ceil(n/2) binding goals; a subject binding everywhere gets the plain draw unchanged."""
+    sim = ToySimulator(2, max_steps=30)
+    g = informative_test_goals(sim, TRUTH, n, torch.Generator().manual_seed(2), START)
+    assert g.shape == (n, 3)
+    hit = binding_reaches(sim, TRUTH, NOMINAL, START, g)
+    assert int(hit.sum()) >= math.ceil(n / 2)
+    tight = torch.tensor([-1.0, 1e-3, -1.0, 1.0], dtype=torch.float64)  # x0 <= 0: ~half bind
+    plain = nominal_workspace_goals(sim, 2 * n, torch.Generator().manual_seed(3))
+    got = informative_test_goals(sim, tight, n, torch.Generator().manual_seed(3), START, min_binding=0.0)
+    torch.testing.assert_close(got, plain[:n], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="min_binding"):
+        informative_test_goals(sim, TRUTH, n, 0, START, min_binding=1.5)
+
+
+def _traj(reached):
+    b = len(reached)
+    return Trajectories(torch.zeros(b, 2, 2), torch.zeros(b, 2, 3), torch.full((b,), 2), torch.tensor(reached))
+
+
+def test_reachability_metrics_hand_computation():
+    true = _traj([True, True, False, False, True])
+    pred = _traj([True, False, True, False, True])  # tp 2, fn 1, fp 1, tn 1
+    got = reachability_metrics(true, pred)
+    assert got["reachability_precision"] == pytest.approx(2 / 3)
+    assert got["reachability_recall"] == pytest.approx(2 / 3)
+    assert got["reachability_f1"] == pytest.approx(2 / 3)
+    assert got["reachability_accuracy"] == pytest.approx(3 / 5)
+    none = reachability_metrics(_traj([False, False]), _traj([False, False]))  # nothing claimed, nothing missed
+    assert none["reachability_precision"] == 1.0 and none["reachability_recall"] == 1.0
+
+
+def _table(values: dict, binding_reaches_per_run) -> pd.DataFrame:
+    rows = []
+    for run, count in enumerate(binding_reaches_per_run):
+        for method, (cart, bind) in values.items():
+            for metric, v in (("cartesian_error_mm", cart[run]), ("limit_error_binding_deg", bind[run]),
+                              ("binding_test_reaches", count), ("binding_test_fraction", count / 20)):
+                rows.append({"run": run, "method": method, "n_tasks": 10, "metric": metric, "value": v,
+                             "status": "ok"})
+    return pd.DataFrame(rows)
+
+
+def test_informative_claims_and_the_few_reaches_mark():
+    rng = np.random.default_rng(0)
+    n = 12
+    base = rng.uniform(20, 30, n)
+    df = _table({"camo-js": (base - 10, base - 8), "naive": (base, base), "nominal": (base + 5, base + 40),
+                 "oracle": (0 * base, 0 * base)}, [12] * n)
+    claims = informative_claims(df)
+    assert set(claims.method) == {"camo-js"} and set(claims.baseline) == {"naive", "nominal"}
+    assert len(claims) == 4 and claims.holds.all()
+    assert not claims.few_reaches.any() and (claims.binding_test_reaches_min == 12).all()
+    worse = _table({"camo-js": (base + 3, base + 3), "naive": (base, base), "nominal": (base, base)}, [12] * n)
+    assert not informative_claims(worse).holds.any()
+    few = mark_few_reaches(claims, _table({"naive": (base, base)}, [12] * (n - 1) + [2]))
+    assert few.few_reaches.all() and (few.binding_test_reaches_min == 2).all()
+    unknown = mark_few_reaches(claims, df[df.metric != "binding_test_reaches"])
+    assert not unknown.few_reaches.any() and unknown.binding_test_reaches_min.isna().all()
+    line = binding_line(_table({"naive": (base, base)}, [12] * (n - 1) + [2]))
+    assert "fewest 2 reaches" in line and "1 run(s) with < 3" in line
