@@ -140,3 +140,31 @@ def test_infer_suggest_bad_options_exit_2(extra, needle, recording, tmp_path, ca
         main(["infer", "--observations", str(recording), *MODEL, *extra, "--out", str(tmp_path)])
     assert exc.value.code == 2
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"camo-sbi: error: {needle}")
+
+
+def test_reproduce_informative_active_design(tmp_path):
+    """--design active runs to completion and counts the design's simulations."""
+    from camo_sbi.experiments import manipulator
+
+    out = tmp_path / "active"
+    argv = ["reproduce", "panda", "--setting", "informative", "--methods", "camo-seq", "--runs", "1",
+            "--tasks", "3", "--test-goals", "6", "--samples", "200", "--seed", "1"]
+    assert main([*argv, "--design", "active", "--out", str(out)]) == 0
+    df = pd.read_csv(out / "results.csv")
+    last = df[(df.n_tasks == 3) & (df.method == "camo-seq")].set_index("metric").value
+    assert last["design_simulations"] == 2 * manipulator.DESIGN_CANDIDATES * manipulator.DESIGN_DRAWS
+    assert last["design_fallbacks"] == 0 and last["design_method_simulations"] > 0
+    assert last["binding_test_fraction"] >= 0.5 and "reachability_f1" in last and "limit_error_binding_deg" in last
+    assert set(df.method) >= {"camo-seq", "naive", "nominal", "oracle"}
+
+
+@pytest.mark.parametrize("extra, needle", [(["--setting", "toolkit"], "--design: active design needs"),
+                                           (["--setting", "informative", "--design-method", "naive"],
+                                            "--design-method: naive returns no posterior"),
+                                           (["--setting", "informative", "--design-method", "camo-x"],
+                                            "--design-method:")])
+def test_active_design_bad_options_exit_2(extra, needle, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["reproduce", "panda", "--design", "active", *extra, "--runs", "1", "--out", str(tmp_path)])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"camo-sbi: error: {needle}")
