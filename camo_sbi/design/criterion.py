@@ -50,7 +50,7 @@ MIN_RESOLUTION_MM = 1.0
 NEGLIGIBLE = 1e-3
 """A best score below this share of the criterion's ceiling (the draws' whole variance; log K
 nats) separates nothing: the ranking is then a fallback."""
-_CHUNK = 20_000  # simulated trajectories per simulate call (memory: T x n float64 each)
+_CHUNK = 2_000  # simulated trajectories per simulate call (bench_design.py: 20000 was slower; T x n float64 each)
 
 
 @dataclass(frozen=True)
