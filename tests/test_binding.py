@@ -142,3 +142,38 @@ def test_informative_claims_and_the_few_reaches_mark():
     assert not unknown.few_reaches.any() and unknown.binding_test_reaches_min.isna().all()
     line = binding_line(_table({"naive": (base, base)}, [12] * (n - 1) + [2]))
     assert "fewest 2 reaches" in line and "1 run(s) with < 3" in line
+
+
+# ------------------------------------------------------------------ touched bounds (issue 23 item 4)
+
+
+def test_touched_bounds_finds_a_clamped_joint_and_only_it():
+    """x0 is clamped at 0.5 while x1 still moves toward its goal: hi_0 is touched, read as 0.5
+    exactly; a reach inside the limits touches nothing (it stops at its goal)."""
+    from camo_sbi.inference.touched import touched_bounds
+    from camo_sbi.scenarios.reaching import observe
+
+    sim = ToySimulator(2, max_steps=30)
+    far = observe(sim, TRUTH, torch.tensor([[0.8, 0.9, 0.0]], dtype=torch.float64))
+    touched, ext = touched_bounds([o.q for o in far])
+    assert touched.tolist() == [False, True, False, False] and ext[1] == 0.5
+    near = observe(sim, TRUTH, torch.tensor([[0.3, -0.4, 0.0]], dtype=torch.float64))
+    assert not touched_bounds([o.q for o in near])[0].any()
+    # the arm at rest at the extreme (no other joint moving) is not evidence of a limit
+    rest = torch.tensor([[0.0, 0.0], [0.2, 0.1], [0.2, 0.1], [0.2, 0.1]], dtype=torch.float64)
+    assert not touched_bounds([rest])[0].any()
+
+
+def test_with_touched_replaces_only_touched_bounds():
+    from camo_sbi.inference.result import PosteriorResult
+    from camo_sbi.inference.touched import with_touched
+    from camo_sbi.priors import BoxPrior
+    from camo_sbi.scenarios.reaching import observe
+
+    sim = ToySimulator(2, max_steps=30)
+    obs = observe(sim, TRUTH, torch.tensor([[0.8, 0.9, 0.0]], dtype=torch.float64))
+    samples = np.tile([-0.9, 0.7, -0.8, 0.95], (5, 1))
+    res = PosteriorResult("camo", samples, None, samples[0].copy(), 10, 0.0, 1)
+    out = with_touched(res, obs, BoxPrior(sim.bounds, sim.start))
+    assert out.estimate.tolist() == [-0.9, 0.5, -0.8, 0.95] and (out.samples[:, 1] == 0.5).all()
+    assert res.estimate[1] == 0.7  # the input is not changed

@@ -18,14 +18,15 @@ PREDICTION = {"cartesian_error_mm", "joint_error_deg", "eq2_cartesian", "eq2_joi
 # limit_error_binding_deg / limit_error_free_deg appear when some bound binds / does not
 # wall_time and compile_time (numba compiling on first use) are timings: they differ between runs
 TIMINGS = ("wall_time", "compile_time")
-REPRO_METRICS = PREDICTION | {"limit_error_deg", "n_simulations", *TIMINGS}
+BINDING = {"binding_test_fraction", "binding_test_reaches", "binding_train_fraction", "binding_train_reaches"}
+REPRO_METRICS = PREDICTION | BINDING | {"limit_error_deg", "n_simulations", *TIMINGS}
 LIMIT_GROUPS = {"limit_error_binding_deg", "limit_error_free_deg"}
 BASELINES = ("naive", "nominal", "oracle")
 
 COMPARE = ["compare", "--model", "panda", "--methods", "camo,naive", "--budgets", "100", "--seeds", "2",
            "--tasks", "2", "--test-goals", "3", "--no-report"]
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
-COMPARE_METRICS = (PREDICTION | {"limit_error_deg", "n_simulations", *TIMINGS}
+COMPARE_METRICS = (PREDICTION | BINDING | {"limit_error_deg", "n_simulations", *TIMINGS}
                    | {f"limit_error_deg_{j}" for j in PANDA_JOINTS})
 PPC = {"ppc_cartesian_error_mm", "pp_mean_cartesian_error_mm"}  # posterior methods only
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -108,10 +109,30 @@ def test_reproduce_writes_both_figures_and_config(repro):
     _assert_png(out / "limit_error_vs_tasks.png")
     claims = pd.read_csv(out / "claims.csv")
     assert list(claims.columns) == ["claim", "setting", "method", "baseline", "statistic", "value", "ci_low",
-                                    "ci_high", "p_value", "p_raw", "test", "holds"]
+                                    "ci_high", "p_value", "p_raw", "test", "holds", "binding_test_reaches_min",
+                                    "few_reaches"]
     assert set(claims.baseline) >= {"naive", "nominal"} and set(claims.setting) == {"toolkit"}
     assert (out / "config.json").is_file()
     assert len(list((out / "cells").glob("*.csv"))) == 2  # one cell per run
+
+
+def test_reproduce_informative_setting(tmp_path, capsys):
+    """Issue 23: goals from the nominal workspace, at least half of the test goals binding, the
+    reachability scores, and claims of every method against naive and nominal on both metrics."""
+    out = tmp_path / "inf"
+    assert _run(["reproduce", "panda", "--setting", "informative", "--design", "random", "--runs", "2",
+                 "--tasks", "2", "--test-goals", "4", "--samples", "100", "--methods", "camo-js"], out) == 0
+    df = pd.read_csv(out / "results.csv")
+    v = df.pivot_table(index=["run", "method", "n_tasks"], columns="metric", values="value")
+    assert (v["binding_test_fraction"] >= 0.5).all() and (v["binding_test_reaches"] >= 2).all()
+    assert {"reachability_f1", "reachability_precision", "reachability_recall", "limit_error_binding_deg"} <= set(
+        v.columns)
+    assert (v.xs("oracle", level="method")["reachability_f1"] == 1).all()
+    claims = pd.read_csv(out / "claims.csv")
+    assert set(claims.method) == {"camo-js"} and set(claims.baseline) == {"naive", "nominal"}
+    assert claims.claim.str.contains("cartesian_error_mm").sum() == 2
+    assert claims.claim.str.contains("limit_error_binding_deg").sum() == 2
+    assert "binding reaches" in capsys.readouterr().out
 
 
 def test_reproduce_same_seed_same_table(repro, tmp_path):
@@ -155,6 +176,8 @@ def test_reproduce_rerun_skips_finished_cells(repro):
         (["--model", "robot"], "--model"),
         (["--sampling", "sobol"], "--sampling"),
         (["--subjects", "nobody"], "nobody"),
+        (["--design", "active"], "--design: active design needs --setting informative"),
+        (["--setting", "informative", "--design", "active"], "--design: active is not available"),
     ],
 )
 def test_reproduce_bad_options_exit_2(extra, needle, tmp_path, capsys):

@@ -310,12 +310,14 @@ def _comparison(res: pd.DataFrame | None, why: str) -> str:
         seeds = sub.groupby(["method", "budget", "metric"], dropna=False)["value"].count()
         n = sorted(set(int(v) for v in seeds))
         marks = _status_marks(sub)
-        metrics = _metric_order(m for m in sub["metric"].unique() if not m.startswith("limit_error_deg_"))
+        metrics = _metric_order(m for m in sub["metric"].unique()
+                                if not m.startswith(("limit_error_deg_", "binding_")))
         if len(groups) > 1:
             out.append(f"<h3>task {_esc(task)}, subject {_esc(subject)}</h3>")
         out.append(f'<p class="meta">After {n_last:g} observed tasks. Each cell: {_esc(cell_rule(n, "seeds"))} '
                    "(the same rule as the figures); methods as rows, simulation budgets per observed task "
                    "as columns. Angles in degrees.</p>")
+        out.append(_binding_note(sub))
         out.append('<div class="tables">' + "".join(_metric_table(sub, m, marks) for m in metrics) + "</div>")
         if sub["metric"].str.startswith("limit_error_deg_").any():
             out.append(_joint_table(sub, marks))
@@ -324,6 +326,16 @@ def _comparison(res: pd.DataFrame | None, why: str) -> str:
             out.append(f'<p class="meta">{_DAGGER} some runs of this method did not end with status "ok" '
                        f"(their rows are still averaged): {lines}.</p>")
     return "".join(out)
+
+
+def _binding_note(sub: pd.DataFrame) -> str:
+    """How many held-out and observed reaches the restriction touches, beside the tables
+    (`evaluation.claims.binding_line`); nothing for results that do not record it."""
+    from camo_sbi.evaluation.claims import binding_line
+
+    if not (sub["metric"] == "binding_test_reaches").any():
+        return ""
+    return f'<p class="meta">{_esc(binding_line(sub))}.</p>'
 
 
 def _largest(df: pd.DataFrame, by: str) -> pd.DataFrame:
@@ -348,7 +360,8 @@ def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: 
     parts = []
     for task, tdf in res.groupby("task"):
         sub = _largest(tdf, fixed)
-        metrics = _metric_order(m for m in sub["metric"].unique() if not m.startswith("limit_error_deg_"))
+        metrics = _metric_order(m for m in sub["metric"].unique()
+                                if not m.startswith(("limit_error_deg_", "binding_")))
         shown = metrics[:_MAX_METRIC_PANELS]
         with paper_style():
             fig = _xy_panels(sub, shown, x, xlabel)

@@ -143,7 +143,7 @@ def run_cell(spec: dict, out: str) -> str:
     from camo_sbi.evaluation.metrics import binding_bounds
     from camo_sbi.experiments.store import ResultStore
     from camo_sbi.inference.registry import run_method_sequence
-    from camo_sbi.scenarios.reaching import make_reaching_task
+    from camo_sbi.scenarios.reaching import make_reaching_task, task_binding_metrics
 
     out = Path(out)
     store = ResultStore(out)
@@ -155,6 +155,7 @@ def run_cell(spec: dict, out: str) -> str:
                               subject=spec["subject"])
     true_test = true_test_trajectories(task)
     binding = binding_bounds(sim, true_theta, task.test_starts, task.test_goals, task.prior)
+    informative = task_binding_metrics(task)
     workdir = out / "work" / spec["key"]
     results = run_method_sequence(spec["method"], task, budget=spec["budget"],
                                   seed=derive_seed(spec["base_seed"], spec["seed"], 7),
@@ -165,6 +166,7 @@ def run_cell(spec: dict, out: str) -> str:
     base = {k: spec[k] for k in ("task", "subject", "method", "budget", "seed")}
     for res in results:
         metrics = evaluate_result(task, res, true_test, binding, posterior_predictive_draws=PPC_DRAWS)
+        metrics.update(informative)
         err = np.degrees(np.abs(res.estimate - task.true_theta.numpy()))
         for j, name in enumerate(sim.joint_names):
             metrics[f"limit_error_deg_{name}"] = float(err[2 * j : 2 * j + 2].mean())
@@ -364,6 +366,7 @@ def _figures(df, out: Path, formats) -> list[Path]:
 
 
 def main(args) -> int:
+    from camo_sbi.evaluation.claims import binding_line
     from camo_sbi.distributed import dask_client, parse_scheduler
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
 
@@ -423,6 +426,7 @@ def main(args) -> int:
                                                                                   "wall_time", "n_simulations"])]
         summary = last.groupby(["method", "budget", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
         print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
+        print(binding_line(df))
         print(f"table: {out / 'results.csv'} ({len(df)} rows)  figures: {', '.join(str(f.name) for f in figs)}")
         if not args.no_report:
             from camo_sbi.diagnostics.report import report_is_current, write_report

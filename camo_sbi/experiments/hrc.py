@@ -208,6 +208,7 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
     from camo_sbi.evaluation.metrics import binding_bounds, limit_errors
     from camo_sbi.inference.registry import capabilities, run_method_sequence
     from camo_sbi.scenarios.block_stacking import allocation_metrics
+    from camo_sbi.scenarios.reaching import task_binding_metrics
     from camo_sbi.simulators import impaired_limits
     from camo_sbi.task import Task
 
@@ -225,10 +226,13 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
               for kind in args.priors}
     test_starts = sim.start.to(torch.float64).expand(grasp.shape[0], -1).clone()
     binding = {}
+    informative = {}
     for kind, prior in priors.items():
         task = Task(name="hrc", subject=subject, simulator=sim, prior=prior, observations=tuple(observations),
                     test_starts=test_starts, test_goals=grasp.clone(), true_theta=true_theta)
         binding[kind] = binding_bounds(sim, true_theta, test_starts, grasp, prior)
+        # test reaches: the test blocks' grasps; nominal: the model's full range (whatever the prior)
+        informative = informative or task_binding_metrics(task, nominal_theta=sim.bounds.reshape(-1))
         sequences = {}
         for method in run_methods(args):
             cfg = camo_cfg if capabilities(method).simulates else None
@@ -266,6 +270,8 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
             if est is not None:  # limit errors (degrees) over the free limits; binding on the test grasps
                 for metric, value in limit_errors(est, true_theta, priors[kind], binding[kind]).items():
                     add(kind, method, k + 1, metric, value, status)
+            for metric, value in informative.items():
+                add(kind, method, k + 1, metric, value, status)
     for kind in args.priors:
         for k in range(args.tasks):
             for metric in METRICS:
@@ -424,7 +430,7 @@ def main(args) -> int:
                     _render_run(scene, extras, png)
         df = store.write_table()
         fig = make_figure(df, out, formats)
-        from camo_sbi.evaluation.claims import hrc_claims
+        from camo_sbi.evaluation.claims import binding_line, hrc_claims
 
         claims = hrc_claims(df, setting=f"hrc ({args.subject}, observe {getattr(args, 'observe', 'reach')})")
         atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
@@ -436,7 +442,9 @@ def main(args) -> int:
     print(f"after {int(df['n_tasks'].max())} tasks (mean over {df['run'].nunique()} runs; "
           f"person's share of test blocks {person:.2f}; limit_error_deg over the free limits):")
     print(summary.to_string(float_format=lambda v: f"{v:.3f}", na_rep="-"))
-    print(claims[["claim", "setting", "method", "baseline", "value", "p_value", "holds"]].to_string(index=False))
+    print(binding_line(df))
+    print(claims[["claim", "setting", "method", "baseline", "value", "p_value", "holds", "few_reaches"]]
+          .to_string(index=False))
     print(f"table: {out / 'results.csv'}  claims: {out / 'claims.csv'}  figure: {fig}")
     print(f"wall time: {wall:.1f} s")
     return 0

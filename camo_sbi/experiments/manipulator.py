@@ -112,7 +112,7 @@ SETTINGS = {
         controller=None, subjects=tuple(INFORMATIVE_PROFILES), fixed_goals=False, require_reached=False,
         camo={"keep_best": 100, "bandwidth": 0.2, "bandwidth_mode": "fixed", "sampling": "uniform",
               "distance": "dtw"},
-        methods=("camo-js", "camo-cs", "camo-hull", "camo-seq", "naive", "nominal", "oracle"),
+        methods=("camo-js", "camo-cs", "camo-hull", "camo-seq", "camo-touched", "naive", "nominal", "oracle"),
         workspace="nominal", min_binding_test=0.5),
 }
 """The designs of ``reproduce panda``. The paper setting's epsilons are the authors'
@@ -136,8 +136,8 @@ def method_config(name: str, args) -> dict | None:
     from camo_sbi.inference.registry import get_method
 
     spec = get_method(name)
-    if "camo" not in (name, spec.base):
-        return None
+    if "camo" not in (name, spec.base) and spec.load().config is not get_method("camo").load().config:
+        return None  # camo-touched: its own method on CAMO's config
     st = _setting(args)
     cfg = dict(st.camo)
     for key in ("keep_best", "bandwidth", "bandwidth_mode", "sampling", "epsilon"):

@@ -111,7 +111,11 @@ def add_simulate_arguments(p: argparse.ArgumentParser) -> None:
 def simulate_main(args) -> int:
     import numpy as np
 
+    import torch
+
+    from camo_sbi.evaluation.claims import FEW_REACHES
     from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.scenarios.reaching import binding_reaches
     from camo_sbi.task import Observation
 
     if args.reaches < 1:
@@ -136,6 +140,12 @@ def simulate_main(args) -> int:
         bar.update()
     n = sum(o.length for o in obs)
     print(f"{model.name}: {len(obs)} reaches, {n} samples -> {path}")
+    hit = binding_reaches(sim, theta, sim.bounds.reshape(-1), torch.stack([o.start for o in obs]),
+                          torch.stack([o.goal for o in obs]))
+    print(f"binding_train_fraction {float(hit.double().mean()):.2f}: {int(hit.sum())} of {len(obs)} reaches move "
+          f"> 1 mm when the limits are relaxed to the nominal range"
+          + (f" (fewer than {FEW_REACHES}: the data says little about the limits)" if int(hit.sum()) < FEW_REACHES
+             else ""))
     return 0
 
 

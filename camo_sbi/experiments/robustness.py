@@ -115,7 +115,7 @@ def run_cell(spec: dict, out: str) -> str:
     from camo_sbi.experiments.store import ResultStore
     from camo_sbi.inference.registry import capabilities, run_method
     from camo_sbi.priors import BoxPrior
-    from camo_sbi.scenarios.reaching import reachable_goals
+    from camo_sbi.scenarios.reaching import reachable_goals, task_binding_metrics
     from camo_sbi.task import Task, predict
 
     model, cond = spec["model"], next(c for c in CONDITIONS if c.name == spec["condition"])
@@ -132,6 +132,7 @@ def run_cell(spec: dict, out: str) -> str:
                 test_starts=starts, test_goals=goals, true_theta=theta, noise=cond.noise)
     true_test = predict(body, theta, starts, goals)
     binding = binding_bounds(body, theta, starts, goals, prior)
+    informative = task_binding_metrics(task, simulator=body)  # the subject's own body
     rows = []
     base = {k: spec[k] for k in ("task", "subject", "seed", "condition")}
     for method in spec["methods"]:
@@ -143,7 +144,8 @@ def run_cell(spec: dict, out: str) -> str:
         pred = predict(sim, res.estimate, starts, goals)
         metrics = {"cartesian_error_mm": float(cartesian_error_mm(true_test, pred).mean()),
                    "coverage90": coverage90(res, theta, prior), "wall_time": res.wall_time,
-                   "compile_time": res.compile_time, **limit_errors(res.estimate, theta, prior, binding)}
+                   "compile_time": res.compile_time, **limit_errors(res.estimate, theta, prior, binding),
+                   **informative}
         rows += [{**base, "method": method, "metric": k, "value": v, "status": res.status} for k, v in metrics.items()]
     ResultStore(out).put(spec["key"], rows)
     return spec["key"]
@@ -163,7 +165,7 @@ def summary_table(df: pd.DataFrame) -> pd.DataFrame:
     wide = wide.reset_index()
     wide["_o"] = wide["condition"].map(order)
     cols = ["method", "condition", "cartesian_error_mm", "error_ratio_to_clean", "within_2x_clean",
-            "limit_error_binding_deg", "coverage90", "wall_time"]
+            "limit_error_binding_deg", "coverage90", "wall_time", "binding_test_fraction", "binding_train_fraction"]
     return wide.sort_values(["method", "_o"])[[c for c in cols if c in wide.columns]].reset_index(drop=True)
 
 
@@ -241,6 +243,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
+    from camo_sbi.evaluation.claims import binding_line
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
     from camo_sbi.experiments.store import cell_key
     from camo_sbi.inference.registry import capabilities, get_method
@@ -292,6 +295,7 @@ def main(args) -> int:
         atomic_write_text(out / "robustness.csv", table.to_csv(index=False))
         fig = make_figure(df, out, formats)
     print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    print(binding_line(df))
     bad = df[df.status != "ok"]
     if len(bad):
         print(f"non-ok statuses: {bad.drop_duplicates(['seed', 'condition', 'method']).groupby(['method', 'status']).size().to_dict()}")

@@ -326,6 +326,12 @@ def _camo() -> Implementation:
     return Implementation(camo.run, camo.CamoConfig, camo.run_sequence)
 
 
+def _touched() -> Implementation:
+    from camo_sbi.inference import camo, touched
+
+    return Implementation(touched.run, camo.CamoConfig, touched.run_sequence)
+
+
 def _naive() -> Implementation:
     from camo_sbi.inference import naive
 
@@ -391,3 +397,6 @@ register(MethodSpec("npe", "neural posterior estimation (sbi), one flow per task
 register(MethodSpec("npe-amortized", "amortized NPE (sbi): one flow per body model, trained once, conditioned on "
                     "the set of a person's reaches (or per reach, combined); no simulation per person", _npe_amortized,
                     Capabilities(amortized=True, simulates=False, posterior=True, spaces=("joint", "cartesian"))))
+register(MethodSpec("camo-touched", "camo-seq with the touched bounds (a joint seen resting at its extreme while "
+                    "the arm moves) set to their observed values (issue 23; not in the paper)", _touched,
+                    replace(_CAMO, spaces=("joint",)), defaults={"space": "joint", "proposal": "sequential"}))

@@ -157,18 +157,17 @@ def binding_fraction(simulator, true_theta, nominal_theta, starts, goals, *, tol
                  .to(torch.float64).mean())
 
 
-def task_binding_metrics(task: Task, simulator=None, *, test_goals=None, test_starts=None) -> dict[str, float]:
+def task_binding_metrics(task: Task, simulator=None, *, nominal_theta=None) -> dict[str, float]:
     """``binding_test_fraction``, ``binding_test_reaches`` (count) and ``binding_train_fraction``,
-    ``binding_train_reaches`` of a synthetic task: its held-out goals (or ``test_goals``/``test_starts``)
-    and its observed reaches' goals, the nominal limits being the prior's outer bounds.
-    ``simulator``: the subject's body when it differs from ``task.simulator`` (robustness)."""
+    ``binding_train_reaches`` of a synthetic task: its held-out goals and its observed reaches'
+    goals (`binding_reaches`). ``nominal_theta``: the nominal limits (default: the prior's outer
+    bounds, the full range of motion). ``simulator``: the subject's body when it differs from
+    ``task.simulator`` (robustness)."""
     sim = task.simulator if simulator is None else simulator
     truth = task.require_truth("task_binding_metrics")
-    nominal = task.prior.outer_theta()
+    nominal = task.prior.outer_theta() if nominal_theta is None else nominal_theta
     out = {}
-    goals = task.test_goals if test_goals is None else test_goals
-    starts = task.test_starts if test_starts is None else test_starts
-    sets = [("test", starts, goals)]
+    sets = [("test", task.test_starts, task.test_goals)]
     if task.observations and all(o.goal is not None for o in task.observations):
         sets.append(("train", torch.stack([o.start for o in task.observations]),
                      torch.stack([o.goal for o in task.observations])))
