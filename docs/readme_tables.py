@@ -1,7 +1,8 @@
 """Print the README's result tables (markdown) from run directories, so every number in
 the README comes from a `results.csv` / `claims.csv` a command wrote.
 
-    python docs/readme_tables.py manipulator DIR     # reproduce panda (either setting)
+    python docs/readme_tables.py manipulator DIR     # reproduce panda (paper or toolkit setting)
+    python docs/readme_tables.py informative DIR     # reproduce panda --setting informative
     python docs/readme_tables.py hrc DIR             # reproduce hrc
     python docs/readme_tables.py compare DIR         # compare (final task count)
     python docs/readme_tables.py robustness DIR      # robustness
@@ -95,8 +96,42 @@ def manipulator(d: Path) -> str:
                            "reference_joint [deg]"], rows))
     if notes:
         parts.append("† " + "; ".join(notes))
+    parts.append(_binding(df))
     if (d / "claims.csv").exists():
         parts.append(claims_table(d / "claims.csv"))
+    return "\n\n".join(parts)
+
+
+def _binding(df: pd.DataFrame) -> str:
+    from camo_sbi.evaluation.claims import binding_line
+
+    return binding_line(df)
+
+
+def informative(d: Path) -> str:
+    """Error vs observed reaches on prediction, the binding bounds and reachability; the claims."""
+    df = display_metric(pd.read_csv(d / "results.csv"))
+    marks, notes = _marks(df, ["method"])
+    ks = sorted(df.n_tasks.unique())
+    show = [k for k in (1, 2, 3, 5, 10) if k in ks] or ks
+    parts = [_binding(df)]
+    for metric, unit, dig in (("cartesian_error_mm", "mm", 1), ("limit_error_binding_deg", "deg", 1),
+                              ("reachability_f1", "", 3)):
+        sub = df[df.metric == metric]
+        rows = [[m + marks.get(m, "")] + [_fmt_values(sub[(sub.method == m) & (sub.n_tasks == k)].value
+                                                      .to_numpy(float), dig) for k in show]
+                for m in method_order(sub.method)]
+        parts.append(f"**{metric}**{f' [{unit}]' if unit else ''}, {cell_rule(df.run.nunique())}, by observed "
+                     "reaches:\n\n" + _table(["method"] + [str(k) for k in show], rows))
+    if notes:
+        parts.append("† " + "; ".join(notes))
+    c = pd.read_csv(d / "claims.csv")
+    rows = [[r.method, r.baseline, str(r.statistic).split(" ")[0], f"{r.value:.3g}",
+             f"[{r.ci_low:.3g}, {r.ci_high:.3g}]", f"{r.p_value:.2g}", "**yes**" if r.holds else "no"]
+            for _, r in c.iterrows()]
+    parts.append("Claims after the last reach (method − baseline; one-sided paired Wilcoxon over runs, Holm over "
+                 "the table):\n\n" + _table(["method", "vs", "metric", "mean diff", "95% CI", "p (Holm)", "holds"],
+                                             rows))
     return "\n\n".join(parts)
 
 
@@ -161,7 +196,7 @@ def calibrate(d: Path) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("kind", choices=["manipulator", "hrc", "compare", "robustness", "calibrate"])
+    p.add_argument("kind", choices=["manipulator", "informative", "hrc", "compare", "robustness", "calibrate"])
     p.add_argument("dir", type=Path)
     a = p.parse_args(argv)
     print(globals()[a.kind](a.dir))

@@ -69,6 +69,7 @@ def test_task_binding_metrics_counts_test_and_training_reaches():
     assert got["binding_test_fraction"] == pytest.approx(float(want_test.mean()))
     assert got["binding_test_reaches"] == float(want_test.sum())
     assert got["binding_train_fraction"] == pytest.approx(float(want_train.mean()))
+    assert got["binding_test_bound_min_fraction"] == pytest.approx(float(want_test.mean()))  # one restricted bound
 
 
 def test_nominal_workspace_goals_span_the_nominal_limits_not_the_true_ones():
@@ -162,6 +163,9 @@ def test_touched_bounds_finds_a_clamped_joint_and_only_it():
     # the arm at rest at the extreme (no other joint moving) is not evidence of a limit
     rest = torch.tensor([[0.0, 0.0], [0.2, 0.1], [0.2, 0.1], [0.2, 0.1]], dtype=torch.float64)
     assert not touched_bounds([rest])[0].any()
+    # a joint that never leaves its start while the other moves is at both its extremes: not touched
+    still = torch.tensor([[0.0, 0.0], [0.0, 0.1], [0.0, 0.2], [0.0, 0.3]], dtype=torch.float64)
+    assert touched_bounds([still])[0].tolist() == [False, False, False, False]
 
 
 def test_with_touched_replaces_only_touched_bounds():
@@ -177,3 +181,29 @@ def test_with_touched_replaces_only_touched_bounds():
     out = with_touched(res, obs, BoxPrior(sim.bounds, sim.start))
     assert out.estimate.tolist() == [-0.9, 0.5, -0.8, 0.95] and (out.samples[:, 1] == 0.5).all()
     assert res.estimate[1] == 0.7  # the input is not changed
+
+
+def test_simulate_observations_says_how_many_reaches_bind(tmp_path, capsys):
+    """The synthetic recording's own count, checked against binding_reaches on the written file."""
+    import json
+    from pathlib import Path
+
+    from camo_sbi.experiments.cli import main
+    from camo_sbi.experiments.models import ModelSpec
+    from camo_sbi.io.recordings import load_recordings
+
+    data = Path(__file__).parent / "data"
+    start = "0,0.4,0,-1.1,0,0.7,0"
+    out = tmp_path / "r.csv"
+    assert main(["simulate-observations", "--urdf", str(data / "arm7.urdf"), "--ee", "tool", "--start", start,
+                 "--limits", str(data / "arm7_limits.json"), "--reaches", "5", "--seed", "1", "--out", str(out)]) == 0
+    line = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("binding_train_fraction")]
+    assert len(line) == 1
+    sim = ModelSpec(kind="urdf", urdf=str(data / "arm7.urdf"), ee="tool",
+                    start=tuple(float(v) for v in start.split(","))).build()
+    limits = json.loads((data / "arm7_limits.json").read_text())
+    truth = torch.tensor([v for j in sim.joint_names for v in limits[j]], dtype=torch.float64)
+    obs = load_recordings(out, sim, resample=None)
+    hit = binding_reaches(sim, truth, sim.bounds.reshape(-1), torch.stack([o.start for o in obs]),
+                          torch.stack([o.goal for o in obs]))
+    assert f": {int(hit.sum())} of 5 reaches move" in line[0]

@@ -283,7 +283,9 @@ def test_hrc_experiment_small_is_seeded(tmp_path):
     assert set(a["prior"]) == {"strong", "weak"} and set(a["n_tasks"]) == {1, 2}
     scores = a[a["metric"].isin(["precision", "recall", "f1", "accuracy", "person_fraction"])]
     assert scores["value"].between(0, 1).all()
-    alloc = {"precision", "recall", "f1", "accuracy", "limit_error_deg"}
+    alloc = {"precision", "recall", "f1", "accuracy", "limit_error_deg", "binding_test_fraction",
+             "binding_test_reaches", "binding_train_fraction", "binding_train_reaches",
+             "binding_test_bound_min_fraction"}  # issue 23: how many reaches the restriction touches
     for m in ("camo-js", "naive", "nominal", "oracle"):
         assert alloc <= set(a.loc[a["method"] == m, "metric"]) <= alloc | {"limit_error_binding_deg",
                                                                         "limit_error_free_deg"}

@@ -18,7 +18,8 @@ PREDICTION = {"cartesian_error_mm", "joint_error_deg", "eq2_cartesian", "eq2_joi
 # limit_error_binding_deg / limit_error_free_deg appear when some bound binds / does not
 # wall_time and compile_time (numba compiling on first use) are timings: they differ between runs
 TIMINGS = ("wall_time", "compile_time")
-BINDING = {"binding_test_fraction", "binding_test_reaches", "binding_train_fraction", "binding_train_reaches"}
+BINDING = {"binding_test_fraction", "binding_test_reaches", "binding_train_fraction", "binding_train_reaches",
+           "binding_test_bound_min_fraction"}
 REPRO_METRICS = PREDICTION | BINDING | {"limit_error_deg", "n_simulations", *TIMINGS}
 LIMIT_GROUPS = {"limit_error_binding_deg", "limit_error_free_deg"}
 BASELINES = ("naive", "nominal", "oracle")

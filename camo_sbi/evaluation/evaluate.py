@@ -10,7 +10,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from camo_sbi.evaluation.metrics import cartesian_error_mm, limit_errors, prediction_metrics, reachability_metrics
+from camo_sbi.evaluation.metrics import (
+    cartesian_error_mm,
+    limit_errors,
+    prediction_metrics,
+    reachability_metrics,
+)
 from camo_sbi.inference.result import PosteriorResult
 from camo_sbi.simulators.base import Trajectories
 from camo_sbi.task import Task, contain, predict

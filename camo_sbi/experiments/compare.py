@@ -366,8 +366,8 @@ def _figures(df, out: Path, formats) -> list[Path]:
 
 
 def main(args) -> int:
-    from camo_sbi.evaluation.claims import binding_line
     from camo_sbi.distributed import dask_client, parse_scheduler
+    from camo_sbi.evaluation.claims import binding_line
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
 
     t0 = time.perf_counter()

@@ -110,7 +110,6 @@ def add_simulate_arguments(p: argparse.ArgumentParser) -> None:
 
 def simulate_main(args) -> int:
     import numpy as np
-
     import torch
 
     from camo_sbi.evaluation.claims import FEW_REACHES

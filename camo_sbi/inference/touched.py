@@ -9,9 +9,11 @@ method's result by the observed value (in the estimate and in every posterior sa
 the posterior for every other bound: the issue-23 fix "touched bounds from the data combined
 with the posterior for the rest" (registered as ``camo-touched``: camo-seq combined so).
 
-Detection rule (noise-free joint data): bound ``hi_j`` is touched if some reach has two
-consecutive samples within ``tol`` of the largest observed value of joint j while another
-joint moves by more than ``move_tol`` between them; ``lo_j`` likewise. With joint noise of
+Detection rule (noise-free joint data): bound ``hi_j`` is touched if some reach that starts
+away from the largest observed value of joint j has two consecutive samples within ``tol`` of
+it while another joint moves by more than ``move_tol`` between them; ``lo_j`` likewise. (A
+joint that never leaves its start, e.g. a roll that does not move the end effector, sits at
+both its extremes while the others move: without the first condition it would count.) With joint noise of
 standard deviation s, ``tol`` widens to 3 s (an honest approximation: at a clamp the noise-free
 value is constant, the noisy one scatters around it).
 """
@@ -45,7 +47,10 @@ def touched_bounds(joint_trajectories, *, tol: float = TOL, move_tol: float = MO
         for side in (0, 1):
             at = (q - ext[:, side]).abs() <= tol  # (L, n)
             held = at[1:] & at[:-1]  # (L-1, n) two consecutive samples at the extreme
+            moved_there = (q[0] - ext[:, side]).abs() > tol  # a joint that never left its start proves nothing
             for j in range(n):
+                if not bool(moved_there[j]):
+                    continue
                 others = torch.cat([step[:, :j], step[:, j + 1:]], dim=1).amax(dim=1) > move_tol
                 if bool((held[:, j] & others).any()):
                     touched[j, side] = True

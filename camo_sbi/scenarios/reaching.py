@@ -160,7 +160,8 @@ def binding_fraction(simulator, true_theta, nominal_theta, starts, goals, *, tol
 def task_binding_metrics(task: Task, simulator=None, *, nominal_theta=None) -> dict[str, float]:
     """``binding_test_fraction``, ``binding_test_reaches`` (count) and ``binding_train_fraction``,
     ``binding_train_reaches`` of a synthetic task: its held-out goals and its observed reaches'
-    goals (`binding_reaches`). ``nominal_theta``: the nominal limits (default: the prior's outer
+    goals (`binding_reaches`); ``binding_test_bound_min_fraction``: the least, over the
+    restricted bounds, share of held-out reaches that relaxing that bound alone moves. ``nominal_theta``: the nominal limits (default: the prior's outer
     bounds, the full range of motion). ``simulator``: the subject's body when it differs from
     ``task.simulator`` (robustness)."""
     sim = task.simulator if simulator is None else simulator
@@ -177,6 +178,10 @@ def task_binding_metrics(task: Task, simulator=None, *, nominal_theta=None) -> d
         hit = binding_reaches(sim, truth, nominal, s, torch.as_tensor(g, dtype=torch.float64))
         out[f"binding_{which}_fraction"] = float(hit.to(torch.float64).mean())
         out[f"binding_{which}_reaches"] = float(hit.sum())
+    restricted = (truth - torch.as_tensor(nominal, dtype=torch.float64)).abs() > 1e-12
+    if bool(restricted.any()):
+        per = binding_reaches(sim, truth, nominal, task.test_starts, task.test_goals, per_bound=True)
+        out["binding_test_bound_min_fraction"] = float(per[restricted].to(torch.float64).mean(dim=1).min())
     return out
 
 
