@@ -10,6 +10,7 @@ registry's lazy loaders) and under ``if TYPE_CHECKING:``. Layers, bottom to top:
     3  task, distributed                 (the run contract's input; where work runs)
     4  inference                         (methods, the registry, distances, KDE)
     5  scenarios, evaluation, io         (goal design and scenes; metrics and claims; recordings)
+    5.5 design                           (active design: the next reach, from posterior draws)
     6  diagnostics                       (arviz, calibration, reports)
     7  experiments                       (the CLI and the studies)
     8  __main__                          (``python -m camo_sbi``: the CLI's entry point)
@@ -35,6 +36,7 @@ LAYERS = {
     "task": 3, "distributed": 3,
     "inference": 4,
     "scenarios": 5, "evaluation": 5, "io": 5,
+    "design": 5.5,
     "diagnostics": 6,
     "experiments": 7,
     "__main__": 8,

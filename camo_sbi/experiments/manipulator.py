@@ -26,8 +26,13 @@ test goals bind (`informative_test_goals`); the subjects of
 `subjects.INFORMATIVE_PROFILES` (or the ``--limits`` file); a uniform continuous prior; the
 reachability metrics (``reachability_f1``, ...) next to every other; claims: every method
 against naive and nominal on ``cartesian_error_mm`` and ``limit_error_binding_deg``.
-``--design random`` (default) draws the training goals; ``--design active`` chooses each next
-goal with ``camo_sbi.design`` (not available yet in this build: exit 2).
+``--design random`` (default) draws the training goals; ``--design active`` keeps the first and
+chooses each next one with ``camo_sbi.design`` (`active_observations`): the design method's
+posterior on the reaches so far (``--design-method``, default the first method with posterior
+draws) ranks ``DESIGN_CANDIDATES`` fresh nominal-workspace goals, and the subject reaches the
+best; every method is then run on that sequence. Rows carry ``design_simulations`` (the
+criterion's), ``design_method_simulations`` and ``design_fallbacks`` (steps whose design
+posterior had no draws to rank with, which fall back to the random design's goal).
 
 Every run records how informative it is: ``binding_test_fraction`` / ``binding_train_fraction``
 (and the counts ``binding_*_reaches``), the share of reaches whose true path moves by > 1 mm
@@ -170,6 +175,9 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
                               workspace=st.workspace, min_binding_test=st.min_binding_test)
     true_test = true_test_trajectories(task)
     binding = binding_bounds(sim, true_theta, task.test_starts, task.test_goals, task.prior)
+    design = {}
+    if getattr(args, "design", "random") == "active":
+        task, design = active_observations(task, true_theta, args, run)
     informative = task_binding_metrics(task)
     rows = []
     for name in args.methods:
@@ -178,6 +186,7 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
         for res in results:
             metrics = evaluate_result(task, res, true_test, binding, reachability=st.workspace == "nominal")
             metrics.update(informative)
+            metrics.update(design)
             metrics["n_simulations"] = res.n_simulations
             metrics["wall_time"] = res.wall_time  # without numba compilation, which is compile_time
             metrics["compile_time"] = res.compile_time
@@ -185,6 +194,67 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
                 rows.append({"run": run, "model": model.name, "subject": subject, "method": name,
                              "n_tasks": res.n_tasks, "metric": metric, "value": value, "status": res.status})
     return rows
+
+
+DESIGN_CANDIDATES = 200
+"""Nominal-workspace goals ranked at each active step (fresh ones every step)."""
+DESIGN_DRAWS = 100
+"""Posterior draws simulated per candidate (the criterion's budget: candidates x draws)."""
+
+
+def design_method(args) -> str:
+    """``--design-method``, or the first of ``args.methods`` that returns posterior draws."""
+    from camo_sbi.inference.registry import capabilities
+
+    name = getattr(args, "design_method", None)
+    if name is not None:
+        return name
+    for m in args.methods:
+        cap = capabilities(m)
+        if cap.posterior and not cap.baseline:
+            return m
+    raise ValueError("--design-method: none of --methods returns posterior draws; name one (e.g. camo-hull)")
+
+
+def active_observations(task, true_theta, args, run: int):
+    """``task`` with its training reaches chosen one by one (issue 23's active design).
+
+    Reach 1 is the random design's first; before reach t+1 the design method runs on the t
+    reaches so far and `camo_sbi.design.next_goal` ranks fresh nominal-workspace goals with its
+    draws; the subject (``true_theta``) reaches the best from the same start. A design posterior
+    with no draws to rank (failed, or one limit vector) falls back to the random design's goal
+    for that step, counted in ``design_fallbacks``. Returns (task, design metrics).
+    """
+    import numpy as np
+
+    from camo_sbi._validation import derive_seed
+    from camo_sbi.design import next_goal
+    from camo_sbi.inference.registry import run_method
+    from camo_sbi.scenarios.reaching import nominal_workspace_goals, observe
+
+    name = design_method(args)
+    obs = [task.observations[0]]
+    start = obs[0].start
+    sims = method_sims = fallbacks = 0
+    wall = 0.0
+    for t in range(1, len(task.observations)):
+        sofar = task.with_observations(obs)
+        res = run_method(name, sofar, budget=args.samples, seed=derive_seed(args.seed, run, 2, t),
+                         config=method_config(name, args))
+        method_sims += res.n_simulations
+        goal = task.observations[t].goal
+        if not res.status.startswith("failed") and np.unique(res.samples, axis=0).shape[0] > 1:
+            cands = nominal_workspace_goals(task.simulator, DESIGN_CANDIDATES, derive_seed(args.seed, run, 3, t))
+            goal, info = next_goal(sofar, res, cands, seed=derive_seed(args.seed, run, 4, t),
+                                   budget=DESIGN_CANDIDATES * DESIGN_DRAWS, start=start)
+            sims += info.n_simulations
+            wall += info.wall_time
+            fallbacks += info.status != "ok"
+        else:
+            fallbacks += 1
+        obs.append(observe(task.simulator, true_theta, goal.reshape(1, 3), start)[0])
+    return task.with_observations(obs), {"design_simulations": sims, "design_method_simulations": method_sims,
+                                         "design_fallbacks": fallbacks, "design_wall_time": wall}
 
 
 def make_figures(df, out: Path, formats=("png",)) -> list[Path]:
@@ -243,6 +313,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "informative: goals from the nominal workspace, restrictions that bind (issue 23)")
     p.add_argument("--design", choices=("random", "active"), default="random",
                    help="training goals: random draws (default) or chosen one by one (active; --setting informative)")
+    p.add_argument("--design-method", default=None,
+                   help="--design active: the method whose posterior chooses the next reach (default: the first "
+                        "of --methods with posterior draws)")
     add_model_arguments(p)
     p.add_argument("--runs", type=int, default=30, help="independent runs (paper: 30)")
     p.add_argument("--tasks", type=int, default=10, help="observed training goals per run")
@@ -289,7 +362,16 @@ def _check(args) -> None:
     if design == "active" and args.setting != "informative":
         raise ValueError("--design: active design needs --setting informative")
     if design == "active":
-        raise ValueError("--design: active is not available in this build yet (issue 23 item 3); use random")
+        args.design_method = design_method(args)
+        from camo_sbi.inference.registry import capabilities, get_method
+
+        try:
+            get_method(args.design_method)
+        except ValueError as exc:
+            raise ValueError(f"--design-method: {exc}") from exc
+        cap = capabilities(args.design_method)
+        if not cap.posterior or cap.baseline:
+            raise ValueError(f"--design-method: {args.design_method} returns no posterior draws to design with")
     if args.setting == "paper" and args.horizon is None:
         args.horizon = 21
     if args.horizon is not None and args.horizon < 2:
@@ -333,6 +415,7 @@ def main(args) -> int:
                 cell = {"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}}
                 if args.design != "random":  # random keeps the cell keys it always had
                     cell["design"] = args.design
+                    cell["design_method"] = args.design_method
                 key = cell_key(cell)
                 if store.done(key):
                     continue

@@ -509,8 +509,61 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
                    help="CSV of goal_x,goal_y,goal_z[,start joint columns] to predict reaches for")
     p.add_argument("--config", action="append", default=[], metavar="METHOD=JSON",
                    help='per-method config overrides, e.g. --config \'npe={"max_epochs": 20}\' (repeatable)')
+    p.add_argument("--suggest", type=int, default=0, metavar="N",
+                   help=f"rank {SUGGEST_CANDIDATES} goals from the model's nominal workspace by what a reach to each "
+                        "would tell about the limits (camo_sbi.design, the first posterior method's draws) and write "
+                        "the best N to next_goals.csv")
     add_figure_format_argument(p)
     p.add_argument("--out", type=Path, required=True)
+
+
+SUGGEST_CANDIDATES = 200
+SUGGEST_DRAWS = 100
+
+
+def _returns_draws(name: str) -> bool:
+    from camo_sbi.inference.registry import capabilities
+
+    cap = capabilities(name)
+    return cap.posterior and not cap.baseline
+
+
+def _suggest_method(results: dict) -> str | None:
+    """The first method run whose result holds posterior draws (not a baseline, not failed)."""
+    import numpy as np
+
+    for name, res in results.items():
+        if (_returns_draws(name) and not res.status.startswith("failed")
+                and np.unique(res.samples, axis=0).shape[0] > 1):
+            return name
+    return None
+
+
+def _suggest(out: Path, task, results: dict, n: int, seed: int) -> None:
+    """Rank nominal-workspace goals with the first posterior method's draws; write next_goals.csv; print them."""
+    import pandas as pd
+
+    from camo_sbi._validation import derive_seed
+    from camo_sbi.design import rank_goals
+    from camo_sbi.scenarios.reaching import nominal_workspace_goals
+
+    name = _suggest_method(results)
+    if name is None:
+        raise ValueError(f"--suggest: none of the methods run ({', '.join(results)}) returned posterior draws; "
+                         "add one that does (e.g. camo, abc-smc, npe)")
+    cands = nominal_workspace_goals(task.simulator, SUGGEST_CANDIDATES, derive_seed(seed, 23))
+    info = rank_goals(task, results[name], cands, seed=derive_seed(seed, 24),
+                      budget=SUGGEST_CANDIDATES * SUGGEST_DRAWS)
+    table = pd.DataFrame({"rank": range(1, n + 1), "goal_x": info.goals[:n, 0], "goal_y": info.goals[:n, 1],
+                          "goal_z": info.goals[:n, 2], "score": info.scores[:n], "criterion": info.criterion,
+                          "method": name})
+    atomic_write_text(out / "next_goals.csv", table.to_csv(index=False))
+    print(f"next reaches ({info.criterion}: expected reduction of the limits' posterior variance, rad^2; "
+          f"{name}'s draws, {info.n_draws} per goal, {info.n_simulations} design simulations, "
+          f"{info.wall_time:.1f} s; model base frame, m):")
+    print(table[["rank", "goal_x", "goal_y", "goal_z", "score"]].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    if info.status != "ok":
+        print(f"suggest: {info.status}")
 
 
 def infer_main(args) -> int:
@@ -533,6 +586,8 @@ def infer_main(args) -> int:
         raise ValueError("--budget: must be >= 1")
     if args.seed < 0:
         raise ValueError("--seed: must be >= 0")
+    if not 0 <= args.suggest <= SUGGEST_CANDIDATES:
+        raise ValueError(f"--suggest: must be between 0 and {SUGGEST_CANDIDATES}, got {args.suggest}")
     if args.rate is not None and not (np.isfinite(args.rate) and args.rate > 0):
         raise ValueError(f"--rate: must be > 0, got {args.rate}")
     methods = [m.strip() for m in str(args.methods).split(",") if m.strip()]
@@ -571,6 +626,8 @@ def infer_main(args) -> int:
         print(n)
     if not plan:
         raise ValueError("--methods: none of the methods can run on this recording (see the notes above)")
+    if args.suggest and not any(_returns_draws(name) for name, _ in plan):
+        raise ValueError("--suggest: needs a method that returns posterior draws in --methods (e.g. camo, abc-smc, npe)")
     out = Path(args.out)
     (out / "posteriors").mkdir(parents=True, exist_ok=True)
     results = {}
@@ -599,7 +656,7 @@ def infer_main(args) -> int:
                 "samples": sum(o.length for o in obs), "spaces": ",".join(task.spaces),
                 "methods": ",".join(results), "budget": args.budget, "seed": args.seed,
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
-                "config": json.dumps(overrides, sort_keys=True), **recording.info,
+                "config": json.dumps(overrides, sort_keys=True), "suggest": args.suggest, **recording.info,
                 "warnings": list(recording.warnings)}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", **settings}, indent=2))
     write_starts(out / "starts.csv", obs, sim)
@@ -611,6 +668,8 @@ def infer_main(args) -> int:
     for name, res in results.items():
         if res.status != "ok":
             print(f"{name}: {res.status}")
+    if args.suggest:
+        _suggest(out, task, results, args.suggest, args.seed)
     print(f"limits: {out / 'limits.csv'}  posteriors: {out / 'posteriors'}  report: {report}")
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
     return 0
