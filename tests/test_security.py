@@ -1,0 +1,204 @@
+"""Security (issue #25): a file is data, never code.
+
+* URDF names (joints, links, base, end effector) and the .urdf path never enter generated
+  kernel source: an injection attempt in any of them runs nothing, and the chain is simulated
+  from the very source a benign chain gets. The cached module is named by the sha256 of its
+  source and checked against it before import.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from xml.sax.saxutils import escape
+
+import numpy as np
+import pytest
+
+from camo_sbi.experiments.cli import main as cli_main
+
+ONE_JOINT = """<?xml version="1.0"?>
+<robot name="one">
+  <link name="{base}"/><link name="{link}"/><link name="{tip}"/>
+  <joint name="{joint}" type="revolute"><parent link="{base}"/><child link="{link}"/>
+    <origin xyz="0 0 0.1" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-2" upper="2" effort="1" velocity="1"/>
+  </joint>
+  <joint name="{tool}" type="fixed"><parent link="{link}"/><child link="{tip}"/><origin xyz="0.3 0 0" rpy="0 0 0"/></joint>
+</robot>
+"""
+BENIGN = {"base": "base", "link": "l1", "tip": "tip", "joint": "j1", "tool": "tool"}
+
+#: each would create the file PWNED in the working directory if it were pasted into Python source
+PAYLOADS = [
+    'x"""; import os; os.system("touch PWNED"); """',
+    "x'''; import os; os.system('touch PWNED'); '''",
+    'x\nimport os; os.system("touch PWNED")\n',
+    'x\\"""; import os; os.system("touch PWNED") #',
+    "x\"; __import__('os').system('touch PWNED'); \"",
+    "x}; __import__('os').system('touch PWNED'); {",
+]
+
+
+def _attr(s: str) -> str:
+    """``s`` as an XML attribute value (newlines kept as character references)."""
+    return escape(s, {'"': "&quot;", "\n": "&#10;"})
+
+
+def _urdf(**names) -> str:
+    return ONE_JOINT.format(**{k: _attr(v) for k, v in {**BENIGN, **names}.items()})
+
+
+SAFE_PAYLOADS = [p for p in PAYLOADS if "\n" not in p]
+
+
+def test_payloads_survive_the_urdf_parser():
+    """The attack is real: the parsed chain holds the hostile names verbatim."""
+    from camo_sbi.simulators.chain import load_chain
+
+    for p in SAFE_PAYLOADS:
+        spec = load_chain(_urdf(base=p + "b", tip=p + "t", joint=p + "j"), p + "t").spec
+        assert (spec.base_link, spec.end_effector, spec.joint_names) == (p + "b", p + "t", (p + "j",))
+
+
+@pytest.mark.parametrize("field", ["base", "link", "tip", "joint", "tool"])
+@pytest.mark.parametrize("payload", PAYLOADS)
+def test_generated_source_holds_no_name(field, payload):
+    from camo_sbi.simulators.chain import load_chain
+    from camo_sbi.simulators.kernel import generate_source
+
+    ee = payload if field == "tip" else "tip"
+    if "\n" in payload:  # a control character in a name is refused before anything is built
+        kind = "joint" if field in ("joint", "tool") else "link"
+        with pytest.raises(ValueError, match=f"^urdf: {kind} name '.*' contains a control character"):
+            load_chain(_urdf(**{field: payload}), ee)
+        return
+    benign = load_chain(_urdf(), "tip").spec
+    hostile = load_chain(_urdf(**{field: payload}), ee).spec
+    for dtype in (np.float32, np.float64):
+        src = generate_source(hostile, dtype)
+        assert "PWNED" not in src and "system" not in src
+        assert src == generate_source(benign, dtype)  # names are not part of the code at all
+
+
+def test_hostile_urdf_runs_nothing_from_the_cli(tmp_path, monkeypatch, capsys):
+    """Every name field and the file path hostile at once: simulated, exit 0, no file created."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("CAMO_SBI_KERNEL_CACHE", str(tmp_path / "kernels"))
+    from camo_sbi.simulators import kernel
+
+    monkeypatch.setattr(kernel, "_loaded", {})
+    names = dict(zip(["base", "link", "tip", "joint", "tool"], SAFE_PAYLOADS, strict=True))
+    urdf = tmp_path / (PAYLOADS[0].replace("/", "_") + ".urdf")
+    urdf.write_text(_urdf(**names))
+    code = cli_main(["demo", "--urdf", str(urdf), "--ee", names["tip"], "--batch", "8",
+                     "--out", str(tmp_path / "demo.png")])
+    assert code == 0
+    assert (tmp_path / "demo.png").is_file()
+    assert not list(tmp_path.rglob("PWNED")) and not Path("/PWNED").exists()
+    cached = sorted((tmp_path / "kernels").glob("camo_sbi_kernel_*.py"))
+    assert cached and all("PWNED" not in p.read_text() for p in cached)
+
+
+def test_control_character_in_a_name_exits_2_naming_it(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text(_urdf(joint=PAYLOADS[2]))
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["demo", "--urdf", str(urdf), "--ee", "tip", "--batch", "8", "--out", str(tmp_path / "d.png")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"camo-sbi: error: --urdf: {urdf}: urdf: joint name 'x\\nimport os"), err
+    assert not list(tmp_path.rglob("PWNED"))
+
+
+def test_cached_module_is_named_by_its_source_digest_and_checked_before_import(tmp_path, monkeypatch):
+    """A cached module whose bytes differ from the generated source is never imported as is."""
+    import hashlib
+    import warnings
+
+    from camo_sbi.simulators import kernel
+    from camo_sbi.simulators.chain import load_chain
+
+    d = tmp_path / "kernels"
+    monkeypatch.setenv("CAMO_SBI_KERNEL_CACHE", str(d))
+    monkeypatch.setattr(kernel, "_loaded", {})
+    spec = load_chain(_urdf(), "tip").spec
+    src = kernel.generate_source(spec, np.float64)
+    name = f"camo_sbi_kernel_{hashlib.sha256(src.encode()).hexdigest()[:32]}"
+    os.mkdir(d, 0o700)
+    path = d / f"{name}.py"
+    path.write_text(src + '\nopen("PLANTED", "w").close()\n')
+    monkeypatch.chdir(tmp_path)
+    # the planted file is replaced by the generated source before anything is imported
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", kernel.KernelCacheWarning)
+        mod = kernel.load_kernel(spec, np.float64)
+    assert not (tmp_path / "PLANTED").exists()
+    assert path.read_text() == src and mod.__file__ == str(path)
+
+    # and a file that cannot be made to match (written behind our back after the check) is refused
+    monkeypatch.setattr(kernel, "_loaded", {})
+    real = kernel.atomic_write_bytes
+    monkeypatch.setattr(kernel, "atomic_write_bytes", lambda p, data: real(p, data + b"\nopen('PLANTED', 'w')\n"))
+    path.write_text("# stale\n")
+    with pytest.warns(kernel.KernelCacheWarning, match="differs from the generated kernel source"):
+        kernel.load_kernel(spec, np.float64)
+    assert not (tmp_path / "PLANTED").exists()
+
+
+# ------------------------------------------------------------------------------ URDF structure
+
+_J = ('<joint name="{name}" type="revolute"><parent link="{parent}"/><child link="{child}"/>'
+      '<axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/>{extra}</joint>')
+
+
+def _tree(links, joints) -> str:
+    body = "".join(f'<link name="{n}"/>' for n in links)
+    body += "".join(_J.format(extra="", **j) if "extra" not in j else _J.format(**j) for j in joints)
+    return f'<?xml version="1.0"?><robot name="t">{body}</robot>'
+
+
+CHAIN = [dict(name="j1", parent="base", child="l1"), dict(name="j2", parent="l1", child="tip")]
+
+
+@pytest.mark.parametrize("links, joints, ee, message", [
+    (["base", "l1", "tip"], [*CHAIN, dict(name="j3", parent="tip", child="l1")], "tip",
+     "link 'l1' is the child of two joints, 'j1' and 'j3' \\(a URDF is a tree\\)"),
+    (["a", "b", "base", "l1", "tip"], [*CHAIN, dict(name="ja", parent="a", child="b"),
+                                       dict(name="jb", parent="b", child="a")], "tip",
+     "joint 'j[ab]' closes a cycle through link '[ab]' \\(a URDF is a tree\\)"),
+    (["base", "l1", "tip"], [*CHAIN, dict(name="j1", parent="tip", child="x")], "tip", "duplicate joint name 'j1'"),
+    (["base", "l1", "l1", "tip"], CHAIN, "tip", "duplicate link name 'l1'"),
+    (["base", "l1", "tip"], [CHAIN[0], dict(CHAIN[1], extra='<mimic joint="j1" multiplier="2" offset="0.1"/>')],
+     "tip", r"joint 'j2' is a <mimic> joint \(following 'j1'\), which is not supported"),
+    (["base", "l1", "tip"], [CHAIN[0], dict(CHAIN[1], parent="nowhere")], "tip",
+     "joint 'j2' names parent link 'nowhere', which is not in the URDF"),
+])
+def test_malformed_urdf_tree_is_refused_naming_the_joint_or_link(links, joints, ee, message):
+    from camo_sbi.simulators.chain import load_chain
+
+    with pytest.raises(ValueError, match=f"^urdf: {message}"):
+        load_chain(_tree(links, joints), ee)
+
+
+def test_mimic_joint_off_the_chain_is_harmless():
+    from camo_sbi.simulators.chain import load_chain
+
+    joints = [*CHAIN, dict(name="g", parent="l1", child="finger", extra='<mimic joint="j2"/>')]
+    assert load_chain(_tree(["base", "l1", "tip", "finger"], joints), "tip").joint_names == ["j1", "j2"]
+
+
+def test_cyclic_urdf_exits_2_from_the_console(tmp_path):
+    """As a user runs it: one line naming the joint, exit 2, no hang (the bound is only a guard)."""
+    import subprocess
+    import sys
+
+    urdf = tmp_path / "cycle.urdf"
+    urdf.write_text(_tree(["a", "b", "base", "l1", "tip"], [*CHAIN, dict(name="ja", parent="a", child="b"),
+                                                           dict(name="jb", parent="b", child="a")]))
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.run([sys.executable, "-m", "camo_sbi", "demo", "--urdf", str(urdf), "--ee", "tip",
+                           "--out", str(tmp_path / "d.png")], capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1].startswith(f"camo-sbi: error: --urdf: {urdf}: urdf: joint 'j")
+    assert "closes a cycle" in proc.stderr and "Traceback" not in proc.stderr
