@@ -489,6 +489,49 @@ def test_compare_with_other_settings_is_refused(clean_run, tmp_path, capsys):
     assert cli_main([*COMPARE, "--tasks", "1", "--seeds", "1", "--out", str(tmp_path / "new")]) == 0
 
 
+def test_edited_manifest_never_mixes_two_grids_in_results_csv(clean_run, tmp_path, capsys):
+    """Someone edits settings.tasks in manifest.json, then runs the new --tasks: the old grid's
+    cells stay on disk but are never read into results.csv, and the run says how many it left out."""
+    out = _copy_run(clean_run, tmp_path / "run")
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["settings"]["tasks"] = 3
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    n_old = len(list((out / "cells").glob("*.csv")))
+    capsys.readouterr()
+    assert cli_main([*COMPARE, "--tasks", "3", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    df = pd.read_csv(out / "results.csv")
+    assert not df.duplicated(["method", "budget", "seed", "n_tasks", "metric"]).any()
+    assert sorted(df.n_tasks.unique()) == [1, 2, 3]
+    assert len(list((out / "cells").glob("*.csv"))) == 2 * n_old  # the old cells are still there
+    assert f"{n_old} cell(s) in {out / 'cells'} are not part of this grid (other settings)" in captured.err
+
+
+def test_cell_vanishing_mid_run_exits_2_naming_it_and_writes_no_table(tmp_path, monkeypatch, capsys):
+    from camo_sbi.experiments import compare
+
+    out = tmp_path / "run"
+    real, done = compare.run_cell, []
+
+    def run_then_delete_the_first(spec, path):
+        real(spec, path)
+        done.append(spec["key"])
+        if len(done) == 2:
+            (out / "cells" / f"{done[0]}.csv").unlink()
+
+    monkeypatch.setattr(compare, "run_cell", run_then_delete_the_first)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli_main([*COMPARE, "--seeds", "1", "--tasks", "1", "--out", str(out)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (f"camo-sbi: error: --out {out}: 1 cell(s) vanished or were damaged during the run "
+                       f"(first: {out / 'cells' / (done[0] + '.csv')}); run the command again to recompute them")
+    assert not (out / "results.csv").exists()
+    monkeypatch.setattr(compare, "run_cell", real)
+    assert cli_main([*COMPARE, "--seeds", "1", "--tasks", "1", "--out", str(out)]) == 0  # recomputed
+
+
 def test_compare_runtime_options_and_equivalent_spellings_do_not_count(clean_run, tmp_path, capsys):
     out = _copy_run(clean_run, tmp_path / "run")
     manifest = (out / "manifest.json").read_text()

@@ -409,11 +409,12 @@ def main(args) -> int:
         else:
             run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
         bar.close()
-        df = store.write_table()
-        keys = {s["key"] for s in specs}
-        missing = keys - store.finished_keys()
-        if missing:
-            raise RuntimeError(f"{len(missing)} cells did not finish")
+        keys = [s["key"] for s in specs]
+        missing = sorted(k for k in keys if not store.done(k))
+        if missing:  # deleted or damaged while the run went on: no partial results.csv
+            raise ValueError(f"--out {out}: {len(missing)} cell(s) vanished or were damaged during the run "
+                             f"(first: {store.cells / (missing[0] + '.csv')}); run the command again to recompute them")
+        df = store.write_table(keys=keys)
         figs = _figures(df, out, formats)
         if getattr(args, "amortized", None) is not None:
             from camo_sbi.experiments.amortize import write_cost_table
