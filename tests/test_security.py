@@ -202,3 +202,96 @@ def test_cyclic_urdf_exits_2_from_the_console(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines()[-1].startswith(f"camo-sbi: error: --urdf: {urdf}: urdf: joint 'j")
     assert "closes a cycle" in proc.stderr and "Traceback" not in proc.stderr
+
+
+# ------------------------------------------------------------------------------ NPE posterior files
+
+
+class _Payload:
+    """Unpickling this would create ``marker``: what a hostile .pt file does."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+@pytest.fixture(scope="module")
+def npe_file(tmp_path_factory):
+    """A saved per-task NPE posterior (2 tasks, with an MLP embedding) and the run's samples."""
+    from camo_sbi.inference.registry import run_method
+    from tests.test_abc_smc import toy_task
+    from tests.test_npe import TINY
+
+    d = tmp_path_factory.mktemp("npe")
+    toy = toy_task()
+    res = run_method("npe", toy, toy.observations[:2], budget=300, seed=0,
+                     config={**TINY, "workdir": str(d), "embedding": "mlp", "embedding_dim": 8})
+    return Path(res.extras["posterior_path"]), res
+
+
+def test_npe_posterior_is_tensors_plus_json_and_reloads_exactly(npe_file):
+    import json
+
+    import torch
+
+    from camo_sbi.inference.npe import load_posterior
+
+    path, res = npe_file
+    meta = json.loads(path.with_name(path.name + ".json").read_text())
+    assert meta["format"] == "camo_sbi.npe.posterior/2" and meta["n_tasks"] == 2
+    assert meta["architecture"]["embedding"] == "mlp" and meta["architecture"]["embedding_dim"] == 8
+    torch.load(path, weights_only=True)  # loads with the safe unpickler: tensors and containers only
+    post = load_posterior(path)
+    theta = torch.from_numpy(res.samples[:40])
+    assert torch.isfinite(post.log_prob(theta)).all()
+
+
+def _copy_npe(npe_file, dest: Path) -> Path:
+    import shutil
+
+    path = npe_file[0]
+    dest.mkdir()
+    shutil.copy(path, dest / path.name)
+    shutil.copy(path.with_name(path.name + ".json"), dest / (path.name + ".json"))
+    return dest / path.name
+
+
+@pytest.mark.parametrize("matching_digest", [False, True])
+def test_npe_posterior_with_a_pickle_payload_runs_nothing(npe_file, tmp_path, matching_digest):
+    """The payload is refused by name whether or not its sha256 was also forged into the metadata."""
+    import hashlib
+    import json
+
+    import torch
+
+    from camo_sbi.inference.npe import load_posterior
+
+    path = _copy_npe(npe_file, tmp_path / "run")
+    marker = tmp_path / "PWNED"
+    torch.save({"format": "camo_sbi.npe.posterior/2", "state_dict": _Payload(marker)}, path)
+    if matching_digest:
+        meta_path = path.with_name(path.name + ".json")
+        meta = json.loads(meta_path.read_text())
+        meta["sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
+        meta_path.write_text(json.dumps(meta))
+    message = "cannot be loaded as a camo_sbi NPE posterior" if matching_digest else "sha256 differs"
+    with pytest.raises(ValueError, match=f"^path: {path}: {message}"):
+        load_posterior(path)
+    assert not marker.exists()
+
+
+def test_damaged_npe_posterior_is_refused_naming_the_file(npe_file, tmp_path):
+    from camo_sbi.inference.npe import load_posterior
+
+    path = _copy_npe(npe_file, tmp_path / "run")
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 200] = bytes(b ^ 0xFF for b in data[mid:mid + 200])
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=f"^path: {path}: sha256 differs from its metadata"):
+        load_posterior(path)
+    path.with_name(path.name + ".json").unlink()
+    with pytest.raises(ValueError, match=f"^path: {path}: its metadata {path.name}.json is missing"):
+        load_posterior(path)
