@@ -203,7 +203,7 @@ def test_kernel_cache_directory_checks(tmp_path, monkeypatch):
     afile = tmp_path / "file"
     afile.write_text("")
     assert kernel.check_cache_dir(afile) == "is not a directory"
-    monkeypatch.setattr(kernel, "_current_uid", lambda: os.getuid() + 1)  # we run as the owner: pretend not
+    monkeypatch.setattr("camo_sbi._io._current_uid", lambda: os.getuid() + 1)  # we run as the owner: pretend not
     assert kernel.check_cache_dir(private) == (f"is owned by uid {os.getuid()}, not by this user "
                                                f"(uid {os.getuid() + 1})")
 
@@ -240,7 +240,7 @@ def test_unsafe_cache_is_never_read_and_kernels_compile_in_memory(fault, primed,
         os.chmod(d, 0o777)
         cache, reason = d, "is writable by group or others (mode 777)"
     elif fault == "foreign-owned":
-        monkeypatch.setattr(kernel, "_current_uid", lambda: os.getuid() + 1)
+        monkeypatch.setattr("camo_sbi._io._current_uid", lambda: os.getuid() + 1)
         cache, reason = d, f"is owned by uid {os.getuid()}, not by this user"
     else:
         cache, reason = tmp_path / "link", "is a symbolic link"

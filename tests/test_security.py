@@ -9,6 +9,9 @@
 from __future__ import annotations
 
 import os
+import pickle
+import subprocess
+import sys
 from pathlib import Path
 from xml.sax.saxutils import escape
 
@@ -295,3 +298,64 @@ def test_damaged_npe_posterior_is_refused_naming_the_file(npe_file, tmp_path):
     path.with_name(path.name + ".json").unlink()
     with pytest.raises(ValueError, match=f"^path: {path}: its metadata {path.name}.json is missing"):
         load_posterior(path)
+
+
+# ------------------------------------------------------------------------------ numba's own cache
+
+_KDE_RUN = """
+import warnings, numpy as np
+warnings.simplefilter("always")
+from camo_sbi.inference import kde
+out = np.empty(3)
+kde._log_kernel_sums(np.zeros((3, 2)), np.ones((2, 4)), out)
+print(kde._log_kernel_sums._cache.cache_path)
+"""
+
+
+def _run_kde(env) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", _KDE_RUN], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), **env})
+
+
+def test_numba_cache_dir_that_is_shared_is_never_read(tmp_path):
+    """NUMBA_CACHE_DIR world-writable with a planted index file: one warning, compiled in memory,
+    the pickle never runs. The same planted file in a private directory does run: the check is real."""
+    import shutil
+
+    primed = tmp_path / "primed"
+    first = _run_kde({"NUMBA_CACHE_DIR": str(primed)})
+    assert first.returncode == 0, first.stderr
+    sub = Path(first.stdout.strip().splitlines()[-1])
+    assert sub.is_relative_to(primed) and list(sub.glob("*.nbi"))  # cached there, not in the package
+    marker = tmp_path / "PWNED"
+    for private in (False, True):
+        shared = tmp_path / f"shared-{private}"
+        shutil.copytree(primed, shared)
+        for p in shared.rglob("*.nbi"):
+            p.write_bytes(pickle.dumps(_Payload(marker)))
+        for d in (shared, *[p for p in shared.rglob("*") if p.is_dir()]):
+            os.chmod(d, 0o700 if private else 0o777)
+        proc = _run_kde({"NUMBA_CACHE_DIR": str(shared)})
+        if not private:
+            assert proc.returncode == 0, proc.stderr
+            assert not marker.exists(), "a planted pickle ran"
+            warned = [ln for ln in proc.stderr.splitlines() if "NumbaCacheWarning" in ln]
+            assert len(warned) == 1 and f"numba cache {shared} is writable by group or others (mode 777)" in warned[0]
+    assert marker.exists()  # read from the private copy: the planted file is live
+
+
+def test_numba_cache_defaults_to_a_private_user_directory(tmp_path):
+    import stat
+
+    package = Path(__file__).resolve().parents[1] / "camo_sbi"
+
+    def numba_files():  # (files an older camo_sbi left there may exist: none may be added or rewritten)
+        return {p: p.stat().st_mtime_ns for p in package.rglob("*.nb[ic]")}
+
+    before = numba_files()
+    proc = _run_kde({"XDG_CACHE_HOME": str(tmp_path / "xdg"), "NUMBA_CACHE_DIR": ""})
+    assert proc.returncode == 0, proc.stderr
+    root = tmp_path / "xdg" / "camo_sbi" / "numba"
+    assert Path(proc.stdout.strip().splitlines()[-1]).parent == root
+    assert stat.S_IMODE(root.stat().st_mode) == 0o700
+    assert numba_files() == before  # nothing of numba's written inside the package

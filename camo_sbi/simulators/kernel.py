@@ -27,12 +27,12 @@ first call.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
 import linecache
 import os
 import pickle
-import stat
 import sys
 import threading
 import types
@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from camo_sbi._io import atomic_write_bytes
+from camo_sbi._io import atomic_write_bytes, check_private_dir, make_private_dir
 from camo_sbi._threads import default_workers, run_chunks
 from camo_sbi.simulators.chain import ChainSpec
 
@@ -332,56 +332,20 @@ def cache_dir() -> Path:
     return Path(base) / "camo_sbi" / "kernels"
 
 
-def _current_uid() -> int:
-    return os.getuid()
-
-
 def check_cache_dir(path: str | os.PathLike) -> str | None:
     """Why ``path`` must not hold kernel code, or None when it is a private directory of this user.
 
     numba unpickles what it finds in the cache, so the directory (and its ``__pycache__``) must
     be a real directory (not a symbolic link), owned by the current user and writable by no one
-    else (group/other write bits clear).
+    else (group/other write bits clear): `camo_sbi._io.check_private_dir`.
     """
-    for d in (Path(path), Path(path) / "__pycache__"):
-        try:
-            st = os.lstat(d)
-        except FileNotFoundError:
-            if d == Path(path):
-                return "does not exist"
-            continue  # numba creates __pycache__ inside the checked directory
-        except OSError as exc:
-            return f"cannot be inspected ({exc.strerror or exc})"
-        where = "" if d == Path(path) else " (its __pycache__)"
-        if stat.S_ISLNK(st.st_mode):
-            return f"is a symbolic link{where}"
-        if not stat.S_ISDIR(st.st_mode):
-            return f"is not a directory{where}"
-        if st.st_uid != _current_uid():
-            return f"is owned by uid {st.st_uid}, not by this user (uid {_current_uid()}){where}"
-        if st.st_mode & 0o022:
-            return f"is writable by group or others (mode {stat.S_IMODE(st.st_mode):o}){where}"
-    return None
+    return check_private_dir(path)
 
 
 def _private_cache_dir() -> tuple[Path, str | None]:
     """The cache directory, created with mode 0700 if missing, and why it is unusable (or None)."""
     d = cache_dir()
-    if not os.path.lexists(d):
-        try:
-            d.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            return d, f"cannot be created ({exc.strerror or exc})"
-        try:
-            os.mkdir(d, 0o700)
-        except FileExistsError:
-            pass  # another process created it meanwhile: checked below like any existing directory
-        except OSError as exc:
-            return d, f"cannot be created ({exc.strerror or exc})"
-        else:
-            if stat.S_IMODE(os.lstat(d).st_mode) & 0o077:
-                return d, f"was created with mode {stat.S_IMODE(os.lstat(d).st_mode):o}, not 700"
-    return d, check_cache_dir(d)
+    return d, make_private_dir(d)
 
 
 def _warn_once(message: str) -> None:
@@ -426,13 +390,31 @@ def _import_file(name: str, path: Path, dtype):
     mod = importlib.util.module_from_spec(mspec)
     sys.modules[name] = mod
     try:
-        mspec.loader.exec_module(mod)
+        with _in_tree_numba_cache():
+            mspec.loader.exec_module(mod)
         for fn, sig in _signatures(dtype).items():
             getattr(mod, fn).compile(sig)
     except BaseException:
         sys.modules.pop(name, None)
         raise
     return mod
+
+
+@contextlib.contextmanager
+def _in_tree_numba_cache():
+    """numba's cache of a generated module goes beside it (the checked private directory's
+    ``__pycache__``), never to ``NUMBA_CACHE_DIR`` or a locator named by the environment, which
+    `check_cache_dir` did not check. numba picks the location when a function is decorated."""
+    from numba.core import config as numba_config
+
+    saved = {k: getattr(numba_config, k) for k in ("CACHE_DIR", "CACHE_LOCATOR_CLASSES") if hasattr(numba_config, k)}
+    try:
+        for k in saved:
+            setattr(numba_config, k, "")
+        yield
+    finally:
+        for k, v in saved.items():
+            setattr(numba_config, k, v)
 
 
 def _remove_cached(d: Path, name: str) -> None:
