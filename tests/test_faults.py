@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import os
@@ -530,6 +531,58 @@ def test_cell_vanishing_mid_run_exits_2_naming_it_and_writes_no_table(tmp_path, 
     assert not (out / "results.csv").exists()
     monkeypatch.setattr(compare, "run_cell", real)
     assert cli_main([*COMPARE, "--seeds", "1", "--tasks", "1", "--out", str(out)]) == 0  # recomputed
+
+
+@pytest.mark.parametrize("code, text", [(errno.ENOSPC, "No space left on device"),
+                                         (errno.EROFS, "Read-only file system"),
+                                         (errno.EACCES, "Permission denied")])
+def test_os_failure_while_writing_exits_2_naming_the_path(code, text, clean_run, tmp_path, monkeypatch, capsys):
+    """A full disk, a read-only or forbidden --out (injected in os.replace: we run as root, so chmod
+    cannot forbid anything): exit 2, one line naming the file, no traceback; the old table survives."""
+    out = _copy_run(clean_run, tmp_path / "run")
+    real = os.replace
+
+    def failing(src, dst, *args, **kwargs):
+        if str(dst).startswith(str(out)):
+            raise OSError(code, os.strerror(code), str(dst))
+        return real(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", failing)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli_main([*COMPARE, "--out", str(out)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1] == (f"camo-sbi: error: {out / 'results.csv'}: {text} "
+                                            f"({errno.errorcode[code]})")
+    monkeypatch.setattr(os, "replace", real)
+    _same_table(pd.read_csv(out / "results.csv"), clean_run[1])
+    assert not list(out.rglob("*.tmp"))  # the failed write left no temporary file
+
+
+@pytest.mark.parametrize("where", ["/proc/camo_sbi_out", "/sys/camo_sbi_out"])
+def test_out_on_a_read_only_system_path_exits_2_naming_it(where, capsys):
+    """A real read-only place, read-only even for root."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli_main([*COMPARE, "--out", where])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"camo-sbi: error: {where}: "), err
+
+
+def test_stale_tmp_files_of_a_killed_run_are_removed(clean_run, tmp_path, capsys):
+    out = _copy_run(clean_run, tmp_path / "run")
+    stale = [out / ".results.csv.k9x2ab_q.tmp", out / "cells" / ".a-cell.csv.77hhjj00.tmp",
+             out / "integrity" / ".a-cell.json.zz11yy22.tmp"]
+    for p in stale:
+        p.write_text("partial")
+    keep = out / "notes.tmp"  # not one of ours: left alone
+    keep.write_text("mine")
+    assert cli_main([*COMPARE, "-v", "--out", str(out)]) == 0
+    assert not any(p.exists() for p in stale) and keep.exists()
+    assert f"removed 3 stale temporary file(s) of an interrupted run under {out}" in capsys.readouterr().err
 
 
 def test_compare_runtime_options_and_equivalent_spellings_do_not_count(clean_run, tmp_path, capsys):

@@ -11,6 +11,7 @@
   `RUNTIME_OPTIONS`: --out, --workers, --scheduler, --no-report, --wait, --figure-format,
   --corner-limits), plus ``config.json``
   (the same settings, read by `camo_sbi.diagnostics.report`);
+* removes the ``.NAME.XXXX.tmp`` files of atomic writes a killed run left (`remove_stale_tmp`);
 * on later runs compares: other settings, another experiment or another camo_sbi version stop
   the command with one line naming the flags that differ, e.g.
   ``--out runs/x: holds a run with other settings: --tasks 3 (here 2), --seed 0 (here 1); use a new --out``,
@@ -22,7 +23,9 @@ Every refusal is a ValueError whose message starts with ``--out`` (the CLI exits
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
 import sys
 import time
 from collections.abc import Mapping
@@ -36,7 +39,9 @@ try:
 except ImportError:  # not POSIX: no locking
     fcntl = None
 
-__all__ = ["MANIFEST", "RUNTIME_OPTIONS", "RunDirectory", "run_settings"]
+__all__ = ["MANIFEST", "RUNTIME_OPTIONS", "RunDirectory", "remove_stale_tmp", "run_settings"]
+
+log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
 LOCK = "run.lock"
@@ -110,6 +115,7 @@ class RunDirectory:
         self.store: ResultStore | None = None
         self.manifest: dict | None = None
         self.created = False
+        self.removed_tmp = 0
         self._fd: int | None = None
 
     # ------------------------------------------------------------------ context manager
@@ -128,6 +134,7 @@ class RunDirectory:
         self._acquire()
         try:
             self._check_manifest()
+            self.removed_tmp = remove_stale_tmp(self.path)
             self.store = ResultStore(self.path)
         except BaseException:
             self.close()
@@ -230,6 +237,26 @@ class RunDirectory:
         p = self.path / CONFIG
         if not (p.is_file() and p.read_text() == text):
             atomic_write_text(p, text)
+
+
+def remove_stale_tmp(out: Path) -> int:
+    """Delete the temporary files of interrupted atomic writes (``.NAME.XXXX.tmp``, left by a kill -9)
+    anywhere under ``out``; call it holding the lock, when no other run can be writing there.
+    Returns how many were removed (a log line says so)."""
+    n = 0
+    for p in out.rglob(".*.tmp"):
+        if _TMP.fullmatch(p.name) and p.is_file() and not p.is_symlink():
+            try:
+                p.unlink()
+                n += 1
+            except FileNotFoundError:
+                pass
+    if n:
+        log.info("removed %d stale temporary file(s) of an interrupted run under %s", n, out)
+    return n
+
+
+_TMP = re.compile(r"\..+\.[A-Za-z0-9_]{6,}\.tmp")
 
 
 def _holder(fd: int) -> str:
