@@ -985,3 +985,88 @@ def test_two_identical_runs_at_once(busy_reference, tmp_path):
     df = pd.read_csv(out / "results.csv")
     metrics = set(busy_reference.metric)
     assert len(df) == 2 * 40 * 2 * len(metrics) and not df.duplicated(KEY).any()
+
+
+# ------------------------------------------------------------------------------ the report's body
+
+
+def test_report_rebuilds_the_run_s_own_body(tmp_path):
+    """compare --model human --height 1.6: the posteriors record the ModelSpec and the report's
+    posterior-predictive figures are drawn with a 1.6 m body, not the default 1.75 m one."""
+    from camo_sbi.diagnostics import arviz_io, report
+    from camo_sbi.simulators import human
+
+    out = tmp_path / "short"
+    assert cli_main(["compare", "--model", "human", "--height", "1.6", "--methods", "camo", "--budgets", "50",
+                     "--seeds", "1", "--tasks", "1", "--test-goals", "2", "--no-report", "--out", str(out)]) == 0
+    idata = arviz_io.load_netcdf(next((out / "posteriors").glob("*.nc")))
+    assert json.loads(idata.posterior.attrs["model_spec"])["height_m"] == 1.6
+    sim, why = report._simulator("human", idata)
+    assert why is None
+    q = np.zeros((1, sim.n_joints))
+    short, tall = human(height_m=1.6), human()
+    np.testing.assert_allclose(sim.chain.spec.fk_numpy(q), short.chain.spec.fk_numpy(q), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sim.chain.spec.origins, short.chain.spec.origins, rtol=0, atol=1e-12)
+    assert not np.allclose(sim.chain.spec.origins, tall.chain.spec.origins)  # segment lengths differ
+    # a file without the record: the report says exactly why, instead of drawing another body
+    del idata.posterior.attrs["model_spec"]
+    sim, why = report._simulator("human", idata)
+    assert sim is None and "do not record their model's settings" in why
+
+
+# ------------------------------------------------------------------------------ infer's run directory
+
+
+@pytest.fixture(scope="module")
+def infer_run(tmp_path_factory):
+    from tests.test_infer_cli import LIMITS, MODEL, NOISE
+
+    d = tmp_path_factory.mktemp("infer")
+    rec = d / "reaches.csv"
+    assert cli_main(["simulate-observations", *MODEL, *LIMITS, "--reaches", "3", "--seed", "2", *NOISE,
+                     "--out", str(rec)]) == 0
+    argv = ["infer", "--observations", str(rec), *MODEL, "--budget", "60", "--seed", "0", *NOISE]
+    out = d / "out"
+    assert cli_main([*argv, "--methods", "camo,naive", "--out", str(out)]) == 0
+    return out, argv
+
+
+def test_infer_records_the_model_and_version_and_refuses_other_settings(infer_run, tmp_path, capsys):
+    import hashlib
+
+    import camo_sbi
+    from tests.test_infer_cli import DATA, START
+
+    src, argv = infer_run
+    out = tmp_path / "out"
+    shutil.copytree(src, out)
+    config = json.loads((out / "config.json").read_text())
+    manifest = json.loads((out / "manifest.json").read_text())
+    spec = manifest["settings"]["model_spec"]
+    assert spec == config["model_spec"]
+    assert spec["digest"] == hashlib.sha256((DATA / "arm7.urdf").read_bytes()).hexdigest()
+    assert spec["ee"] == "tool" and spec["start"] == [float(v) for v in START.split(",")]
+    assert config["camo_sbi_version"] == manifest["camo_sbi_version"] == camo_sbi.__version__
+    before = _snapshot(out)
+    msg = _refused([*argv, "--methods", "nominal", "--out", str(out)], capsys)
+    assert msg == (f"--out {out}: holds a run with other settings: --methods camo,naive (here nominal); "
+                   "use a new --out or --force")
+    assert _snapshot(out) == before
+    # --force replaces the run: no posterior of the old methods stays beside the new limits.csv
+    assert cli_main([*argv, "--methods", "nominal", "--force", "--out", str(out)]) == 0
+    assert sorted(p.name for p in (out / "posteriors").iterdir()) == ["nominal.nc"]
+    assert set(pd.read_csv(out / "limits.csv").method) == {"nominal"}
+    assert json.loads((out / "manifest.json").read_text())["settings"]["methods"] == "nominal"
+
+
+def test_report_on_an_infer_directory_tells_no_false_story(infer_run, tmp_path):
+    """No "written by an older camo-sbi compare", no truth in any caption (a recording has none),
+    and the posterior-predictive figures are drawn from the recorded body."""
+    from camo_sbi.diagnostics.report import write_report
+
+    out = tmp_path / "out"
+    shutil.copytree(infer_run[0], out)
+    html = write_report(out, out / "again.html").read_text()
+    assert "older camo-sbi" not in html
+    assert "truth" not in html and "true limit" not in html
+    assert "posterior-predictive reaches of camo" in html

@@ -189,7 +189,8 @@ def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
     idata = to_inference_data(res, sim.joint_names, prior=task.prior, true_theta=task.true_theta,
                               seed=derive_seed(spec["base_seed"], spec["seed"], 13), observed=observed,
                               observed_dims=dims, attrs={"task": spec["task"], "status": res.status})
-    idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"]})
+    idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"],
+                                  "model_spec": spec["model"].to_json()})  # the report rebuilds exactly this body
     (out / "posteriors").mkdir(parents=True, exist_ok=True)
     save_netcdf(idata, out / "posteriors" / f"{spec['key']}.nc")
 

@@ -375,19 +375,54 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
                    help='per-method config overrides, e.g. --config \'npe={"max_epochs": 20}\' (repeatable)')
     add_figure_format_argument(p)
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--force", action="store_true",
+                   help="--out holds an infer run with other settings: replace it (its limits, posteriors, "
+                        "predictions and report are removed first)")
+    p.add_argument("--wait", action="store_true", help="wait for another camo-sbi run holding --out")
+
+
+#: what an infer run writes into --out (removed when --force replaces a run of other settings)
+_INFER_OUTPUTS = ("limits.csv", "report.html", "config.json", "posteriors", "predictions", "work", "figures")
+
+
+def _infer_settings(args, model, overrides: dict) -> dict:
+    """The settings that determine an infer run's results (its manifest): every option but the
+    runtime ones, the model's full specification (URDF sha256, --ee, --start, joints) and the
+    recording's and goal file's sha256."""
+    import hashlib
+
+    from camo_sbi.experiments.rundir import run_settings
+
+    def digest(path):
+        try:
+            return None if path is None else hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        except OSError:
+            return None  # reported by the loader, naming the file
+
+    return run_settings(args, ignore=("config",), model_spec=json.loads(model.to_json()),
+                        config=json.dumps(overrides, sort_keys=True),
+                        observations_sha256=digest(args.observations),
+                        predict_goals_sha256=digest(args.predict_goals),
+                        amortized_sha256=digest(getattr(args, "amortized", None)))
+
+
+def _clear_infer_outputs(out: Path) -> None:
+    import shutil
+
+    for name in _INFER_OUTPUTS:
+        p = out / name
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        elif p.exists() or p.is_symlink():
+            p.unlink()
 
 
 def infer_main(args) -> int:
     import numpy as np
-    import torch
 
-    from camo_sbi._validation import derive_seed
-    from camo_sbi.diagnostics.arviz_io import save_netcdf, to_inference_data
     from camo_sbi.experiments.compare import grid_methods
     from camo_sbi.experiments.method_configs import parse_configs
-    from camo_sbi.inference.registry import run_method
-    from camo_sbi.io.recordings import load_goals, load_recordings, save_recordings
-    from camo_sbi.task import Observation, predict
+    from camo_sbi.io.recordings import load_goals, load_recordings
 
     t0 = time.perf_counter()
     formats = figure_formats(args)
@@ -417,8 +452,34 @@ def infer_main(args) -> int:
     if not plan:
         raise ValueError("--methods: none of the methods can run on this recording (see the notes above)")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a directory")
+    from camo_sbi.experiments.rundir import RunDirectory
+
+    with RunDirectory(out, "infer", _infer_settings(args, model, overrides), wait=getattr(args, "wait", False),
+                      force=getattr(args, "force", False), with_store=False) as run:
+        if run.replaced:  # --force: nothing of the replaced run stays beside the new limits.csv
+            _clear_infer_outputs(out)
+        _infer_into(out, args, model, sim, task, obs, goals, starts, plan, notes, overrides, formats, noise)
+    print(f"wall time: {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, notes, overrides, formats,
+                noise) -> None:
+    """Run the planned methods and write limits.csv, posteriors, predictions, config.json and the report."""
+    import torch
+
+    import camo_sbi
+    from camo_sbi._validation import derive_seed
+    from camo_sbi.diagnostics.arviz_io import observed_arrays, save_netcdf, to_inference_data
+    from camo_sbi.inference.registry import run_method
+    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.task import Observation, predict
+
     (out / "posteriors").mkdir(parents=True, exist_ok=True)
     results = {}
+    observed, observed_dims = observed_arrays(task)  # so `camo-sbi report` can draw the predictive reaches
     bar = tqdm(plan, desc="infer", unit="method")
     for name, space in bar:
         bar.set_postfix_str(name)
@@ -426,8 +487,9 @@ def infer_main(args) -> int:
         res = run_method(name, task, budget=args.budget, seed=args.seed, config=cfg)
         results[name] = res
         idata = to_inference_data(res, sim.joint_names, prior=task.prior, seed=derive_seed(args.seed, 13),
-                                  budget=args.budget, attrs={"task": model.name, "observations":
-                                                             str(args.observations)})
+                                  budget=args.budget, observed=observed, observed_dims=observed_dims,
+                                  attrs={"task": model.name, "observations": str(args.observations),
+                                         "model_spec": model.to_json()})
         save_netcdf(idata, out / "posteriors" / f"{name}.nc")
     bar.close()
     table = limits_table(results, sim)
@@ -444,7 +506,9 @@ def infer_main(args) -> int:
                 "methods": ",".join(results), "budget": args.budget, "seed": args.seed,
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
                 "config": json.dumps(overrides, sort_keys=True)}
-    atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", **settings}, indent=2))
+    atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", "camo_sbi_version": camo_sbi.__version__,
+                                                       **settings, "model_spec": json.loads(model.to_json())},
+                                                      indent=2))
     report = _report(out, task, results, notes, table, settings, args.seed,
                      formats=None if formats == ("png",) else formats)
     pd_table = table[table.bound.isin(["lower", "upper"])].pivot_table(
@@ -454,5 +518,3 @@ def infer_main(args) -> int:
         if res.status != "ok":
             print(f"{name}: {res.status}")
     print(f"limits: {out / 'limits.csv'}  posteriors: {out / 'posteriors'}  report: {report}")
-    print(f"wall time: {time.perf_counter() - t0:.1f} s")
-    return 0

@@ -48,10 +48,10 @@ LOCK = "run.lock"
 CONFIG = "config.json"
 _FORMAT = 1
 RUNTIME_OPTIONS = frozenset({"out", "workers", "scheduler", "no_report", "wait", "func", "command", "experiment",
-                             "figure_format", "corner_limits"})
+                             "figure_format", "corner_limits", "force"})
 """argparse destinations that never change a result (and the CLI's own bookkeeping)."""
 # files an experiment leaves in its directory: present without a manifest = an older run
-_RESULT_FILES = ("results.csv", "coverage.csv")
+_RESULT_FILES = ("results.csv", "coverage.csv", "limits.csv")
 
 
 def run_settings(args, *, ignore=(), **resolved) -> dict:
@@ -106,7 +106,11 @@ class RunDirectory:
     (True if this run wrote the manifest), ``path``.
     """
 
-    def __init__(self, out: str | os.PathLike, experiment: str, settings: Mapping, *, wait: bool = False):
+    def __init__(self, out: str | os.PathLike, experiment: str, settings: Mapping, *, wait: bool = False,
+                 force: bool = False, with_store: bool = True):
+        self.force = bool(force)
+        self.with_store = bool(with_store)
+        self.replaced: list[str] = []  # with force: the differences of the run this one replaces
         self.path = Path(out)
         self.experiment = str(experiment)
         self.settings = json.loads(json.dumps(dict(settings), default=str))
@@ -135,7 +139,8 @@ class RunDirectory:
         try:
             self._check_manifest()
             self.removed_tmp = remove_stale_tmp(self.path)
-            self.store = ResultStore(self.path)
+            if self.with_store:
+                self.store = ResultStore(self.path)
         except BaseException:
             self.close()
             raise
@@ -197,9 +202,15 @@ class RunDirectory:
             raise ValueError(f"--out {self.path}: holds a '{old.get('experiment')}' run, not '{self.experiment}'; "
                              "use a new --out")
         diffs = self.differences(old)
+        if diffs and self.force:  # the caller removes the old run's outputs (see `replaced`)
+            log.warning("--out %s: replacing a run with other settings: %s", self.path, ", ".join(diffs))
+            self.replaced = diffs
+            path.unlink()
+            self._create_manifest(check_leftovers=False)
+            return
         if diffs:
             raise ValueError(f"--out {self.path}: holds a run with other settings: {', '.join(diffs)}; "
-                             "use a new --out")
+                             f"use a new --out{' or --force' if self.experiment == 'infer' else ''}")
         self.manifest = old
         self._write_config()
 
@@ -215,12 +226,15 @@ class RunDirectory:
             diffs.append(f"camo_sbi {manifest.get('camo_sbi_version')} (here {self.version})")
         return diffs
 
-    def _create_manifest(self) -> None:
+    def _create_manifest(self, *, check_leftovers: bool = True) -> None:
         leftovers = [p.name for p in (self.path / n for n in _RESULT_FILES) if p.exists()]
         cells = self.path / "cells"
         if cells.is_dir() and any(cells.glob("*.csv")):
             leftovers.append("cells/")
-        if leftovers:
+        if leftovers and self.force:
+            log.warning("--out %s: replacing results without a run manifest (%s)", self.path, ", ".join(leftovers))
+            self.replaced = [f"results without a manifest ({', '.join(leftovers)})"]
+        elif leftovers and check_leftovers:
             raise ValueError(f"--out {self.path}: holds results ({', '.join(leftovers)}) without a run manifest "
                              "(an older camo-sbi?); use a new --out")
         self.manifest = {"format": _FORMAT, "experiment": self.experiment, "camo_sbi_version": self.version,
