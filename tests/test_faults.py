@@ -1070,3 +1070,40 @@ def test_report_on_an_infer_directory_tells_no_false_story(infer_run, tmp_path):
     assert "older camo-sbi" not in html
     assert "truth" not in html and "true limit" not in html
     assert "posterior-predictive reaches of camo" in html
+
+
+# ------------------------------------------------------------------------------ budgets the machine cannot hold
+
+
+def test_budget_beyond_the_machine_is_refused_with_an_estimate(capsys):
+    from camo_sbi.budget import check_budget_fits
+
+    assert check_budget_fits(1000, n_joints=7, flag="--budget", memory_bytes=10**6) == 1000 * 15 * 8
+    with pytest.raises(ValueError, match=r"^--budget: 10000 simulations per task need at least 1.14 MB of memory "
+                                         r"\(their parameters and one number each\), this machine has 977 KB; "
+                                         r"use a smaller --budget$"):
+        check_budget_fits(10_000, n_joints=7, flag="--budget", memory_bytes=10**6)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli_main([*COMPARE, "--budgets", "1000000000000", "--out", "/nonexistent/never-created"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("camo-sbi: error: --budgets: 1000000000000 simulations per task "
+                                               "need at least 109 TB of memory"), err
+
+
+def test_long_simulation_is_announced_before_it_starts(caplog):
+    """A budget that fits in memory but would simulate for hours is announced with its calibrated time."""
+    import logging
+
+    from camo_sbi.budget import announce_simulation_time, estimate_simulation_time
+    from camo_sbi.simulators import panda
+
+    sim = panda()
+    total, per = estimate_simulation_time(sim, 1000, sample=64)
+    assert per > 0 and total == pytest.approx(1000 * per)
+    with caplog.at_level(logging.INFO, logger="camo_sbi.budget"):
+        seconds = announce_simulation_time(sim, 10**9, what="compare")
+    assert seconds > 600
+    rec = [r for r in caplog.records if r.name == "camo_sbi.budget"]
+    assert rec and rec[-1].levelno == logging.WARNING and "of simulation at most" in rec[-1].getMessage()

@@ -375,6 +375,12 @@ def main(args) -> int:
     if finished is None:
         args = _with_estimator(args)
     specs = finished if finished is not None else cell_specs(args)
+    if finished is None and specs:  # refuse what the machine cannot hold; say how long the rest takes
+        from camo_sbi.budget import announce_simulation_time, check_budget_fits
+
+        sim = specs[0]["model"].build()
+        check_budget_fits(max(s["budget"] for s in specs), n_joints=sim.n_joints, flag="--budgets")
+        announce_simulation_time(sim, sum(s["budget"] * s["tasks"] for s in specs), what="compare")
     if args.workers < 1:
         raise ValueError("--workers: must be >= 1")
     scheduler = getattr(args, "scheduler", None)

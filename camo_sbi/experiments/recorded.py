@@ -438,6 +438,9 @@ def infer_main(args) -> int:
     noise = _noise(args)
     model = model_from_args(args)
     sim = model.build()
+    from camo_sbi.budget import check_budget_fits
+
+    check_budget_fits(args.budget, n_joints=sim.n_joints, flag="--budget")
     start = list(model.start) if model.start is not None else None
     obs = load_recordings(args.observations, sim, degrees=args.degrees, noise=noise, start=start,
                           resample=None if args.resample == "none" else args.resample, rate=args.rate)
@@ -451,6 +454,9 @@ def infer_main(args) -> int:
         print(n)
     if not plan:
         raise ValueError("--methods: none of the methods can run on this recording (see the notes above)")
+    from camo_sbi.budget import announce_simulation_time
+
+    announce_simulation_time(sim, args.budget * len(obs) * len(plan), what="infer")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a directory")
