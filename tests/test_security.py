@@ -201,7 +201,7 @@ def test_cyclic_urdf_exits_2_from_the_console(tmp_path):
                                                            dict(name="jb", parent="b", child="a")]))
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     proc = subprocess.run([sys.executable, "-m", "camo_sbi", "demo", "--urdf", str(urdf), "--ee", "tip",
-                           "--out", str(tmp_path / "d.png")], capture_output=True, text=True, timeout=120, env=env)
+                           "--out", str(tmp_path / "d.png")], capture_output=True, text=True, timeout=600, env=env)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines()[-1].startswith(f"camo-sbi: error: --urdf: {urdf}: urdf: joint 'j")
     assert "closes a cycle" in proc.stderr and "Traceback" not in proc.stderr
