@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from camo_sbi._validation import check_positive_int
 from camo_sbi.simulators.base import Trajectories
 
-__all__ = ["BudgetExceededError", "CountingSimulator", "charge", "unwrap_simulator"]
+__all__ = ["BudgetExceededError", "CountingSimulator", "announce_simulation_time", "charge", "check_budget_fits",
+           "estimate_simulation_time", "unwrap_simulator"]
 
 
 class BudgetExceededError(RuntimeError):
@@ -93,3 +96,76 @@ def charge(simulator, n: int) -> None:
             )
     for w in wrappers:  # only after every wrapper accepted the request
         w.n_simulations += n
+
+
+# --------------------------------------------------------------------------- what a budget costs
+
+def _physical_memory() -> int:
+    """Bytes of physical memory of this machine (0 when unknown)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
+        if n < 1024 or unit == "PB":
+            return f"{n:.3g} {unit}"
+        n /= 1024
+    return f"{n:.3g} PB"  # pragma: no cover
+
+
+def _duration(s: float) -> str:
+    if s < 120:
+        return f"{s:.3g} s"
+    if s < 7200:
+        return f"{s / 60:.3g} min"
+    if s < 2 * 86400:
+        return f"{s / 3600:.3g} h"
+    return f"{s / 86400:.3g} days"
+
+
+def check_budget_fits(budget: int, *, n_joints: int, flag: str, memory_bytes: int | None = None) -> int:
+    """Refuse a per-task budget this machine cannot hold; returns the least memory it needs (bytes).
+
+    The estimate is a lower bound: every method keeps at least each simulation's parameters
+    (2n float64) and one number for it (a distance, a weight), 8 (2n + 1) bytes per simulation.
+    ValueError naming ``flag`` when that alone exceeds the physical memory (``memory_bytes``).
+    """
+    budget = check_positive_int(budget, flag.lstrip("-"))
+    need = budget * (2 * int(n_joints) + 1) * 8
+    avail = _physical_memory() if memory_bytes is None else int(memory_bytes)
+    if avail and need > avail:
+        raise ValueError(f"{flag}: {budget} simulations per task need at least {_size(need)} of memory (their "
+                         f"parameters and one number each), this machine has {_size(avail)}; use a smaller {flag}")
+    return need
+
+
+def estimate_simulation_time(simulator, n_simulations: int, *, sample: int = 256) -> tuple[float, float]:
+    """(estimated seconds for ``n_simulations`` reaches, measured seconds per reach) from a short
+    calibration: ``sample`` reaches to an unreachable goal (so every step of the controller runs:
+    an upper bound per reach) at the simulator's nominal limits, timed once after a warm-up."""
+    import time
+
+    import torch
+
+    theta = simulator.bounds.reshape(1, -1).expand(sample, -1).contiguous()
+    goal = torch.full((sample, 3), 1e3, dtype=theta.dtype)
+    simulator.simulate(theta[:2], goal[:2])  # compiles, if it has to
+    t0 = time.perf_counter()
+    simulator.simulate(theta, goal)
+    per = (time.perf_counter() - t0) / sample
+    return per * int(n_simulations), per
+
+
+def announce_simulation_time(simulator, n_simulations: int, *, what: str) -> float:
+    """Log (a warning above 10 minutes) the calibrated time of ``n_simulations`` reaches; returns it."""
+    import logging
+
+    total, per = estimate_simulation_time(simulator, n_simulations)
+    log = logging.getLogger(__name__)
+    level = logging.WARNING if total > 600 else logging.INFO
+    log.log(level, "%s: %d simulations, about %s of simulation at most (measured %.3g ms per reach, one thread)",
+            what, int(n_simulations), _duration(total), per * 1e3)
+    return total

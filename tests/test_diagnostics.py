@@ -635,7 +635,8 @@ def test_report_replays_the_observed_reaches_against_posterior_draws(tmp_path):
     observed, dims = arviz_io.observed_arrays(task)
     idata = arviz_io.to_inference_data(r, sim.joint_names, seed=0, prior=task.prior, true_theta=theta,
                                        observed=observed, observed_dims=dims,
-                                       attrs={"task": "panda", "subject": "toy", "seed": 0, "budget": 300})
+                                       attrs={"task": "panda", "subject": "toy", "seed": 0, "budget": 300,
+                                              "model_spec": '{"kind": "panda"}'})  # what compare stores
     run = tmp_path / "run"
     (run / "posteriors").mkdir(parents=True)
     arviz_io.save_netcdf(idata, run / "posteriors" / "cell.nc")

@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import os
@@ -203,7 +204,7 @@ def test_kernel_cache_directory_checks(tmp_path, monkeypatch):
     afile = tmp_path / "file"
     afile.write_text("")
     assert kernel.check_cache_dir(afile) == "is not a directory"
-    monkeypatch.setattr(kernel, "_current_uid", lambda: os.getuid() + 1)  # we run as the owner: pretend not
+    monkeypatch.setattr("camo_sbi._io._current_uid", lambda: os.getuid() + 1)  # we run as the owner: pretend not
     assert kernel.check_cache_dir(private) == (f"is owned by uid {os.getuid()}, not by this user "
                                                f"(uid {os.getuid() + 1})")
 
@@ -240,7 +241,7 @@ def test_unsafe_cache_is_never_read_and_kernels_compile_in_memory(fault, primed,
         os.chmod(d, 0o777)
         cache, reason = d, "is writable by group or others (mode 777)"
     elif fault == "foreign-owned":
-        monkeypatch.setattr(kernel, "_current_uid", lambda: os.getuid() + 1)
+        monkeypatch.setattr("camo_sbi._io._current_uid", lambda: os.getuid() + 1)
         cache, reason = d, f"is owned by uid {os.getuid()}, not by this user"
     else:
         cache, reason = tmp_path / "link", "is a symbolic link"
@@ -487,6 +488,101 @@ def test_compare_with_other_settings_is_refused(clean_run, tmp_path, capsys):
     assert _snapshot(out) == before  # nothing written: no mixed rows, config.json kept
     # a new --out starts clean
     assert cli_main([*COMPARE, "--tasks", "1", "--seeds", "1", "--out", str(tmp_path / "new")]) == 0
+
+
+def test_edited_manifest_never_mixes_two_grids_in_results_csv(clean_run, tmp_path, capsys):
+    """Someone edits settings.tasks in manifest.json, then runs the new --tasks: the old grid's
+    cells stay on disk but are never read into results.csv, and the run says how many it left out."""
+    out = _copy_run(clean_run, tmp_path / "run")
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["settings"]["tasks"] = 3
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    n_old = len(list((out / "cells").glob("*.csv")))
+    capsys.readouterr()
+    assert cli_main([*COMPARE, "--tasks", "3", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    df = pd.read_csv(out / "results.csv")
+    assert not df.duplicated(["method", "budget", "seed", "n_tasks", "metric"]).any()
+    assert sorted(df.n_tasks.unique()) == [1, 2, 3]
+    assert len(list((out / "cells").glob("*.csv"))) == 2 * n_old  # the old cells are still there
+    assert f"{n_old} cell(s) in {out / 'cells'} are not part of this grid (other settings)" in captured.err
+
+
+def test_cell_vanishing_mid_run_exits_2_naming_it_and_writes_no_table(tmp_path, monkeypatch, capsys):
+    from camo_sbi.experiments import compare
+
+    out = tmp_path / "run"
+    real, done = compare.run_cell, []
+
+    def run_then_delete_the_first(spec, path):
+        real(spec, path)
+        done.append(spec["key"])
+        if len(done) == 2:
+            (out / "cells" / f"{done[0]}.csv").unlink()
+
+    monkeypatch.setattr(compare, "run_cell", run_then_delete_the_first)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli_main([*COMPARE, "--seeds", "1", "--tasks", "1", "--out", str(out)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (f"camo-sbi: error: --out {out}: 1 cell(s) vanished or were damaged during the run "
+                       f"(first: {out / 'cells' / (done[0] + '.csv')}); run the command again to recompute them")
+    assert not (out / "results.csv").exists()
+    monkeypatch.setattr(compare, "run_cell", real)
+    assert cli_main([*COMPARE, "--seeds", "1", "--tasks", "1", "--out", str(out)]) == 0  # recomputed
+
+
+@pytest.mark.parametrize("code, text", [(errno.ENOSPC, "No space left on device"),
+                                         (errno.EROFS, "Read-only file system"),
+                                         (errno.EACCES, "Permission denied")])
+def test_os_failure_while_writing_exits_2_naming_the_path(code, text, clean_run, tmp_path, monkeypatch, capsys):
+    """A full disk, a read-only or forbidden --out (injected in os.replace: we run as root, so chmod
+    cannot forbid anything): exit 2, one line naming the file, no traceback; the old table survives."""
+    out = _copy_run(clean_run, tmp_path / "run")
+    real = os.replace
+
+    def failing(src, dst, *args, **kwargs):
+        if str(dst).startswith(str(out)):
+            raise OSError(code, os.strerror(code), str(dst))
+        return real(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", failing)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli_main([*COMPARE, "--out", str(out)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1] == (f"camo-sbi: error: {out / 'results.csv'}: {text} "
+                                            f"({errno.errorcode[code]})")
+    monkeypatch.setattr(os, "replace", real)
+    _same_table(pd.read_csv(out / "results.csv"), clean_run[1])
+    assert not list(out.rglob("*.tmp"))  # the failed write left no temporary file
+
+
+@pytest.mark.parametrize("where", ["/proc/camo_sbi_out", "/sys/camo_sbi_out"])
+def test_out_on_a_read_only_system_path_exits_2_naming_it(where, capsys):
+    """A real read-only place, read-only even for root."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli_main([*COMPARE, "--out", where])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"camo-sbi: error: {where}: "), err
+
+
+def test_stale_tmp_files_of_a_killed_run_are_removed(clean_run, tmp_path, capsys):
+    out = _copy_run(clean_run, tmp_path / "run")
+    stale = [out / ".results.csv.k9x2ab_q.tmp", out / "cells" / ".a-cell.csv.77hhjj00.tmp",
+             out / "integrity" / ".a-cell.json.zz11yy22.tmp"]
+    for p in stale:
+        p.write_text("partial")
+    keep = out / "notes.tmp"  # not one of ours: left alone
+    keep.write_text("mine")
+    assert cli_main([*COMPARE, "-v", "--out", str(out)]) == 0
+    assert not any(p.exists() for p in stale) and keep.exists()
+    assert f"removed 3 stale temporary file(s) of an interrupted run under {out}" in capsys.readouterr().err
 
 
 def test_compare_runtime_options_and_equivalent_spellings_do_not_count(clean_run, tmp_path, capsys):
@@ -892,3 +988,125 @@ def test_two_identical_runs_at_once(busy_reference, tmp_path):
     # the reference grid has 8 seeds; every seed of this 40-seed grid has its rows
     assert busy_reference.seed.nunique() == 8 and df.seed.nunique() == 40
     assert len(df) == len(busy_reference) // 8 * 40 and not df.duplicated(KEY).any()
+
+
+# ------------------------------------------------------------------------------ the report's body
+
+
+def test_report_rebuilds_the_run_s_own_body(tmp_path):
+    """compare --model human --height 1.6: the posteriors record the ModelSpec and the report's
+    posterior-predictive figures are drawn with a 1.6 m body, not the default 1.75 m one."""
+    from camo_sbi.diagnostics import arviz_io, report
+    from camo_sbi.simulators import human
+
+    out = tmp_path / "short"
+    assert cli_main(["compare", "--model", "human", "--height", "1.6", "--methods", "camo", "--budgets", "50",
+                     "--seeds", "1", "--tasks", "1", "--test-goals", "2", "--no-report", "--out", str(out)]) == 0
+    idata = arviz_io.load_netcdf(next((out / "posteriors").glob("*.nc")))
+    assert json.loads(idata.posterior.attrs["model_spec"])["height_m"] == 1.6
+    sim, why = report._simulator("human", idata)
+    assert why is None
+    q = np.zeros((1, sim.n_joints))
+    short, tall = human(height_m=1.6), human()
+    np.testing.assert_allclose(sim.chain.spec.fk_numpy(q), short.chain.spec.fk_numpy(q), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sim.chain.spec.origins, short.chain.spec.origins, rtol=0, atol=1e-12)
+    assert not np.allclose(sim.chain.spec.origins, tall.chain.spec.origins)  # segment lengths differ
+    # a file without the record: the report says exactly why, instead of drawing another body
+    del idata.posterior.attrs["model_spec"]
+    sim, why = report._simulator("human", idata)
+    assert sim is None and "do not record their model's settings" in why
+
+
+# ------------------------------------------------------------------------------ infer's run directory
+
+
+@pytest.fixture(scope="module")
+def infer_run(tmp_path_factory):
+    from tests.test_infer_cli import LIMITS, MODEL, NOISE
+
+    d = tmp_path_factory.mktemp("infer")
+    rec = d / "reaches.csv"
+    assert cli_main(["simulate-observations", *MODEL, *LIMITS, "--reaches", "3", "--seed", "2", *NOISE,
+                     "--out", str(rec)]) == 0
+    argv = ["infer", "--observations", str(rec), *MODEL, "--budget", "60", "--seed", "0", *NOISE]
+    out = d / "out"
+    assert cli_main([*argv, "--methods", "camo,naive", "--out", str(out)]) == 0
+    return out, argv
+
+
+def test_infer_records_the_model_and_version_and_refuses_other_settings(infer_run, tmp_path, capsys):
+    import hashlib
+
+    import camo_sbi
+    from tests.test_infer_cli import DATA, START
+
+    src, argv = infer_run
+    out = tmp_path / "out"
+    shutil.copytree(src, out)
+    config = json.loads((out / "config.json").read_text())
+    manifest = json.loads((out / "manifest.json").read_text())
+    spec = manifest["settings"]["model_spec"]
+    assert spec == config["model_spec"]
+    assert spec["digest"] == hashlib.sha256((DATA / "arm7.urdf").read_bytes()).hexdigest()
+    assert spec["ee"] == "tool" and spec["start"] == [float(v) for v in START.split(",")]
+    assert config["camo_sbi_version"] == manifest["camo_sbi_version"] == camo_sbi.__version__
+    before = _snapshot(out)
+    msg = _refused([*argv, "--methods", "nominal", "--out", str(out)], capsys)
+    assert msg == (f"--out {out}: holds a run with other settings: --methods camo,naive (here nominal); "
+                   "use a new --out or --force")
+    assert _snapshot(out) == before
+    # --force replaces the run: no posterior of the old methods stays beside the new limits.csv
+    assert cli_main([*argv, "--methods", "nominal", "--force", "--out", str(out)]) == 0
+    assert sorted(p.name for p in (out / "posteriors").iterdir()) == ["nominal.nc"]
+    assert set(pd.read_csv(out / "limits.csv").method) == {"nominal"}
+    assert json.loads((out / "manifest.json").read_text())["settings"]["methods"] == "nominal"
+
+
+def test_report_on_an_infer_directory_tells_no_false_story(infer_run, tmp_path):
+    """No "written by an older camo-sbi compare", no truth in any caption (a recording has none),
+    and the posterior-predictive figures are drawn from the recorded body."""
+    from camo_sbi.diagnostics.report import write_report
+
+    out = tmp_path / "out"
+    shutil.copytree(infer_run[0], out)
+    html = write_report(out, out / "again.html").read_text()
+    assert "older camo-sbi" not in html
+    assert "truth" not in html and "true limit" not in html
+    assert "posterior-predictive reaches of camo" in html
+
+
+# ------------------------------------------------------------------------------ budgets the machine cannot hold
+
+
+def test_budget_beyond_the_machine_is_refused_with_an_estimate(capsys):
+    from camo_sbi.budget import check_budget_fits
+
+    assert check_budget_fits(1000, n_joints=7, flag="--budget", memory_bytes=10**6) == 1000 * 15 * 8
+    with pytest.raises(ValueError, match=r"^--budget: 10000 simulations per task need at least 1.14 MB of memory "
+                                         r"\(their parameters and one number each\), this machine has 977 KB; "
+                                         r"use a smaller --budget$"):
+        check_budget_fits(10_000, n_joints=7, flag="--budget", memory_bytes=10**6)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli_main([*COMPARE, "--budgets", "1000000000000", "--out", "/nonexistent/never-created"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("camo-sbi: error: --budgets: 1000000000000 simulations per task "
+                                               "need at least 109 TB of memory"), err
+
+
+def test_long_simulation_is_announced_before_it_starts(caplog):
+    """A budget that fits in memory but would simulate for hours is announced with its calibrated time."""
+    import logging
+
+    from camo_sbi.budget import announce_simulation_time, estimate_simulation_time
+    from camo_sbi.simulators import panda
+
+    sim = panda()
+    total, per = estimate_simulation_time(sim, 1000, sample=64)
+    assert per > 0 and total == pytest.approx(1000 * per)
+    with caplog.at_level(logging.INFO, logger="camo_sbi.budget"):
+        seconds = announce_simulation_time(sim, 10**9, what="compare")
+    assert seconds > 600
+    rec = [r for r in caplog.records if r.name == "camo_sbi.budget"]
+    assert rec and rec[-1].levelno == logging.WARNING and "of simulation at most" in rec[-1].getMessage()

@@ -470,9 +470,11 @@ def _limits_figure(members, caption_extra: str = "") -> str:
     from camo_sbi.diagnostics import arviz_io
 
     fig = arviz_io.plot_forest([d for _, d, _ in members], [m for m, _, _ in members])
+    truth = ("; the black row is the true limit" if any(arviz_io.true_limits(d) is not None for _, d, _ in members)
+             else "")
     return _fig_html(fig, "Every joint limit per method, in degrees (arviz forest plot): median (dot), quartiles "
                           "(thick), 94% highest-density interval (thin); a dot alone is a baseline's point "
-                          "estimate; the black row is the true limit." + caption_extra, alt="limits per method")
+                          "estimate" + truth + "." + caption_extra, alt="limits per method")
 
 
 def _corner_selection(members, chosen: Sequence[str] | None = None) -> tuple[list[tuple[int, int]], list[str], str]:
@@ -520,9 +522,11 @@ def _corner_figure(posterior, points) -> str:
     fig = arviz_io.plot_corner([d for _, d, _ in posterior], [m for m, _, _ in posterior], sel,
                                points={m: d for m, d, _ in points})
     names = ", ".join(arviz_io.limit_name(joints[j], b) for j, b in sel)
+    truth = ("black lines and crosses: the truth; "
+             if any(arviz_io.true_limits(d) is not None for _, d, _ in posterior) else "")
     return _fig_html(fig, f"Corner plot (arviz pair plot, one per method, overlaid) of {len(sel)} limits in "
                           f"degrees: {why}: {names}. Densities of the draws on the diagonal, pairs of draws "
-                          "below; black lines and crosses: the truth; markers and dashed lines: baselines' "
+                          f"below; {truth}markers and dashed lines: baselines' "
                           "point estimates. `--corner-limits a,b,c` chooses others.", alt="corner plot")
 
 
@@ -547,8 +551,9 @@ def _posteriors(posts, why: str) -> str:
             for method, idata, _ in posterior:
                 def marginals(idata=idata, method=method):
                     fig = arviz_io.plot_posterior(idata)
+                    truth = "; dashed black: the truth" if arviz_io.true_limits(idata) is not None else ""
                     return _fig_html(fig, f"{method}: marginal posterior of every limit with its 94% HDI "
-                                          "(arviz); dashed black: the truth.")
+                                          f"(arviz){truth}.")
                 out.append(f"<details><summary>Marginal posteriors: {_esc(_words(idata))}</summary>"
                            f"{_guard(marginals)}</details>")
         others = [c for c in cells if c != chosen]
@@ -559,14 +564,46 @@ def _posteriors(posts, why: str) -> str:
     return "".join(out)
 
 
-def _simulator(task: str):
-    """The simulator a run's posteriors were computed with, rebuilt from its model name."""
-    from camo_sbi.simulators import human, panda
+def _simulator(task: str, idata):
+    """(the simulator the posteriors were computed with, None) or (None, exactly why not).
 
-    builders = {"panda": panda, "human": human}
-    if task not in builders:
-        raise ValueError(f"task: cannot rebuild the simulator of task {task!r} (known: {sorted(builders)})")
-    return builders[task]()
+    Rebuilt from the ``model_spec`` attribute the run stored with each posterior (the
+    `ModelSpec` as JSON: model, height, sex, URDF path and sha256, end effector, start, joints),
+    never from the model's name alone: a --height 1.6 human is drawn 1.6 m tall.
+    """
+    raw = _attr(idata, "model_spec")
+    if raw is None:
+        return None, (f"the posterior files of {task!r} do not record their model's settings (written before "
+                      "camo-sbi stored them): run the command again into a new --out to draw these figures")
+    try:
+        spec = json.loads(raw)
+        kind = spec["kind"]
+    except (TypeError, ValueError, KeyError) as exc:
+        return None, f"the posterior files' model_spec is unreadable ({type(exc).__name__}: {exc})"
+    from camo_sbi.simulators import from_urdf, human, panda
+
+    kwargs = {}
+    if spec.get("start") is not None:
+        kwargs["start"] = list(spec["start"])
+    if spec.get("joints") is not None:
+        kwargs["joints"] = list(spec["joints"])
+    try:
+        if kind == "panda":
+            return panda(**kwargs), None
+        if kind == "human":
+            return human(**{k: spec[k] for k in ("height_m", "sex") if spec.get(k) is not None}, **kwargs), None
+        if kind != "urdf":
+            return None, f"unknown model kind {kind!r} in the posterior files"
+        path = Path(str(spec.get("urdf")))
+        try:
+            text = path.read_text()
+        except OSError as exc:
+            return None, f"the URDF {path} the run used cannot be read ({exc.strerror or exc})"
+        if spec.get("digest") and hashlib.sha256(text.encode()).hexdigest() != spec["digest"]:
+            return None, f"the URDF {path} changed since the run (its sha256 differs from the one recorded)"
+        return from_urdf(text, spec.get("ee"), **kwargs), None
+    except ValueError as exc:
+        return None, f"the run's model cannot be rebuilt ({exc})"
 
 
 def _observed(idata) -> dict[str, np.ndarray] | None:
@@ -607,9 +644,12 @@ def _predictive(posts, why: str) -> str:
         label = _group_words(task, subject)
         if not with_obs:
             out.append(_note(f"{label or 'these posteriors'}: the posterior files hold no observed reaches "
-                             "(written by an older camo-sbi compare)"))
+                             "to compare with"))
             continue
-        sim = _simulator(task)
+        sim, why_not = _simulator(task, with_obs[0][1])
+        if sim is None:
+            out.append(_note(f"{label or 'these posteriors'}: {why_not}"))
+            continue
         obs = _observed(with_obs[0][1])
         n_reaches = min(4, int(obs["observed_length"].shape[0]))
         observed = [obs["observed_ee"][i, : int(obs["observed_length"][i])] for i in range(n_reaches)]

@@ -427,12 +427,12 @@ def main(args) -> int:
         else:
             run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
         bar.close()
-        keys = {s["key"] for s in specs}
-        missing = keys - store.finished_keys()
-        if missing:
-            raise RuntimeError(f"{len(missing)} cells did not finish")
-        df = store.table()
-        df = df[df["cell"].isin(keys)]
+        keys = [s["key"] for s in specs]
+        missing = sorted(k for k in keys if not store.done(k))
+        if missing:  # deleted or damaged while the run went on
+            raise ValueError(f"--out {out}: {len(missing)} cell(s) vanished or were damaged during the run "
+                             f"(first: {store.cells / (missing[0] + '.csv')}); run the command again to recompute them")
+        df = store.table(keys)
         coverage, ranks = aggregate(df, args.sbc_draws)
         atomic_write_text(out / "coverage.csv", coverage.to_csv(index=False))
         atomic_write_text(out / "sbc.csv", ranks.to_csv(index=False))

@@ -402,6 +402,18 @@ def _agg_backend() -> None:
 # ----------------------------------------------------------------------------- entry points
 
 
+def os_error_line(exc: OSError) -> str:
+    """One line for an OS-level failure, naming the path: ``PATH: No space left on device (ENOSPC)``."""
+    import errno as _errno
+
+    name = _errno.errorcode.get(exc.errno or 0)
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    what = f"{reason} ({name})" if name else reason
+    paths = [p for p in (exc.filename, getattr(exc, "filename2", None)) if p is not None]
+    where = " -> ".join(str(os.fsdecode(p)) for p in paths)
+    return f"{where}: {what}" if where else f"{type(exc).__name__}: {what}"
+
+
 def _command_name(args) -> str:
     return " ".join(x for x in (args.command, getattr(args, "experiment", None)) if x)
 
@@ -431,6 +443,8 @@ def main(argv: list[str] | None = None) -> int:
             code = int(args.func(command_args) or 0)
         except ValueError as exc:
             code, error = 2, str(exc)
+        except OSError as exc:  # a full disk, a read-only or forbidden path, a file gone: one line, no traceback
+            code, error = 2, os_error_line(exc)
     if options["json"]:
         from camo_sbi.experiments.summary import print_summary
 

@@ -191,7 +191,8 @@ def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
     idata = to_inference_data(res, sim.joint_names, prior=task.prior, true_theta=task.true_theta,
                               seed=derive_seed(spec["base_seed"], spec["seed"], 13), observed=observed,
                               observed_dims=dims, attrs={"task": spec["task"], "status": res.status})
-    idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"]})
+    idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"],
+                                  "model_spec": spec["model"].to_json()})  # the report rebuilds exactly this body
     (out / "posteriors").mkdir(parents=True, exist_ok=True)
     save_netcdf(idata, out / "posteriors" / f"{spec['key']}.nc")
 
@@ -377,6 +378,12 @@ def main(args) -> int:
     if finished is None:
         args = _with_estimator(args)
     specs = finished if finished is not None else cell_specs(args)
+    if finished is None and specs:  # refuse what the machine cannot hold; say how long the rest takes
+        from camo_sbi.budget import announce_simulation_time, check_budget_fits
+
+        sim = specs[0]["model"].build()
+        check_budget_fits(max(s["budget"] for s in specs), n_joints=sim.n_joints, flag="--budgets")
+        announce_simulation_time(sim, sum(s["budget"] * s["tasks"] for s in specs), what="compare")
     if args.workers < 1:
         raise ValueError("--workers: must be >= 1")
     scheduler = getattr(args, "scheduler", None)
@@ -412,11 +419,12 @@ def main(args) -> int:
         else:
             run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
         bar.close()
-        df = store.write_table()
-        keys = {s["key"] for s in specs}
-        missing = keys - store.finished_keys()
-        if missing:
-            raise RuntimeError(f"{len(missing)} cells did not finish")
+        keys = [s["key"] for s in specs]
+        missing = sorted(k for k in keys if not store.done(k))
+        if missing:  # deleted or damaged while the run went on: no partial results.csv
+            raise ValueError(f"--out {out}: {len(missing)} cell(s) vanished or were damaged during the run "
+                             f"(first: {store.cells / (missing[0] + '.csv')}); run the command again to recompute them")
+        df = store.write_table(keys=keys)
         figs = _figures(df, out, formats)
         if getattr(args, "amortized", None) is not None:
             from camo_sbi.experiments.amortize import write_cost_table

@@ -417,9 +417,11 @@ def main(args) -> int:
     with RunDirectory(out, "reproduce hrc", run_settings(args, ignore=("scene_png",)),
                       wait=getattr(args, "wait", False)) as rundir:
         store = rundir.store
+        keys = []
         with BlockStackingScene(sim, seed=args.seed) as scene:
             for run in tqdm(range(args.runs), desc=f"reproduce hrc ({args.subject})", unit="run"):
                 key = cell_key({"run": run, **{k: settings[k] for k in _CELL_SETTINGS}})
+                keys.append(key)
                 png = out / f"scene_run{run:02d}.png"
                 want_png = args.scene_png or run == 0  # the first run's scene is always drawn
                 if store.done(key) and (not want_png or png.exists()):
@@ -428,7 +430,7 @@ def main(args) -> int:
                 store.put(key, rows)  # deterministic: a recomputed run rewrites identical rows
                 if want_png:
                     _render_run(scene, extras, png)
-        df = store.write_table()
+        df = store.write_table(keys=keys)
         fig = make_figure(df, out, formats)
         from camo_sbi.evaluation.claims import binding_line, hrc_claims
 

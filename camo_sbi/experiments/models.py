@@ -84,6 +84,11 @@ class ModelSpec:
         d.pop("urdf")
         return {k: v for k, v in d.items() if v is not None}
 
+    def to_json(self) -> str:
+        """Every field, the URDF path included, as JSON (stored with saved posteriors: the report
+        rebuilds the very body from it)."""
+        return json.dumps(asdict(self), sort_keys=True, default=str)
+
     def build(self):
         """The simulator, built once per process."""
         if self not in _SIMS:

@@ -515,6 +515,47 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
                         "the best N to next_goals.csv")
     add_figure_format_argument(p)
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--force", action="store_true",
+                   help="--out holds an infer run with other settings: replace it (its limits, posteriors, "
+                        "predictions and report are removed first)")
+    p.add_argument("--wait", action="store_true", help="wait for another camo-sbi run holding --out")
+
+
+#: what an infer run writes into --out (removed when --force replaces a run of other settings)
+_INFER_OUTPUTS = ("limits.csv", "report.html", "config.json", "posteriors", "predictions", "work", "figures",
+                  "starts.csv", "next_goals.csv", "subjects")
+
+
+def _infer_settings(args, model, overrides: dict) -> dict:
+    """The settings that determine an infer run's results (its manifest): every option but the
+    runtime ones, the model's full specification (URDF sha256, --ee, --start, joints) and the
+    recording's and goal file's sha256."""
+    import hashlib
+
+    from camo_sbi.experiments.rundir import run_settings
+
+    def digest(path):
+        try:
+            return None if path is None else hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        except OSError:
+            return None  # reported by the loader, naming the file
+
+    return run_settings(args, ignore=("config",), model_spec=json.loads(model.to_json()),
+                        config=json.dumps(overrides, sort_keys=True),
+                        observations_sha256=digest(args.observations),
+                        predict_goals_sha256=digest(args.predict_goals),
+                        amortized_sha256=digest(getattr(args, "amortized", None)))
+
+
+def _clear_infer_outputs(out: Path) -> None:
+    import shutil
+
+    for name in _INFER_OUTPUTS:
+        p = out / name
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        elif p.exists() or p.is_symlink():
+            p.unlink()
 
 
 SUGGEST_CANDIDATES = 200
@@ -568,15 +609,12 @@ def _suggest(out: Path, task, results: dict, n: int, seed: int) -> None:
 
 def infer_main(args) -> int:
     import numpy as np
-    import torch
 
-    from camo_sbi._validation import derive_seed
-    from camo_sbi.diagnostics.arviz_io import observed_arrays, save_netcdf, to_inference_data
+    from camo_sbi.budget import announce_simulation_time, check_budget_fits
     from camo_sbi.experiments.compare import grid_methods
     from camo_sbi.experiments.method_configs import parse_configs
-    from camo_sbi.inference.registry import run_method
-    from camo_sbi.io.recordings import load_goals, save_recordings
-    from camo_sbi.task import Observation, predict
+    from camo_sbi.experiments.rundir import RunDirectory
+    from camo_sbi.io.recordings import load_goals
 
     if Path(args.observations).is_dir():
         return infer_folder(args)
@@ -596,6 +634,7 @@ def infer_main(args) -> int:
     noise = _noise(args)
     model = model_from_args(args)
     sim = model.build()
+    check_budget_fits(args.budget, n_joints=sim.n_joints, flag="--budget")
     start = list(model.start) if model.start is not None else None
     recording = load_from_args(args, args.observations, sim, noise, start)
     obs = recording.observations
@@ -628,7 +667,33 @@ def infer_main(args) -> int:
         raise ValueError("--methods: none of the methods can run on this recording (see the notes above)")
     if args.suggest and not any(_returns_draws(name) for name, _ in plan):
         raise ValueError("--suggest: needs a method that returns posterior draws in --methods (e.g. camo, abc-smc, npe)")
+    announce_simulation_time(sim, args.budget * len(obs) * len(plan), what="infer")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a directory")
+    with RunDirectory(out, "infer", _infer_settings(args, model, overrides), wait=getattr(args, "wait", False),
+                      force=getattr(args, "force", False), with_store=False) as run:
+        if run.replaced:  # --force: nothing of the replaced run stays beside the new limits.csv
+            _clear_infer_outputs(out)
+        _infer_into(out, args, model, sim, task, obs, goals, starts, plan, notes, overrides, formats, noise,
+                    recording)
+    print(f"wall time: {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, notes, overrides, formats,
+                noise, recording) -> None:
+    """Run the planned methods and write limits.csv, posteriors, predictions, starts.csv,
+    config.json, the report and (--suggest) next_goals.csv."""
+    import torch
+
+    import camo_sbi
+    from camo_sbi._validation import derive_seed
+    from camo_sbi.diagnostics.arviz_io import observed_arrays, save_netcdf, to_inference_data
+    from camo_sbi.inference.registry import run_method
+    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.task import Observation, predict
+
     (out / "posteriors").mkdir(parents=True, exist_ok=True)
     results = {}
     observed, observed_dims = observed_arrays(task)  # the recorded reaches, in every posterior file
@@ -640,7 +705,8 @@ def infer_main(args) -> int:
         results[name] = res
         idata = to_inference_data(res, sim.joint_names, prior=task.prior, seed=derive_seed(args.seed, 13),
                                   budget=args.budget, observed=observed, observed_dims=observed_dims,
-                                  attrs={"task": model.name, "observations": str(args.observations)})
+                                  attrs={"task": model.name, "observations": str(args.observations),
+                                         "model_spec": model.to_json()})
         save_netcdf(idata, out / "posteriors" / f"{name}.nc")
     bar.close()
     table = limits_table(results, sim, task)
@@ -658,7 +724,9 @@ def infer_main(args) -> int:
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
                 "config": json.dumps(overrides, sort_keys=True), "suggest": args.suggest, **recording.info,
                 "warnings": list(recording.warnings)}
-    atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", **settings}, indent=2))
+    atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", "camo_sbi_version": camo_sbi.__version__,
+                                                       **settings, "model_spec": json.loads(model.to_json())},
+                                                      indent=2))
     write_starts(out / "starts.csv", obs, sim)
     notes = notes + [f"warning: {w}" for w in recording.warnings]
     report = _report(out, task, results, notes, table, settings, args.seed,
@@ -671,8 +739,6 @@ def infer_main(args) -> int:
     if args.suggest:
         _suggest(out, task, results, args.suggest, args.seed)
     print(f"limits: {out / 'limits.csv'}  posteriors: {out / 'posteriors'}  report: {report}")
-    print(f"wall time: {time.perf_counter() - t0:.1f} s")
-    return 0
 
 
 # ----------------------------------------------------------------------------- recordings from a lab

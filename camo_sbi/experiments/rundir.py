@@ -11,6 +11,7 @@
   `RUNTIME_OPTIONS`: --out, --workers, --scheduler, --no-report, --wait, --figure-format,
   --corner-limits), plus ``config.json``
   (the same settings, read by `camo_sbi.diagnostics.report`);
+* removes the ``.NAME.XXXX.tmp`` files of atomic writes a killed run left (`remove_stale_tmp`);
 * on later runs compares: other settings, another experiment or another camo_sbi version stop
   the command with one line naming the flags that differ, e.g.
   ``--out runs/x: holds a run with other settings: --tasks 3 (here 2), --seed 0 (here 1); use a new --out``,
@@ -22,7 +23,9 @@ Every refusal is a ValueError whose message starts with ``--out`` (the CLI exits
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
 import sys
 import time
 from collections.abc import Mapping
@@ -36,17 +39,19 @@ try:
 except ImportError:  # not POSIX: no locking
     fcntl = None
 
-__all__ = ["MANIFEST", "RUNTIME_OPTIONS", "RunDirectory", "run_settings"]
+__all__ = ["MANIFEST", "RUNTIME_OPTIONS", "RunDirectory", "remove_stale_tmp", "run_settings"]
+
+log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
 LOCK = "run.lock"
 CONFIG = "config.json"
 _FORMAT = 1
 RUNTIME_OPTIONS = frozenset({"out", "workers", "scheduler", "no_report", "wait", "func", "command", "experiment",
-                             "figure_format", "corner_limits"})
+                             "figure_format", "corner_limits", "force"})
 """argparse destinations that never change a result (and the CLI's own bookkeeping)."""
 # files an experiment leaves in its directory: present without a manifest = an older run
-_RESULT_FILES = ("results.csv", "coverage.csv")
+_RESULT_FILES = ("results.csv", "coverage.csv", "limits.csv")
 
 
 def run_settings(args, *, ignore=(), **resolved) -> dict:
@@ -101,7 +106,11 @@ class RunDirectory:
     (True if this run wrote the manifest), ``path``.
     """
 
-    def __init__(self, out: str | os.PathLike, experiment: str, settings: Mapping, *, wait: bool = False):
+    def __init__(self, out: str | os.PathLike, experiment: str, settings: Mapping, *, wait: bool = False,
+                 force: bool = False, with_store: bool = True):
+        self.force = bool(force)
+        self.with_store = bool(with_store)
+        self.replaced: list[str] = []  # with force: the differences of the run this one replaces
         self.path = Path(out)
         self.experiment = str(experiment)
         self.settings = json.loads(json.dumps(dict(settings), default=str))
@@ -110,6 +119,7 @@ class RunDirectory:
         self.store: ResultStore | None = None
         self.manifest: dict | None = None
         self.created = False
+        self.removed_tmp = 0
         self._fd: int | None = None
 
     # ------------------------------------------------------------------ context manager
@@ -128,7 +138,9 @@ class RunDirectory:
         self._acquire()
         try:
             self._check_manifest()
-            self.store = ResultStore(self.path)
+            self.removed_tmp = remove_stale_tmp(self.path)
+            if self.with_store:
+                self.store = ResultStore(self.path)
         except BaseException:
             self.close()
             raise
@@ -190,9 +202,15 @@ class RunDirectory:
             raise ValueError(f"--out {self.path}: holds a '{old.get('experiment')}' run, not '{self.experiment}'; "
                              "use a new --out")
         diffs = self.differences(old)
+        if diffs and self.force:  # the caller removes the old run's outputs (see `replaced`)
+            log.warning("--out %s: replacing a run with other settings: %s", self.path, ", ".join(diffs))
+            self.replaced = diffs
+            path.unlink()
+            self._create_manifest(check_leftovers=False)
+            return
         if diffs:
             raise ValueError(f"--out {self.path}: holds a run with other settings: {', '.join(diffs)}; "
-                             "use a new --out")
+                             f"use a new --out{' or --force' if self.experiment == 'infer' else ''}")
         self.manifest = old
         self._write_config()
 
@@ -208,12 +226,15 @@ class RunDirectory:
             diffs.append(f"camo_sbi {manifest.get('camo_sbi_version')} (here {self.version})")
         return diffs
 
-    def _create_manifest(self) -> None:
+    def _create_manifest(self, *, check_leftovers: bool = True) -> None:
         leftovers = [p.name for p in (self.path / n for n in _RESULT_FILES) if p.exists()]
         cells = self.path / "cells"
         if cells.is_dir() and any(cells.glob("*.csv")):
             leftovers.append("cells/")
-        if leftovers:
+        if leftovers and self.force:
+            log.warning("--out %s: replacing results without a run manifest (%s)", self.path, ", ".join(leftovers))
+            self.replaced = [f"results without a manifest ({', '.join(leftovers)})"]
+        elif leftovers and check_leftovers:
             raise ValueError(f"--out {self.path}: holds results ({', '.join(leftovers)}) without a run manifest "
                              "(an older camo-sbi?); use a new --out")
         self.manifest = {"format": _FORMAT, "experiment": self.experiment, "camo_sbi_version": self.version,
@@ -230,6 +251,26 @@ class RunDirectory:
         p = self.path / CONFIG
         if not (p.is_file() and p.read_text() == text):
             atomic_write_text(p, text)
+
+
+def remove_stale_tmp(out: Path) -> int:
+    """Delete the temporary files of interrupted atomic writes (``.NAME.XXXX.tmp``, left by a kill -9)
+    anywhere under ``out``; call it holding the lock, when no other run can be writing there.
+    Returns how many were removed (a log line says so)."""
+    n = 0
+    for p in out.rglob(".*.tmp"):
+        if _TMP.fullmatch(p.name) and p.is_file() and not p.is_symlink():
+            try:
+                p.unlink()
+                n += 1
+            except FileNotFoundError:
+                pass
+    if n:
+        log.info("removed %d stale temporary file(s) of an interrupted run under %s", n, out)
+    return n
+
+
+_TMP = re.compile(r"\..+\.[A-Za-z0-9_]{6,}\.tmp")
 
 
 def _holder(fd: int) -> str:

@@ -3,7 +3,8 @@
 Each finished cell of an experiment grid is written as its own CSV file under
 ``<out>/cells/`` (temp file + ``os.replace``), so an interrupted run loses at most the
 cell in flight, re-running skips finished cells, and the combined table can never hold
-a duplicate row. `ResultStore.table` concatenates the cells in key order and
+a duplicate row. `ResultStore.table` concatenates the current grid's cells in key order
+(cells of other settings in the same directory are counted, never read) and
 `ResultStore.write_table` materialises ``results.csv`` atomically.
 
 Every cell has an integrity record ``<out>/integrity/<key>.json`` (its byte count,
@@ -21,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import logging
 import os
 import re
 import warnings
@@ -34,6 +36,7 @@ from camo_sbi._io import atomic_write_bytes, atomic_write_text
 __all__ = ["CorruptCellWarning", "ResultStore", "atomic_write_bytes", "atomic_write_text", "cell_key"]
 
 _RECORD_FORMAT = 1
+log = logging.getLogger(__name__)
 
 
 class CorruptCellWarning(RuntimeWarning):
@@ -63,6 +66,7 @@ class ResultStore:
         self.records = self.out / "integrity"
         self.cells.mkdir(parents=True, exist_ok=True)
         self._reported: set[str] = set()
+        self.ignored = 0  # cells the last `table` call left out (not among its keys)
 
     def _path(self, key: str) -> Path:
         return self.cells / f"{key}.csv"
@@ -144,17 +148,29 @@ class ResultStore:
             self._report(key, reason, "left out of the table")
         return None
 
-    def table(self) -> pd.DataFrame:
-        """All intact cells concatenated in key order (empty DataFrame if none); damaged ones are reported."""
+    def table(self, keys: Iterable[str] | None = None) -> pd.DataFrame:
+        """The intact cells ``keys`` (the current grid's) concatenated in key order; damaged ones are reported.
+
+        Cells under ``cells/`` that are not among ``keys`` (left by a run of other settings, e.g.
+        after someone edited manifest.json) are never read: `ignored` counts them and a log
+        line says how many. ``keys=None``: every cell in the directory (for inspection only).
+        """
+        present = {p.stem for p in self.cells.glob("*.csv")}
+        wanted = present if keys is None else set(keys)
+        self.ignored = len(present - wanted)
+        if self.ignored:
+            log.warning("%d cell(s) in %s are not part of this grid (other settings): left out of the table",
+                        self.ignored, self.cells)
         parts = []
-        for p in sorted(self.cells.glob("*.csv")):
-            df = self.read(p.stem)
+        for key in sorted(wanted):
+            df = self.read(key)
             if df is not None and len(df):
                 parts.append(df)
         return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
 
-    def write_table(self, name: str = "results.csv") -> pd.DataFrame:
-        df = self.table()
+    def write_table(self, name: str = "results.csv", *, keys: Iterable[str] | None = None) -> pd.DataFrame:
+        """`table` (of ``keys``) written atomically to ``out/name``."""
+        df = self.table(keys)
         atomic_write_text(self.out / name, df.to_csv(index=False))
         return df
 

@@ -19,12 +19,14 @@ so it is used throughout.
 from __future__ import annotations
 
 import math
+import sys
 
 import numba
 import numpy as np
 import torch
 
 from camo_sbi._validation import as_tensor, check_finite
+from camo_sbi.inference.distances.numba_cache import use_private_cache
 
 __all__ = ["GaussianKDE", "scott_bandwidth"]
 
@@ -56,6 +58,9 @@ def _log_kernel_sums(xs, ps_t, out):  # pragma: no cover - compiled
         for j in range(m):
             acc += math.exp(-0.5 * (d2[j] - best))
         out[i] = -0.5 * best + math.log(acc)
+
+
+use_private_cache([sys.modules[__name__]])  # numba's cache in a private directory, never the package
 
 
 def scott_bandwidth(points: torch.Tensor, *, floor: float = 1e-6) -> torch.Tensor:

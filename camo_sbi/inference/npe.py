@@ -107,7 +107,7 @@ _EMBEDDINGS = ("none", "mlp")
 _TRANSFORMS = ("logit", "none")
 _ESTIMATORS = ("mean", "median", "map")
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
-_FORMAT = "camo_sbi.npe.posterior/1"
+_FORMAT = "camo_sbi.npe.posterior/2"
 # positions inside the box are clamped to [_U_EPS, 1 - _U_EPS] before the logit
 _U_EPS = 1e-6
 # log-prob evaluations per chunk (samples x tasks)
@@ -144,7 +144,7 @@ class NpeConfig:
             data never depend on where the chunks run).
         sim_dtype: "float32" or "float64" for the simulations.
         workdir: None, or a directory (created) receiving ``npe_posterior_k{k}_seed{seed}.pt``
-            (reload with `load_posterior`).
+            (tensors) and its ``.pt.json`` metadata with the sha256 (reload with `load_posterior`).
         device: torch device for training ("cpu").
         n_threads: torch intra-op threads while training and sampling (restored afterwards);
             None keeps the current setting. Small flows train fastest on one thread: with
@@ -826,20 +826,44 @@ class NpePosterior:
     # persistence -------------------------------------------------------------------------
 
     def save(self, path) -> Path:
-        """torch.save the flows (whole modules) and everything needed to evaluate/sample."""
+        """Write the flows' weights (tensors only) to ``path`` and their description to ``path`` + ".json".
+
+        The JSON metadata holds the format, the architecture settings, the sizes, the sampler's
+        settings, ``info`` and the sha256 of the weights file; `load_posterior` checks that digest,
+        loads the weights with ``torch.load(weights_only=True)`` (no code can run) and rebuilds the
+        networks from the metadata. Both files are written atomically, the metadata last.
+        """
+        import hashlib
+        import io
+        import json
+
+        from camo_sbi._io import atomic_write_bytes, atomic_write_text
+
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({
-            "format": _FORMAT,
-            "estimators": self.estimators,
-            "x_obs": self.x_obs,
-            "low": self.low,
-            "high": self.high,
-            "theta_transform": self.theta_transform,
-            "info": self.info,
-            "n_threads": self.n_threads,
-        }, path)
+        buf = io.BytesIO()
+        torch.save({"format": _FORMAT,
+                    "state_dict": {f"{k}.{name}": t.detach().cpu() for k, e in enumerate(self.estimators)
+                                   for name, t in e.state_dict().items()},
+                    "x_obs": [x.detach().cpu() for x in self.x_obs],
+                    "low": self.low, "high": self.high}, buf)
+        data = buf.getvalue()
+        config = self.info.get("config", {})
+        meta = {"format": _FORMAT, "weights": path.name, "sha256": hashlib.sha256(data).hexdigest(),
+                "bytes": len(data), "n_tasks": self.n_tasks, "n_free": self.n_free,
+                "n_x": [int(x.shape[1]) for x in self.x_obs],
+                "architecture": {k: config.get(k, getattr(NpeConfig, k)) for k in _ARCH_KEYS},
+                "theta_transform": self.theta_transform, "n_threads": self.n_threads, "info": self.info}
+        atomic_write_bytes(path, data)
+        atomic_write_text(_meta_path(path), json.dumps(meta, indent=1, default=str))
         return path
+
+
+_ARCH_KEYS = ("density_estimator", "hidden_features", "num_transforms", "embedding", "embedding_dim")
+
+
+def _meta_path(path: Path) -> Path:
+    return path.with_name(path.name + ".json")
 
 
 def _cholesky(cov: torch.Tensor) -> torch.Tensor:
@@ -853,17 +877,54 @@ def _cholesky(cov: torch.Tensor) -> torch.Tensor:
 def load_posterior(path) -> NpePosterior:
     """Reload a posterior written by `NpePosterior.save` (no retraining).
 
-    The file holds pickled sbi modules: load only files you trust (``weights_only=False``).
+    Nothing in the files is run: the weights file must match the sha256 in its metadata
+    (``path`` + ".json"), is read with ``torch.load(weights_only=True)`` (tensors only) and the
+    networks are rebuilt from the metadata. ValueError ``path: <file>: ...`` naming the file
+    for a missing, damaged, foreign or mismatched file (the CLI exits 2).
     """
+    import hashlib
+    import io
+    import json
+
     path = Path(path)
+    meta_path = _meta_path(path)
     if not path.is_file():
         raise ValueError(f"path: no such file {str(path)!r}")
-    blob = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(blob, dict) or blob.get("format") != _FORMAT:
-        raise ValueError(f"path: {str(path)!r} is not a camo_sbi NPE posterior ({_FORMAT})")
-    return NpePosterior(blob["estimators"], blob["x_obs"], blob["low"], blob["high"],
-                        theta_transform=blob["theta_transform"], info=blob["info"],
-                        n_threads=blob.get("n_threads", 1))
+    try:
+        meta = json.loads(meta_path.read_text())
+        if not isinstance(meta, dict):
+            raise ValueError("not a JSON object")
+    except FileNotFoundError:
+        raise ValueError(f"path: {path}: its metadata {meta_path.name} is missing (not a camo_sbi NPE posterior "
+                         f"{_FORMAT}); nothing was loaded") from None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"path: {meta_path}: unreadable metadata ({exc})") from None
+    if meta.get("format") != _FORMAT:
+        raise ValueError(f"path: {path}: is not a camo_sbi NPE posterior ({_FORMAT}; found {meta.get('format')!r})")
+    data = path.read_bytes()
+    if hashlib.sha256(data).hexdigest() != meta.get("sha256"):
+        raise ValueError(f"path: {path}: sha256 differs from its metadata {meta_path.name} (damaged or replaced); "
+                         "nothing was loaded")
+    try:
+        blob = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+        arch = meta["architecture"]
+        n_x, n_free = [int(v) for v in meta["n_x"]], int(meta["n_free"])
+        estimators = []
+        for k, nx in enumerate(n_x):
+            est = sbi_adapter.new_npe_estimator(
+                n_free, nx, density_estimator=arch["density_estimator"], hidden_features=int(arch["hidden_features"]),
+                num_transforms=int(arch["num_transforms"]),
+                embedding_dim=int(arch["embedding_dim"]) if arch["embedding"] == "mlp" else None)
+            prefix = f"{k}."
+            est.load_state_dict({name[len(prefix):]: t for name, t in blob["state_dict"].items()
+                                 if name.startswith(prefix)}, strict=True)
+            estimators.append(est)
+        return NpePosterior(estimators, blob["x_obs"], blob["low"], blob["high"],
+                            theta_transform=meta["theta_transform"], info=meta.get("info"),
+                            n_threads=meta.get("n_threads", 1))
+    except Exception as exc:  # noqa: BLE001 - a refused pickle, a missing key, weights that do not fit
+        raise ValueError(f"path: {path}: cannot be loaded as a camo_sbi NPE posterior "
+                         f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
 
 
 # ----------------------------------------------------------------------------------------------

@@ -269,6 +269,26 @@ def train_npe(theta: torch.Tensor, x: torch.Tensor, *, seed: int, density_estima
     return estimator.to("cpu").eval(), info
 
 
+def new_npe_estimator(n_theta: int, n_x: int, *, density_estimator: str = "maf", hidden_features: int = 50,
+                      num_transforms: int = 5, embedding_dim: int | None = None) -> nn.Module:
+    """An untrained estimator of the very architecture `train_npe` builds for these sizes, to receive
+    a trained one's state dict (its z-scoring statistics are buffers there, so they are restored too).
+    Built on stand-in data (fixed seed, global torch RNG untouched)."""
+    check_sbi_version()
+    from sbi.neural_nets import posterior_nn
+    from sbi.neural_nets.embedding_nets import FCEmbedding
+
+    n_theta, n_x = check_positive_int(n_theta, "n_theta"), check_positive_int(n_x, "n_x")
+    with torch.random.fork_rng(devices=[]), _quiet():
+        torch.manual_seed(0)
+        embedding = nn.Identity() if embedding_dim is None else FCEmbedding(n_x, embedding_dim)
+        builder = posterior_nn(model=density_estimator, hidden_features=hidden_features,
+                               num_transforms=num_transforms, embedding_net=embedding,
+                               z_score_theta="independent", z_score_x="independent")
+        net = builder(torch.randn(8, n_theta), torch.randn(8, n_x))
+    return net.to("cpu").eval()
+
+
 # ----------------------------------------------------------------------------------- diagnostics
 
 

@@ -130,6 +130,54 @@ def _check_urdf_numbers(robot) -> None:
             _check_finite(origin.rpy, f"link {link.name!r} origin rpy")
 
 
+def _check_name(name, what: str) -> None:
+    """A URDF name must be a non-empty string without control characters or surrounding spaces."""
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"urdf: a {what} has no name")
+    if name != name.strip() or any(ord(ch) < 32 or ord(ch) == 127 for ch in name):
+        raise ValueError(f"urdf: {what} name {name!r} contains a control character or surrounding spaces")
+
+
+def _check_urdf_structure(robot) -> None:
+    """Names unique and clean, every joint between known links, each link the child of at most one
+    joint, and no cycle: a tree, checked before anything walks it (a cycle would walk forever)."""
+    for kind, items in (("link", robot.links), ("joint", robot.joints)):
+        seen = set()
+        for item in items:
+            _check_name(item.name, kind)
+            if item.name in seen:
+                raise ValueError(f"urdf: duplicate {kind} name {item.name!r}")
+            seen.add(item.name)
+    links = {link.name for link in robot.links}
+    parent_of: dict[str, tuple[str, str]] = {}
+    for j in robot.joints:
+        for side in ("parent", "child"):
+            if getattr(j, side) not in links:
+                raise ValueError(f"urdf: joint {j.name!r} names {side} link {getattr(j, side)!r}, "
+                                 "which is not in the URDF")
+        if j.child in parent_of:
+            raise ValueError(f"urdf: link {j.child!r} is the child of two joints, "
+                             f"{parent_of[j.child][0]!r} and {j.name!r} (a URDF is a tree)")
+        parent_of[j.child] = (j.name, j.parent)
+    for start in (link.name for link in robot.links):
+        seen, link = {start}, start
+        while link in parent_of:
+            jname, link = parent_of[link]
+            if link in seen:
+                raise ValueError(f"urdf: joint {jname!r} closes a cycle through link {link!r} "
+                                 "(a URDF is a tree)")
+            seen.add(link)
+
+
+def _check_mimic(path, movable: list[str]) -> None:
+    """Mimic joints are not simulated (a follower would need its leader's angle): refused by name."""
+    for j in path:
+        mimic = getattr(j, "mimic", None)
+        if mimic is not None and j.name in movable:
+            raise ValueError(f"urdf: joint {j.name!r} is a <mimic> joint (following {mimic.joint!r}), "
+                             "which is not supported: make it fixed, or an independent joint without <mimic>")
+
+
 def _pose(origin) -> np.ndarray:
     """URDF <origin xyz rpy> -> exact float64 4x4 (R = Rz(yaw) Ry(pitch) Rx(roll))."""
     T = np.eye(4)
@@ -256,9 +304,13 @@ def load_chain(urdf, end_effector: str, joints=None, *, base_link: str | None = 
     try:
         with _quiet_parser():
             robot = URDF.from_xml_string(text)
-        root = robot.get_root()
     except Exception as exc:  # the parser raises assorted types on malformed XML
         raise ValueError(f"urdf: cannot parse URDF ({exc})") from exc
+    _check_urdf_structure(robot)
+    try:
+        root = robot.get_root()
+    except Exception as exc:  # e.g. two roots
+        raise ValueError(f"urdf: no single root link ({exc})") from exc
     _check_urdf_numbers(robot)
     if not isinstance(end_effector, str) or end_effector not in robot.link_map:
         raise ValueError(f"end_effector: no link named {end_effector!r} in the URDF")
@@ -275,6 +327,7 @@ def load_chain(urdf, end_effector: str, joints=None, *, base_link: str | None = 
         path.append(robot.joint_map[jname])
     path.reverse()
     movable = [j.name for j in path if j.type in _MOVABLE]
+    _check_mimic(path, movable)
     for j in path:
         if j.type not in _MOVABLE and j.type != "fixed":
             raise ValueError(f"urdf: joint {j.name!r} has unsupported type {j.type!r}")

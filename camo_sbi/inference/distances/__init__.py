@@ -52,4 +52,5 @@ __all__ = ["ChunkRunner", "dtw_distances", "l2_distance"]
 # The modules of numba kernels. Before any kernel runs: numba alone would not see an edit of
 # one of them in the on-disk cache of a kernel of another.
 KERNEL_MODULES = (blocks, costs, bounds, kernels, chunks)
+numba_cache.use_private_cache(KERNEL_MODULES)  # never the package's __pycache__, never a shared directory
 numba_cache.flush_if_changed(KERNEL_MODULES)

@@ -6,17 +6,34 @@ edit of ``bounds.py`` alone, the cached kernels of ``chunks.py`` would go on run
 bounds. `flush_if_changed` keeps a digest of the sources of all the given modules beside the
 cache of each and, when it differs, empties the caches of all their kernels once (they are
 compiled again on their next call).
+
+`use_private_cache` decides where that cache lives before anything is compiled: numba unpickles
+its cache files, so only a private directory of this user is used (`camo_sbi._io.check_private_dir`):
+``NUMBA_CACHE_DIR`` when set, else ``$XDG_CACHE_HOME/camo_sbi/numba`` (``~/.cache/...``), created
+with mode 0700; never the installed package's ``__pycache__``. When that directory is not private
+(world- or group-writable, another user's, a symbolic link) or cannot be created, the kernels are
+compiled in memory on every run, with one `NumbaCacheWarning`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+import warnings
 from pathlib import Path
 
+from numba.core import config as numba_config
+from numba.core.caching import NullCache
 from numba.core.dispatcher import Dispatcher
 
-__all__ = ["STAMP_NAME", "flush_if_changed", "sources_digest"]
+from camo_sbi._io import make_private_dir
+
+__all__ = ["STAMP_NAME", "NumbaCacheWarning", "cache_root", "flush_if_changed", "sources_digest",
+           "use_private_cache"]
+
+
+class NumbaCacheWarning(RuntimeWarning):
+    """numba's cache directory is not private: camo_sbi's kernels are compiled in memory instead."""
 
 STAMP_NAME = "kernel-sources.sha256"
 
@@ -27,6 +44,84 @@ def sources_digest(modules) -> str:
     for m in sorted(modules, key=lambda m: m.__name__):
         h.update(m.__name__.encode() + b"\0" + Path(m.__file__).read_bytes() + b"\0")
     return h.hexdigest()
+
+
+def cache_root() -> Path:
+    """Where numba caches camo_sbi's distance kernels: ``NUMBA_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/camo_sbi/numba`` (default ``~/.cache/camo_sbi/numba``)."""
+    env = os.environ.get("NUMBA_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "camo_sbi" / "numba"
+
+
+def _dispatchers(modules) -> list:
+    return [v for m in modules for v in vars(m).values()
+            if isinstance(v, Dispatcher) and v.py_func.__module__ == m.__name__
+            and getattr(getattr(v, "_cache", None), "cache_path", None)]
+
+
+def use_private_cache(modules) -> Path | None:
+    """Point numba's on-disk cache of every cached kernel of ``modules`` at `cache_root`, or, when
+    that is not a private directory of this user, switch their caching off (one `NumbaCacheWarning`:
+    compiled in memory, nothing read or written). Returns the directory used, or None.
+    Call it at import, before any kernel runs (and before `flush_if_changed`)."""
+    dispatchers = _dispatchers(modules)
+    if not dispatchers:
+        return None
+    root = cache_root()
+    reason = make_private_dir(root, subdirs=())
+    if reason is None:
+        saved = {k: getattr(numba_config, k) for k in ("CACHE_DIR", "CACHE_LOCATOR_CLASSES")
+                 if hasattr(numba_config, k)}
+        try:
+            numba_config.CACHE_DIR = str(root)
+            if "CACHE_LOCATOR_CLASSES" in saved:
+                numba_config.CACHE_LOCATOR_CLASSES = ""
+            for d in dispatchers:
+                d.enable_caching()  # numba's own locator for a user-provided directory
+        finally:
+            for k, v in saved.items():
+                setattr(numba_config, k, v)
+        # the per-source subdirectory numba uses inside it must be private too
+        paths = {Path(d._cache.cache_path) for d in dispatchers}
+        reason = next((f"{p} {r}" for p in sorted(paths) if (r := _check_subdir(root, p)) is not None), None)
+        if reason is None:
+            return root
+    else:
+        reason = f"{root} {reason}"
+    for d in dispatchers:
+        d._cache = NullCache()
+    if reason not in _warned:
+        _warned.add(reason)
+        warnings.warn(f"numba cache {reason}; compiling camo_sbi's numba kernels in memory without caching "
+                      "(set NUMBA_CACHE_DIR to a private directory, mode 700)", NumbaCacheWarning, stacklevel=2)
+    return None
+
+
+_warned: set[str] = set()
+
+
+def _check_subdir(root: Path, path: Path) -> str | None:
+    """Each existing directory from ``root`` down to ``path`` must be private (created 0700 here)."""
+    from camo_sbi._io import check_private_dir
+
+    rel = path.relative_to(root)
+    d = root
+    for part in rel.parts:
+        d = d / part
+        if not os.path.lexists(d):
+            try:
+                os.mkdir(d, 0o700)
+            except FileExistsError:
+                pass
+            except OSError as exc:
+                return f"cannot be created ({exc.strerror or exc})"
+        why = check_private_dir(d, subdirs=())
+        if why is not None:
+            return why
+    return None
 
 
 def _caches(modules) -> list:
