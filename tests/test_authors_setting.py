@@ -236,5 +236,5 @@ def test_reproduce_paper_on_the_authors_arm(tmp_path):
     assert {"camo-seq", "camo-seq-cs", "camo-js", "camo-cs", "naive", "nominal", "oracle"} <= set(df.method)
     claims = pd.read_csv(out / "claims.csv")
     assert {"camo-seq", "camo-seq-cs"} <= set(claims.method)
-    assert set(claims[claims.method == "camo-seq"].variant) == {"the authors' JS (as their code runs it)"}
+    assert set(claims[claims.method == "camo-seq"].variant) == {"the authors' JS, as their code runs it"}
     assert (out / "fig2_cartesian_error_vs_tasks.png").is_file() and (out / "fig3_final_error.png").is_file()

@@ -328,7 +328,13 @@ def test_reproduce_paper_setting(tmp_path):
     assert _run(args, out) == 0
     df = pd.read_csv(out / "results.csv")
     assert set(df.method) == {"camo-js", "camo-cs", "camo-seq", "camo-seq-cs", "camo-hull", "naive", "nominal",
-                              "oracle"}
+                              "oracle", "truth"}
+    # how many reaches a true limit binds, per run: counts within the reaches there are, equal over the
+    # runs (the same goals)
+    br = df[df.method == "truth"].pivot_table(index="run", columns="metric", values="value")
+    assert list(br.columns) == ["binding_reaches_test", "binding_reaches_train"]
+    assert br.binding_reaches_train.between(0, 3).all() and br.binding_reaches_test.between(0, 3).all()
+    assert (br.nunique() == 1).all()
     assert set(df.subject) == {"one_joint_restricted"}
     nominal = df[(df.method == "nominal") & (df.metric == "cartesian_error_mm")].pivot_table(
         index="n_tasks", columns="run", values="value")

@@ -39,10 +39,10 @@ CLAIM_COLUMNS = ("claim", "setting", "method", "variant", "baseline", "statistic
                  "p_value", "p_raw", "test", "holds")
 _BOOT = 10_000
 VARIANTS = {
-    "camo-seq": "the authors' JS (as their code runs it)",
-    "camo-seq-cs": "the authors' CS (as their code runs it)",
-    "camo-js": "Algorithm 1 as written (JS)",
-    "camo-cs": "Algorithm 1 as written (CS)",
+    "camo-seq": "the authors' JS, as their code runs it",
+    "camo-seq-cs": "the authors' CS, as their code runs it",
+    "camo-js": "Algorithm 1 as written, JS",
+    "camo-cs": "Algorithm 1 as written, CS",
     "camo": "Algorithm 1 as written",
     "camo-hull": "not in the paper",
 }

@@ -22,10 +22,12 @@ signs as their code writes them: the lower push acts inside the limits, within
 posture outside the limits, which after the clamp is at most the start (their upper terms,
 written with the lower terms' sign, would push further out). ``limit_gain=0`` (default): off.
 
-The damped solve ``A^-1`` runs in float64 whatever the simulation dtype (the Jacobian is
-computed in the simulation dtype and cast): the paper setting's damping 1e-6 (lambda^2 =
-1e-12) is far below float32 resolution of ``J J^T``, so a float32 solve at a singular posture
-(a straight elbow) divided by a zero determinant and returned NaN.
+The damped solve ``A^-1`` runs in float64 in float32 simulations whose lambda^2 is below
+`SOLVE64_BELOW_LAMBDA2` (1e-6, damping 1e-3: below that, lambda^2 is within a few float32 ulps of
+``J J^T`` for metre-scale arms); the Jacobian is computed in float32 and cast. The paper
+setting's damping 1e-6 (lambda^2 = 1e-12) is far below float32 resolution, so a float32 solve at
+a singular posture (their start has a straight elbow) divided by a zero determinant and
+returned NaN. Larger dampings (the default 0.05) solve in the simulation dtype, as before.
 
 At most ``max_steps`` points are produced (the start included); afterwards the final
 posture and position are repeated. With ``early_stop=False`` every reach runs all
@@ -44,7 +46,10 @@ from camo_sbi._validation import check_bool, check_positive_float, check_positiv
 from camo_sbi.simulators.base import Trajectories
 from camo_sbi.simulators.chain import KinematicChain
 
-__all__ = ["ControllerConfig", "controller_step", "reference_simulate"]
+__all__ = ["SOLVE64_BELOW_LAMBDA2", "ControllerConfig", "controller_step", "reference_simulate"]
+
+SOLVE64_BELOW_LAMBDA2 = 1e-6
+"""damping^2 below which float32 simulations do the damped 3x3 solve in float64."""
 
 
 @dataclass(frozen=True)
@@ -126,13 +131,14 @@ def controller_step(J: torch.Tensor, e: torch.Tensor, q: torch.Tensor, lo: torch
         lg = c.limit_gain
         dq0 = (dq0 + 2 * lg * torch.clamp(lo + c.limit_buffer - q, min=zero, max=cap)
                + 2 * lg * torch.clamp(q - hi - c.limit_buffer, min=zero, max=cap))
-    # the damped solve in float64 (lambda^2 may lie below the simulation dtype's resolution)
-    J64, v64, dq064 = J.double(), v.double(), dq0.double()
-    eye = torch.eye(3, dtype=torch.float64, device=J.device)
-    A = J64 @ J64.transpose(1, 2) + (c.damping * c.damping) * eye
-    r = v64 - (J64 @ dq064.unsqueeze(-1)).squeeze(-1)
+    # the damped solve, in float64 when lambda^2 lies below float32 resolution (module docstring)
+    sdt = torch.float64 if J.dtype == torch.float32 and c.damping * c.damping < SOLVE64_BELOW_LAMBDA2 else J.dtype
+    Js, vs, dq0s = J.to(sdt), v.to(sdt), dq0.to(sdt)
+    eye = torch.eye(3, dtype=sdt, device=J.device)
+    A = Js @ Js.transpose(1, 2) + (c.damping * c.damping) * eye
+    r = vs - (Js @ dq0s.unsqueeze(-1)).squeeze(-1)
     w = torch.linalg.solve(A, r)
-    dq = ((J64.transpose(1, 2) @ w.unsqueeze(-1)).squeeze(-1) + dq064).to(q.dtype)
+    dq = ((Js.transpose(1, 2) @ w.unsqueeze(-1)).squeeze(-1) + dq0s).to(q.dtype)
     if c.limit_gain > 0:
         dq = dq + c.limit_gain * (torch.clamp(lo - q, min=zero) + torch.clamp(q - hi, min=zero))
     m = dq.abs().amax(dim=-1, keepdim=True)

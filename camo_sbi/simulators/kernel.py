@@ -4,7 +4,8 @@ For each (chain, dtype) `generate_source` writes straight-line Python: the forwa
 kinematics and position Jacobian of that very chain with its constant transforms baked
 in (terms whose constant is exactly 0 are dropped, +-1 factors become signs, so a
 quarter-turn URDF origin costs no arithmetic), followed by the controller step of
-`controller.py` (closed-form 3x3 solve in float64 whatever the dtype, no linalg call). Every float literal is wrapped
+`controller.py` (closed-form 3x3 solve, no linalg call; in a float32 kernel the solve runs in
+float64 when the damping is below float32 resolution, as `controller.py` says). Every float literal is wrapped
 in the kernel's dtype ``F(...)`` so float32 maths never promotes to float64.
 
 The source is written once to a cache directory (``$CAMO_SBI_KERNEL_CACHE``, else
@@ -44,6 +45,7 @@ import numpy as np
 from camo_sbi._io import atomic_write_bytes
 from camo_sbi._threads import default_workers, run_chunks
 from camo_sbi.simulators.chain import ChainSpec
+from camo_sbi.simulators.controller import SOLVE64_BELOW_LAMBDA2
 
 __all__ = ["KernelCacheWarning", "cache_dir", "check_cache_dir", "generate_source", "kernel_fk",
            "kernel_simulate", "load_kernel"]
@@ -159,6 +161,55 @@ def _fk(w: _Writer, spec: ChainSpec, name_x=("x0", "x1", "x2")):
     return pe, joints
 
 
+def _solve(w: _Writer, out: _Writer, cols, n: int, cast: str, sfx: str) -> None:
+    """Emit the damped step into ``out`` (at ``w``'s indent): r = v - J dq0 ; A = J J^T + lam2 I ;
+    w = A^-1 r ; d = J^T w + dq0, in the kernel's dtype (``cast="F"``) or in float64 (``"D"``:
+    the Jacobian, dq0, v and lambda^2 cast in, d cast back to F), temporaries suffixed ``sfx``."""
+    J = range(n)
+    if cast == "D":
+        for k in J:
+            for r in range(3):
+                w.line(f"j{k}_{r}{sfx} = D({w.expr(cols[k][r])})")
+        jc = [[_var(f"j{k}_{r}{sfx}") for r in range(3)] for k in J]
+        for k in J:
+            w.line(f"n{k}{sfx} = D(n{k})")
+        for r in range(3):
+            w.line(f"v{r}{sfx} = D(v{r})")
+        w.line(f"lam2{sfx} = D(lam2)")
+    else:
+        jc = cols
+    nv = [_var(f"n{k}{sfx}") for k in J]
+    for r in range(3):
+        w.mat(_lin([(1.0, _var(f"v{r}{sfx}"))] + [(-1.0, _mul(jc[k][r], nv[k])) for k in J]), name=f"r{r}{sfx}")
+    for r, c in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+        e = _add(*[_mul(jc[k][r], jc[k][c]) for k in J])
+        if r == c:
+            e = _add(e, _var(f"lam2{sfx}"))
+        w.mat(e, name=f"a{r}{c}{sfx}")
+    x = sfx
+    for line in (
+        f"i00{x} = a11{x} * a22{x} - a12{x} * a12{x}",
+        f"i01{x} = a02{x} * a12{x} - a01{x} * a22{x}",
+        f"i02{x} = a01{x} * a12{x} - a02{x} * a11{x}",
+        f"i11{x} = a00{x} * a22{x} - a02{x} * a02{x}",
+        f"i12{x} = a01{x} * a02{x} - a00{x} * a12{x}",
+        f"i22{x} = a00{x} * a11{x} - a01{x} * a01{x}",
+        f"idet{x} = {cast}(1.0) / (a00{x} * i00{x} + a01{x} * i01{x} + a02{x} * i02{x})",
+        f"w0{x} = (i00{x} * r0{x} + i01{x} * r1{x} + i02{x} * r2{x}) * idet{x}",
+        f"w1{x} = (i01{x} * r0{x} + i11{x} * r1{x} + i12{x} * r2{x}) * idet{x}",
+        f"w2{x} = (i02{x} * r0{x} + i12{x} * r1{x} + i22{x} * r2{x}) * idet{x}",
+    ):
+        w.line(line)
+    for k in J:
+        e = _add(*[_mul(jc[k][r], _var(f"w{r}{sfx}")) for r in range(3)], nv[k])
+        if cast == "D":
+            w.mat(e, name=f"dd{k}{sfx}")
+            w.line(f"d{k} = F(dd{k}{sfx})")
+        else:
+            w.mat(e, name=f"d{k}")
+    out.lines.extend(w.lines)
+
+
 def generate_source(spec: ChainSpec, dtype, *, cache: bool = True) -> str:
     """Python source of the numba module for ``spec`` in ``dtype`` (np.float32 / np.float64).
 
@@ -211,41 +262,15 @@ def generate_source(spec: ChainSpec, dtype, *, cache: bool = True) -> str:
             col = z
         cols.append(col)
     step = _Writer(" " * 12)
-    # the damped solve in float64 whatever F (lambda^2 may lie below float32 resolution):
-    # Jd = D(J), r = v - Jd dq0 ; A = Jd Jd^T + lam2 I ; w = A^-1 r ; dd = Jd^T w + dq0 (float64)
-    for k in J:
-        for r in range(3):
-            step.line(f"j{k}_{r} = D({step.expr(cols[k][r])})")
-    jd = [[_var(f"j{k}_{r}") for r in range(3)] for k in J]
-    for k in J:
-        step.line(f"nd{k} = D(n{k})")
-    for r in range(3):
-        step.line(f"vd{r} = D(v{r})")
-    for r in range(3):
-        step.mat(_lin([(1.0, _var(f"vd{r}"))] + [(-1.0, _mul(jd[k][r], _var(f"nd{k}"))) for k in J]), name=f"r{r}")
-    for r, c in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
-        e = _add(*[_mul(jd[k][r], jd[k][c]) for k in J])
-        if r == c:
-            e = _add(e, _var("lam2d"))
-        step.mat(e, name=f"a{r}{c}")
-    sim_lines_step = [
-        "i00 = a11 * a22 - a12 * a12",
-        "i01 = a02 * a12 - a01 * a22",
-        "i02 = a01 * a12 - a02 * a11",
-        "i11 = a00 * a22 - a02 * a02",
-        "i12 = a01 * a02 - a00 * a12",
-        "i22 = a00 * a11 - a01 * a01",
-        "idet = D(1.0) / (a00 * i00 + a01 * i01 + a02 * i02)",
-        "w0 = (i00 * r0 + i01 * r1 + i02 * r2) * idet",
-        "w1 = (i01 * r0 + i11 * r1 + i12 * r2) * idet",
-        "w2 = (i02 * r0 + i12 * r1 + i22 * r2) * idet",
-    ]
-    for line in sim_lines_step:
-        step.line(line)
-    for k in J:
-        step.mat(_add(*[_mul(jd[k][r], _var(f"w{r}")) for r in range(3)], _var(f"nd{k}")), name=f"dd{k}")
-        # the authors' hard-limit penalty (0 unless lg > 0 and q outside its limits)
-        step.line(f"d{k} = F(dd{k}) + lg * (max(lo{k} - q{k}, F(0.0)) + max(q{k} - hi{k}, F(0.0)))")
+    if dt == "float64":
+        _solve(_Writer(" " * 12), step, cols, n, "F", "")
+    else:  # float32: the solve in float64 when lambda^2 lies below float32 resolution (controller.py)
+        step.line(f"if lam2 < F({SOLVE64_BELOW_LAMBDA2!r}):")
+        _solve(_Writer(" " * 16), step, cols, n, "D", "_d")
+        step.line("else:")
+        _solve(_Writer(" " * 16), step, cols, n, "F", "")
+    for k in J:  # the authors' hard-limit penalty (0 unless lg > 0 and q outside its limits)
+        step.line(f"d{k} = d{k} + lg * (max(lo{k} - q{k}, F(0.0)) + max(q{k} - hi{k}, F(0.0)))")
 
     i3 = " " * 12
     i4 = " " * 16
@@ -254,7 +279,6 @@ def generate_source(spec: ChainSpec, dtype, *, cache: bool = True) -> str:
         jit,
         "def simulate(c, n_chunks, theta, goal, start, n_steps, tol, gain, lam2, max_cart, max_joint, null_gain,",
         "             kd, early_stop, lg, lbuf, lcap, q_out, x_out, length, reached):",
-        "    lam2d = D(lam2)",
         "    B = theta.shape[0]",
         "    for b in range(c * B // n_chunks, (c + 1) * B // n_chunks):",
         *[f"        lo{k} = theta[b, {2 * k}]\n        hi{k} = theta[b, {2 * k + 1}]" for k in J],
