@@ -2,6 +2,7 @@
 the README comes from a `results.csv` / `claims.csv` a command wrote.
 
     python docs/readme_tables.py manipulator DIR     # reproduce panda (paper or toolkit setting)
+    python docs/readme_tables.py paper-pair DIR DIR2 # two --setting paper runs side by side
     python docs/readme_tables.py informative DIR     # reproduce panda --setting informative
     python docs/readme_tables.py hrc DIR             # reproduce hrc
     python docs/readme_tables.py compare DIR         # compare (final task count)
@@ -60,7 +61,9 @@ def claims_table(path: Path) -> str:
     for _, r in c.iterrows():
         setting = f" ({r.setting})" if "setting" in c and isinstance(r.setting, str) and "/" in r.setting else ""
         ci = (f"[{r.ci_low:.3g}, {r.ci_high:.3g}]" if np.isfinite(r.ci_low) else "–")
-        rows.append([f"{r.claim}{setting}", r.method, str(r.baseline), str(r.statistic).split(":")[0],
+        variant = str(r.variant) if "variant" in c and isinstance(r.variant, str) and r.variant != "-" else ""
+        method = f"{r.method} [{variant}]" if variant else r.method
+        rows.append([f"{r.claim}{setting}", method, str(r.baseline), str(r.statistic).split(":")[0],
                      f"{r.value:.3g}", ci, f"{r.p_value:.2g}", r.test, "**yes**" if r.holds else "no"])
     return _table(["claim", "method", "vs", "statistic", "value", "95% CI", "p (Holm)", "paired test", "holds"], rows)
 
@@ -194,12 +197,73 @@ def calibrate(d: Path) -> str:
                                     for r in t.itertuples(index=False)])
 
 
+_SHORT_STATISTIC = {  # claims.csv's statistic column, in short
+    "CAMO is below": "cartesian_error_mm, method − baseline at the worst k; holds if every k is below",
+    "CAMO converges": "convergence gap after 3 tasks (mm): max(|e3 − eK|, later rise); holds if it learned "
+                      "(p) and the gap's upper CI ≤ 0.25 × the 1→K improvement",
+    "CS is as good": "cartesian_error_mm after K, CS − JS; TOST margin ±10% of JS",
+    "CAMO is significantly": "joint_error_deg after K, method − baseline",
+    "": "see claims.csv",
+}
+
+
+def paper_pair(d1: Path, d2: Path) -> str:
+    """Two ``--setting paper`` runs (e.g. the Panda and the authors' DH arm) side by side: each
+    metric after 1, 3 and the last number of tasks, the binding reaches, and the claims of the
+    authors' variants and of Algorithm 1 as written against naive / nominal."""
+    dfs = [display_metric(pd.read_csv(d / "results.csv")) for d in (d1, d2)]
+    names = [str(df.model.iloc[0]) for df in dfs]
+    parts = []
+    ks = [sorted({1, 3, int(df.n_tasks.max())} & set(df.n_tasks.unique())) for df in dfs]
+    marks = [_marks(df, ["method"])[0] for df in dfs]
+    for metric, unit, dig in (("cartesian_error_mm", "mm", 1), ("joint_error_deg", "deg", 2),
+                              ("limit_error_binding_deg", "deg", 1), ("limit_error_free_deg", "deg", 1)):
+        methods = method_order(pd.concat([df[df.metric == metric].method for df in dfs]))
+        rows = []
+        for m in methods:
+            cells = []
+            for df, kk, mk in zip(dfs, ks, marks, strict=True):
+                sub = df[(df.metric == metric) & (df.method == m)]
+                cells += [_fmt_values(sub[sub.n_tasks == k].value.to_numpy(float), dig) + (mk.get(m, "") if k == kk[-1]
+                                                                                          else "") for k in kk]
+            rows.append([m] + cells)
+        header = ["method"] + [f"{n}, k={k}" for n, kk in zip(names, ks, strict=True) for k in kk]
+        parts.append(f"**{metric}** [{unit}], {cell_rule(dfs[0].run.nunique())}, after k observed tasks:\n\n"
+                     + _table(header, rows))
+    notes = sorted(set(sum((_marks(df, ["method"])[1] for df in dfs), [])))
+    if notes:
+        parts.append("† " + "; ".join(notes))
+    parts += [f"{n}: {_binding(df)}" for n, df in zip(names, dfs, strict=True)]
+    cl = [pd.read_csv(d / "claims.csv") for d in (d1, d2)]
+    keep = ["camo-seq", "camo-seq-cs", "camo-js", "camo-cs"]
+    key = ["claim", "method", "baseline"]
+    rows = []
+    cl = [c[c.method.isin(keep) & c.statistic.astype(str).str.split(":").str[0].str.split(" ").str[0].isin(PRIMARY)]
+          for c in cl]
+    both = cl[0].merge(cl[1], on=key, suffixes=("_a", "_b"))
+    for _, r in both.iterrows():
+        short = next(v for k, v in _SHORT_STATISTIC.items() if r.claim.startswith(k))
+        row = [r.claim, f"{r.method} [{r.variant_a}]", str(r.baseline), short, r.test_a]
+        for s_ in ("_a", "_b"):
+            row.append(f"{r['value' + s_]:.3g} (p {r['p_value' + s_]:.2g}) " + ("**holds**" if r["holds" + s_] else "fails"))
+        rows.append(row)
+    parts.append(_table(["claim", "method [variant]", "vs", "statistic", "paired test", *names], rows))
+    return "\n\n".join(parts)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("kind", choices=["manipulator", "informative", "hrc", "compare", "robustness", "calibrate"])
+    p.add_argument("kind", choices=["manipulator", "paper-pair", "informative", "hrc", "compare", "robustness",
+                                    "calibrate"])
     p.add_argument("dir", type=Path)
+    p.add_argument("dir2", type=Path, nargs="?")
     a = p.parse_args(argv)
-    print(globals()[a.kind](a.dir))
+    if a.kind == "paper-pair":
+        if a.dir2 is None:
+            p.error("paper-pair: needs two run directories")
+        print(paper_pair(a.dir, a.dir2))
+    else:
+        print(globals()[a.kind](a.dir))
     return 0
 
 

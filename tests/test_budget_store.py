@@ -276,7 +276,7 @@ def test_get_method_known_and_unknown():
     impl = get_method("camo").load()
     assert impl.run is camo.run and impl.config is camo.CamoConfig and impl.run_sequence is camo.run_sequence
     assert get_method("naive").name == "naive"
-    with pytest.raises(ValueError, match=r"^method: unknown method 'camoo'.*camo, camo-js, camo-cs, camo-hull, camo-seq, naive"):
+    with pytest.raises(ValueError, match=r"^method: unknown method 'camoo'.*camo, camo-js, camo-cs, camo-hull, camo-seq, camo-seq-cs, naive"):
         get_method("camoo")
     with pytest.raises(ValueError, match="method"):
         get_method(None)

@@ -109,8 +109,8 @@ def test_reproduce_writes_both_figures_and_config(repro):
     _assert_png(out / "fig3_final_error.png")
     _assert_png(out / "limit_error_vs_tasks.png")
     claims = pd.read_csv(out / "claims.csv")
-    assert list(claims.columns) == ["claim", "setting", "method", "baseline", "statistic", "value", "ci_low",
-                                    "ci_high", "p_value", "p_raw", "test", "holds", "binding_test_reaches_min",
+    assert list(claims.columns) == ["claim", "setting", "method", "variant", "baseline", "statistic", "value",
+                                    "ci_low", "ci_high", "p_value", "p_raw", "test", "holds", "binding_test_reaches_min",
                                     "few_reaches"]
     assert set(claims.baseline) >= {"naive", "nominal"} and set(claims.setting) == {"toolkit"}
     assert (out / "config.json").is_file()
@@ -356,7 +356,14 @@ def test_reproduce_paper_setting(tmp_path):
             "--samples", "200"]
     assert _run(args, out) == 0
     df = pd.read_csv(out / "results.csv")
-    assert set(df.method) == {"camo-js", "camo-cs", "camo-seq", "camo-hull", "naive", "nominal", "oracle"}
+    assert set(df.method) == {"camo-js", "camo-cs", "camo-seq", "camo-seq-cs", "camo-hull", "naive", "nominal",
+                              "oracle"}
+    # how many reaches a true limit binds, per run: counts within the reaches there are, equal over the
+    # runs (the same goals) and over the methods of a run
+    br = df[df.metric.isin(["binding_test_reaches", "binding_train_reaches"])].pivot_table(
+        index=["run", "method"], columns="metric", values="value")
+    assert br.binding_train_reaches.between(0, 3).all() and br.binding_test_reaches.between(0, 3).all()
+    assert (br.nunique() == 1).all()
     assert set(df.subject) == {"one_joint_restricted"}
     nominal = df[(df.method == "nominal") & (df.metric == "cartesian_error_mm")].pivot_table(
         index="n_tasks", columns="run", values="value")

@@ -13,11 +13,17 @@ only if reachable), a uniform prior, DTW, the 100 best kept per task.
 
 ``--setting paper`` (the authors' published code, ``REFERENCE_SETTING.md``): ONE restricted
 joint (start +- 0.5 rad); their PD step ``dq = dt J+ (P e + D de)`` (gain 0.1, derivative
-0.5, pseudo-inverse), limits acting only by clamping (no mid-range pull); a fixed horizon
-with no early stop (``--horizon`` points: 21 as their code, 20 steps; 100 as the paper's
-text); the 5-level grid prior; the plain Eq. 2 distance with epsilon acceptance (no cap);
-KDE bandwidth 0.5 (variance 0.25); the same training and test goals in every run (runs
-differ in the methods' random draws only); ``camo-seq``: their sequential proposals.
+0.5, pseudo-inverse), their limit terms (the null-space push within 0.01 rad of a lower
+limit and the hard-limit penalty, ``ControllerConfig.limit_gain`` = dt KN = 0.2), then the
+clamp; no mid-range pull; a fixed horizon with no early stop (``--horizon`` points: 21 as
+their code, 20 steps; 100 as the paper's text); the 5-level grid prior; the plain Eq. 2
+distance with epsilon acceptance (no cap): 0.02 in joint space, and in Cartesian space 0.01
+in the authors' units (cm) = 1e-4 m (`AUTHORS_LENGTH_UNIT`); KDE bandwidth 0.5 (variance
+0.25); the same training and test goals in every run (runs differ in the methods' random
+draws only). The paper's claims are attributed to the variants the authors' code runs:
+``camo-seq`` (their "JS": sequential proposals) and ``camo-seq-cs`` (their "CS": Cartesian
+scores of candidates from the JS bank); ``camo-js`` / ``camo-cs`` (Algorithm 1 as the paper
+writes it: prior draws every task) run beside them, labelled so.
 
 ``--setting informative`` (issue 23: a setting in which the limits matter): the toolkit's
 controller; training and test goals drawn from the NOMINAL workspace (FK of configurations
@@ -64,7 +70,8 @@ from camo_sbi.experiments.models import (
 )
 from camo_sbi.experiments.subjects import INFORMATIVE_PROFILES, ONE_JOINT
 
-__all__ = ["SETTINGS", "Setting", "add_arguments", "main", "make_figures", "method_config", "run_one"]
+__all__ = ["AUTHORS_LENGTH_UNIT", "SETTINGS", "Setting", "add_arguments", "main", "make_figures", "method_config",
+           "run_one"]
 
 
 @dataclass(frozen=True)
@@ -94,6 +101,11 @@ class Setting:
     min_binding_test: float | None = None
 
 
+AUTHORS_LENGTH_UNIT = 0.01
+"""Metres per length unit of the authors' arm (their links are 40 / 41 / 10: centimetres). Their
+Cartesian epsilon ``THRESH_CARTESIAN = 0.01`` is in that unit: 0.01 cm = 1e-4 m on our models,
+whose lengths are metres."""
+
 SETTINGS = {
     "toolkit": Setting(
         controller=None, subjects=None, fixed_goals=False, require_reached=True,
@@ -102,12 +114,13 @@ SETTINGS = {
         methods=("camo-js", "camo-cs", "camo-hull", "camo-seq", "naive", "nominal", "oracle")),
     "paper": Setting(
         controller={"early_stop": False, "null_gain": 0.0, "gain": 0.1, "derivative_gain": 0.5,
-                    "damping": 1e-6, "max_cartesian_step": 1e3, "max_joint_step": 1e3},
+                    "damping": 1e-6, "max_cartesian_step": 1e3, "max_joint_step": 1e3,
+                    "limit_gain": 0.2, "limit_buffer": 0.01, "limit_cap": 0.2},
         subjects=(ONE_JOINT,), fixed_goals=True, require_reached=False,
         camo={"keep_best": None, "bandwidth": 0.25, "bandwidth_mode": "fixed", "sampling": "grid",
               "distance": "euclidean", "fallback_keep": 20},
-        epsilon={"joint": 0.02, "cartesian": 0.01},
-        methods=("camo-js", "camo-cs", "camo-seq", "camo-hull", "naive", "nominal", "oracle")),
+        epsilon={"joint": 0.02, "cartesian": 0.01 * AUTHORS_LENGTH_UNIT},
+        methods=("camo-seq", "camo-seq-cs", "camo-js", "camo-cs", "camo-hull", "naive", "nominal", "oracle")),
     "informative": Setting(
         controller=None, subjects=tuple(INFORMATIVE_PROFILES), fixed_goals=False, require_reached=False,
         camo={"keep_best": 100, "bandwidth": 0.2, "bandwidth_mode": "fixed", "sampling": "uniform",
@@ -115,10 +128,15 @@ SETTINGS = {
         methods=("camo-js", "camo-cs", "camo-hull", "camo-seq", "camo-touched", "naive", "nominal", "oracle"),
         workspace="nominal", min_binding_test=0.5),
 }
-"""The designs of ``reproduce panda``. The paper setting's epsilons are the authors'
-``THRESH`` (0.02, joint) and ``THRESH_CARTESIAN`` (0.01, here in metres): with the grid prior and
-clamp-only limits about a third of the draws reproduce a reach exactly (distance 0) and the
-next-closest lie beyond 0.05, so acceptance is "does not bind on this reach"."""
+"""The designs of ``reproduce panda``. The paper setting's epsilons are the authors' ``THRESH``
+(0.02, joint) and ``THRESH_CARTESIAN`` (0.01 in the authors' units (cm) = 1e-4 m): with the grid
+prior about a third of the draws reproduce a reach exactly (distance 0) and the next-closest
+lie far beyond either, so acceptance is "does not bind on this reach"."""
+
+PAPER_DESIGN = 2
+"""Version of the paper setting's design (2: the authors' limit terms, epsilon 1e-4 m, camo-seq-cs);
+part of its run settings and cell keys (``paper_design``), so an output folder of another design
+is refused."""
 
 # settings that change a run's rows: part of each cell's key, so a re-run with other
 # settings into the same directory computes new cells instead of reusing old ones
@@ -146,6 +164,8 @@ def method_config(name: str, args) -> dict | None:
             cfg[key] = value
     if getattr(args, "epsilon", None) is None and st.epsilon:
         cfg["epsilon"] = st.epsilon[spec.defaults.get("space", cfg.get("space", "joint"))]
+        if spec.defaults.get("proposal") == "sequential-js":  # the JS chain of camo-seq-cs
+            cfg["js_epsilon"] = st.epsilon["joint"]
     cfg["scheduler"] = getattr(args, "scheduler", None)
     return cfg
 
@@ -406,7 +426,9 @@ def main(args) -> int:
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
     # a built-in model with its defaults keeps the cell keys it always had
     settings["model"] = model.name if model.is_default else json.dumps(model.key(), sort_keys=True)
-    with RunDirectory(out, "reproduce panda", run_settings(args, subjects=subjects, model=settings["model"]),
+    paper = {"paper_design": PAPER_DESIGN} if args.setting == "paper" else {}
+    keys = []
+    with RunDirectory(out, "reproduce panda", run_settings(args, subjects=subjects, model=settings["model"], **paper),
                       wait=getattr(args, "wait", False)) as rundir:
         store = rundir.store
         with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
@@ -416,11 +438,14 @@ def main(args) -> int:
                 if args.design != "random":  # random keeps the cell keys it always had
                     cell["design"] = args.design
                     cell["design_method"] = args.design_method
+                if args.setting == "paper":
+                    cell["paper_design"] = PAPER_DESIGN
                 key = cell_key(cell)
+                keys.append(key)
                 if store.done(key):
                     continue
                 store.put(key, run_one(sim, model, subject, run, args))
-        df = store.write_table()
+        df = store.write_table(keys=keys)
         figs = make_figures(df, out, formats)
         claims = (informative_claims(df, setting=args.setting) if args.setting == "informative"
                   else manipulator_claims(df, setting=args.setting))

@@ -23,7 +23,13 @@ The authors' published code differs from Algorithm 1 as written in ways selectab
 DTW), acceptance by ``epsilon`` alone (``keep_best=None``), ``sampling="grid"`` (their
 5-level grid prior) and ``proposal="sequential"`` (task n > 1 draws from task n-1's KDE,
 clipped to the observed hull in joint space). The registry's ``camo-seq`` is CAMO-JS with
-sequential proposals.
+sequential proposals (the authors' "JS"), ``camo-seq-cs`` scores Cartesian observations on
+candidates from that JS chain (``proposal="sequential-js"``, the authors' "CS"); ``camo-js`` and
+``camo-cs`` are Algorithm 1 as the paper writes it.
+
+A candidate whose simulation is not finite (NaN/inf) is rejected and counted: a failure of
+the method's own simulations, reported in the result's status (``fallback: ...``, or
+``failed: ...`` when no task had a finite candidate), never an error about the input.
 
 One opt-in extension, not in the paper (``CamoConfig.contain_observed``, joint space):
 step 1 draws from the prior conditioned on every posture observed so far lying inside
@@ -62,7 +68,7 @@ _SPACES = ("joint", "cartesian")
 _BANDWIDTH_MODES = ("fixed", "scott")
 _SAMPLINGS = ("uniform", "lhs", "grid")
 _DISTANCES = ("dtw", "euclidean")
-_PROPOSALS = ("prior", "sequential")
+_PROPOSALS = ("prior", "sequential", "sequential-js")
 _ESTIMATORS = ("argmax", "mean", "median", "outer")
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -92,7 +98,18 @@ class CamoConfig:
             "sequential" (the authors' code: task n > 1 draws from task n-1's KDE, a kept
             vector plus Gaussian noise of variance h, clipped in joint space to the observed
             hull (lo_i <= min observed q_i, hi_i >= max observed q_i) and in Cartesian space to
-            the prior box).
+            the prior box), or "sequential-js" (Cartesian space only; the authors' CS,
+            ``camo-seq-cs``): the candidates come from the JS chain's sequential proposal (the
+            last task's joint-space acceptances, epsilon ``js_epsilon``, clipped to the observed
+            joint hull), so it reads the joint observations for its proposals as their code
+            does; each candidate is simulated once and scored in both spaces (the JS score
+            only feeds the next proposal; a task where JS accepts nothing keeps the last bank,
+            as theirs). One difference: their CS at task n scores draws from the JS KDE after
+            task n, ours the bank JS scores at task n (after task n-1), so that one simulation
+            per candidate serves both and the budget stays b per task.
+        js_epsilon: the JS chain's joint-space epsilon for ``proposal="sequential-js"``
+            (the authors' ``THRESH`` 0.02); the chain keeps at most ``keep_best`` of those (None:
+            its best ``keep_best``).
         estimator: the point estimate: "argmax" (Eq. 6, the paper), "mean" (weighted by the
             joint density), "median" (coordinate-wise weighted median) or "outer" (each lower
             bound at its ``outer_quantile`` weighted quantile, each upper bound at 1 -
@@ -129,6 +146,7 @@ class CamoConfig:
     proposal: str = "prior"
     estimator: str = "argmax"
     outer_quantile: float = 0.05
+    js_epsilon: float | None = None
 
     def __post_init__(self):
         if self.epsilon is None and self.keep_best is None:
@@ -144,6 +162,14 @@ class CamoConfig:
         check_choice(self.sampling, _SAMPLINGS, "sampling")
         check_choice(self.distance, _DISTANCES, "distance")
         check_choice(self.proposal, _PROPOSALS, "proposal")
+        if self.proposal == "sequential-js":
+            if self.space != "cartesian":
+                raise ValueError("proposal: 'sequential-js' scores Cartesian observations; needs space='cartesian'")
+            if self.js_epsilon is None and self.keep_best is None:
+                raise ValueError("js_epsilon: proposal='sequential-js' with keep_best=None needs the JS "
+                                 "chain's epsilon")
+        if self.js_epsilon is not None:
+            check_positive_float(self.js_epsilon, "js_epsilon")
         check_choice(self.estimator, _ESTIMATORS, "estimator")
         check_positive_float(self.outer_quantile, "outer_quantile")
         if self.outer_quantile > 0.5:
@@ -170,6 +196,7 @@ class TaskRecord:
     time_simulate: float
     time_distance: float
     time_kde: float
+    n_nonfinite: int = 0  # candidates whose simulation held NaN/inf (rejected)
 
 
 class Camo:
@@ -210,6 +237,7 @@ class Camo:
         self._kdes: list[GaussianKDE] = []
         self._kept = torch.empty(0, self.prior.dim, dtype=torch.float64)  # Q_all (M, 2n)
         self._logp = torch.empty(0, dtype=torch.float64)  # (M,) sum_n log P_n(Q_all)
+        self._js_bank: tuple[torch.Tensor, torch.Tensor] | None = None  # sequential-js: (kept, h)
 
     @property
     def n_tasks(self) -> int:
@@ -225,11 +253,12 @@ class Camo:
         """(M,) sum over observed tasks of log P_n at each kept vector (Eq. 6)."""
         return self._logp
 
-    def observe(self, start, goal, trajectory) -> TaskRecord:
+    def observe(self, start, goal, trajectory, joint_trajectory=None) -> TaskRecord:
         """Add one observed task.
 
         start: (n,) start posture; goal: (3,); trajectory: (L, n) joint or (L, 3) Cartesian
-        observations (``config.space``), valid steps only.
+        observations (``config.space``), valid steps only; joint_trajectory: (L, n), needed
+        (only) by ``proposal="sequential-js"``.
         """
         sim, cfg, n = self.simulator, self.config, self.simulator.n_joints
         start = as_tensor(start, "start", dtype=torch.float64).cpu()
@@ -244,29 +273,58 @@ class Camo:
             raise ValueError(f"trajectory: expected shape (L, {dim}) for space={cfg.space!r}, got {tuple(traj.shape)}")
         for t, name in ((start, "start"), (goal, "goal"), (traj, "trajectory")):
             check_finite(t, name)
+        js_traj = None
+        if cfg.proposal == "sequential-js":
+            if joint_trajectory is None:
+                raise ValueError("joint_trajectory: proposal='sequential-js' reads the joint observations")
+            js_traj = as_tensor(joint_trajectory, "joint_trajectory", dtype=torch.float64).cpu()
+            if js_traj.dim() != 2 or js_traj.shape[1] != n or js_traj.shape[0] < 1:
+                raise ValueError(f"joint_trajectory: expected shape (L, {n}), got {tuple(js_traj.shape)}")
+            check_finite(js_traj, "joint_trajectory")
         idx = self.n_tasks
-        if cfg.space == "joint" and (cfg.contain_observed or cfg.proposal == "sequential"):
+        hull_traj = traj if cfg.space == "joint" else js_traj
+        if hull_traj is not None and (cfg.contain_observed or cfg.proposal != "prior"):
             k_sigma = self.noise.tolerance("joint")
-            self._hull = self._hull.containing(torch.cat([start.unsqueeze(0), traj]), tol=max(1e-5, k_sigma),
+            self._hull = self._hull.containing(torch.cat([start.unsqueeze(0), hull_traj]), tol=max(1e-5, k_sigma),
                                                margin=k_sigma)
         if cfg.contain_observed:
             self._draw_prior = self._hull
         proposal = self._draw_prior
-        if cfg.proposal == "sequential" and self.records:
-            last = self.records[-1]
+        last = next((r for r in reversed(self.records) if r.kept.shape[0]), None)
+        bank = (last.kept, last.bandwidth) if cfg.proposal == "sequential" and last is not None else None
+        if cfg.proposal == "sequential-js":
+            bank = self._js_bank
+        if bank is not None:
             sd = torch.zeros(self.prior.dim, dtype=torch.float64)
-            sd[self._free] = last.bandwidth.sqrt()
-            box = self._hull if cfg.space == "joint" else self.prior
-            proposal = KdeProposal(last.kept, sd, box.low, box.high)
+            sd[self._free] = bank[1].sqrt()
+            box = self._hull if cfg.space == "joint" or cfg.proposal == "sequential-js" else self.prior
+            proposal = KdeProposal(bank[0], sd, box.low, box.high)
 
         t0 = time.perf_counter()
         b_total = self.n_samples
         sizes = [min(cfg.chunk_size, b_total - c) for c in range(0, b_total, cfg.chunk_size)]
         jobs = [(self.seed, idx, c, b) for c, b in enumerate(sizes)]
         parts = run_chunks(_candidate_chunk, jobs, simulator=sim, n_simulations=b_total, scheduler=cfg.scheduler,
-                           prior=proposal, start=start, goal=goal, trajectory=traj, config=cfg, noise=self.noise)
+                           prior=proposal, start=start, goal=goal, trajectory=traj, config=cfg, noise=self.noise,
+                           js_trajectory=js_traj)
         theta = torch.cat([p["theta"] for p in parts])
         dist = torch.cat([p["dist"] for p in parts])
+        n_nonfinite = sum(p["n_nonfinite"] for p in parts)
+        if n_nonfinite:
+            warnings.warn(f"task {idx}: {n_nonfinite} of {b_total} candidate simulations were not finite "
+                          f"(NaN/inf); rejected", RuntimeWarning, stacklevel=2)
+        if js_traj is not None:  # the JS chain: its acceptances are the next task's bank
+            d_js = torch.cat([p["dist_js"] for p in parts])
+            js_keep = torch.argsort(d_js, stable=True)
+            js_keep = js_keep[torch.isfinite(d_js[js_keep])]
+            if cfg.js_epsilon is not None:
+                js_keep = js_keep[: int((d_js < cfg.js_epsilon).sum())]
+            if cfg.keep_best is not None:
+                js_keep = js_keep[: cfg.keep_best]
+            if js_keep.numel():  # none accepted: the last bank stays (as the authors' code)
+                js_free = theta[js_keep][:, self._free]
+                self._js_bank = (theta[js_keep], scott_bandwidth(js_free) if cfg.bandwidth_mode == "scott"
+                                 else torch.full((js_free.shape[1],), cfg.bandwidth, dtype=torch.float64))
         t_sim = sum(p["time_simulate"] for p in parts)
         t_dist = sum(p["time_distance"] for p in parts)
         # wall-clock split in proportion to the chunks' own timings
@@ -296,10 +354,14 @@ class Camo:
         else:
             keep = order[: cfg.keep_best]
         if not bool(torch.isfinite(dist[keep]).all()):
-            # pruned distances are +inf only beyond epsilon / the k-th best: keep the finite ones
+            # pruned distances are +inf only beyond epsilon / the k-th best, or for candidates
+            # whose simulation was not finite: keep the finite ones
             keep = keep[torch.isfinite(dist[keep])]
-            if keep.numel() == 0:
-                raise RuntimeError(f"task {idx}: every candidate distance is infinite")
+        if keep.numel() == 0:  # no finite candidate at all: the task contributes nothing (failed)
+            h = torch.full((int(self._free.sum()),), cfg.bandwidth, dtype=torch.float64)
+            rec = TaskRecord(idx, theta[:0], dist[:0], n_eps, True, h, t1 - t0, t2 - t1, 0.0, n_nonfinite)
+            self.records.append(rec)
+            return rec
         q_new = theta[keep]
         free_new = q_new[:, self._free]
         h = (scott_bandwidth(free_new) if cfg.bandwidth_mode == "scott"
@@ -319,14 +381,16 @@ class Camo:
         self._logp = torch.cat([self._logp, logp_new])
         t3 = time.perf_counter()
 
-        rec = TaskRecord(idx, q_new, dist[keep].clone(), n_eps, fallback, h, t1 - t0, t2 - t1, t3 - t2)
+        rec = TaskRecord(idx, q_new, dist[keep].clone(), n_eps, fallback, h, t1 - t0, t2 - t1, t3 - t2,
+                         n_nonfinite)
         self.records.append(rec)
         return rec
 
     def observe_all(self, observations) -> Camo:
         """Observe a sequence of `Observation` in order (in ``config.space``); returns self."""
         for obs in observations:
-            self.observe(obs.start, obs.goal, obs.trajectory(self.config.space))
+            js = obs.trajectory("joint") if self.config.proposal == "sequential-js" else None
+            self.observe(obs.start, obs.goal, obs.trajectory(self.config.space), js)
         return self
 
     def estimate(self) -> np.ndarray:
@@ -334,6 +398,8 @@ class Camo:
         highest joint density over the tasks so far, Eq. 6)."""
         if not self.records:
             raise RuntimeError("estimate: no task observed yet; call observe() first")
+        if self._kept.shape[0] == 0:  # every task failed (no finite candidate): the prior's centre
+            return self.prior.with_known(0.5 * (self.prior.low + self.prior.high)).numpy()
         est = self.config.estimator
         if est == "argmax":
             return self._kept[int(torch.argmax(self._logp))].numpy().copy()
@@ -372,18 +438,30 @@ class Camo:
     def result(self, method: str = "camo", *, n_simulations: int = 0, wall_time: float = 0.0) -> PosteriorResult:
         """The posterior so far: kept vectors weighted by their joint density, and the argmax."""
         w = self.posterior_weights()
-        fallback = [r.index for r in self.records if r.fallback]
-        status = STATUS_OK
+        samples = self._kept.numpy().copy()
+        empty = [r.index for r in self.records if r.kept.shape[0] == 0]
+        fallback = [r.index for r in self.records if r.fallback and r.index not in empty]
+        nonfinite = {r.index: r.n_nonfinite for r in self.records if r.n_nonfinite}
+        reasons = []
         if fallback:
-            status = (f"fallback: task(s) {fallback} accepted nothing within epsilon={self.config.epsilon:.4g}; "
-                      f"kept their best {self.config.fallback_keep}")
+            reasons.append(f"task(s) {fallback} accepted nothing within epsilon={self.config.epsilon:.4g}; "
+                           f"kept their best {self.config.fallback_keep}")
+        if nonfinite:
+            reasons.append(f"non-finite (NaN/inf) candidate simulations rejected, per task {nonfinite}")
+        if empty:
+            reasons.append(f"task(s) {empty} had no finite candidate and contribute nothing")
+        status = STATUS_OK if not reasons else "fallback: " + "; ".join(reasons)
+        if samples.shape[0] == 0:
+            status = "failed: " + "; ".join(reasons) + "; the result is the prior's centre"
+            samples, w = self.estimate()[None], np.ones(1)
         return PosteriorResult(
-            method=method, samples=self._kept.numpy().copy(), weights=w, estimate=self.estimate(),
+            method=method, samples=samples, weights=w, estimate=self.estimate(),
             n_simulations=n_simulations, wall_time=wall_time, n_tasks=self.n_tasks, status=status,
             density=self.density(),
             extras={
                 "kept_per_task": [int(r.kept.shape[0]) for r in self.records],
                 "fallback_tasks": [r.index for r in self.records if r.fallback],
+                "nonfinite_candidates": [r.n_nonfinite for r in self.records],
                 "accepted_epsilon": [r.n_accepted_epsilon for r in self.records],
                 "ess": float(1.0 / np.sum(w**2)),
                 "time_simulate": sum(r.time_simulate for r in self.records),
@@ -413,10 +491,10 @@ class KdeProposal:
         return torch.clamp(self.points[idx] + noise * self.sd, min=self.low, max=self.high)
 
 
-def _distances(trajectory, sim_traj, lengths, config: CamoConfig, *, keep_best) -> torch.Tensor:
+def _distances(trajectory, sim_traj, lengths, config: CamoConfig, *, keep_best, epsilon=None) -> torch.Tensor:
     """(b,) distances of the simulations to the observed trajectory (``config.distance``)."""
     if config.distance == "dtw":
-        return dtw_distances(trajectory, sim_traj, lengths, epsilon=config.epsilon, keep_best=keep_best)
+        return dtw_distances(trajectory, sim_traj, lengths, epsilon=epsilon, keep_best=keep_best)
     T = sim_traj.shape[1]
     if trajectory.shape[0] > T:
         raise ValueError(f"trajectory: {trajectory.shape[0]} points, more than the simulations' horizon {T}; "
@@ -426,7 +504,7 @@ def _distances(trajectory, sim_traj, lengths, config: CamoConfig, *, keep_best) 
 
 
 def _candidate_chunk(job, *, simulator, prior, start, goal, trajectory, config: CamoConfig,
-                     noise: NoiseModel) -> dict:
+                     noise: NoiseModel, js_trajectory=None) -> dict:
     """One chunk of one task's candidates: draw, simulate, score (runs in-process or on a worker).
 
     ``job`` = (seed, task index, chunk index, size); the draws come from
@@ -443,16 +521,35 @@ def _candidate_chunk(job, *, simulator, prior, start, goal, trajectory, config: 
     dtype = _DTYPES[cfg.sim_dtype]
     sims = simulator.simulate(theta.to(dtype), goal.to(dtype), start.to(dtype))
     t1 = time.perf_counter()
-    sim_traj = sims.q if cfg.space == "joint" else sims.ee
-    if noise.sigma(cfg.space) > 0:  # compare like with like: the candidates seen through the same noise
-        sim_traj = noise.perturb(sim_traj, cfg.space, rng)
-    dist = _distances(trajectory, sim_traj, sims.length, cfg, keep_best=cfg.keep_best)
+    # a candidate whose simulation is not finite (NaN/inf: a failure of this method's own
+    # simulations, not of the user's data) is rejected: distance +inf, counted
+    finite = torch.isfinite(sims.q).flatten(1).all(1) & torch.isfinite(sims.ee).flatten(1).all(1)
+    n_nonfinite = int((~finite).sum())
+    ok = torch.ones_like(finite) if n_nonfinite == 0 else finite
+    dist, dist_fallback = _scores(trajectory, sims, ok, cfg.space, cfg, cfg.epsilon, noise, rng)
+    dist_js = None
+    if js_trajectory is not None:  # camo-seq-cs: the same candidates scored by the JS chain
+        dist_js, _ = _scores(js_trajectory, sims, ok, "joint", cfg, cfg.js_epsilon, noise, rng)
+    return {"theta": theta, "dist": dist, "dist_fallback": dist_fallback, "dist_js": dist_js,
+            "n_nonfinite": n_nonfinite, "time_simulate": t1 - t0, "time_distance": time.perf_counter() - t1}
+
+
+def _scores(trajectory, sims, ok, space, cfg: CamoConfig, epsilon, noise: NoiseModel, rng):
+    """(dist (b,), dist_fallback (b,) or None) of the simulations ``ok`` (the rest: +inf) in ``space``."""
+    sim_traj = (sims.q if space == "joint" else sims.ee)[ok]
+    lengths = sims.length[ok]
+    dist = torch.full((ok.shape[0],), torch.inf, dtype=torch.float64)
     dist_fallback = None
-    if cfg.epsilon is not None and not bool((dist < cfg.epsilon).any()):
-        dist_fallback = (dist if cfg.distance == "euclidean"
-                         else dtw_distances(trajectory, sim_traj, sims.length, keep_best=cfg.fallback_keep))
-    return {"theta": theta, "dist": dist, "dist_fallback": dist_fallback,
-            "time_simulate": t1 - t0, "time_distance": time.perf_counter() - t1}
+    if sim_traj.shape[0] == 0:
+        return dist, (dist.clone() if epsilon is not None else None)
+    if noise.sigma(space) > 0:  # compare like with like: the candidates seen through the same noise
+        sim_traj = noise.perturb(sim_traj, space, rng)
+    dist[ok] = _distances(trajectory, sim_traj, lengths, cfg, keep_best=cfg.keep_best, epsilon=epsilon)
+    if epsilon is not None and not bool((dist < epsilon).any()):
+        dist_fallback = torch.full_like(dist, torch.inf)
+        dist_fallback[ok] = (dist[ok] if cfg.distance == "euclidean"
+                             else dtw_distances(trajectory, sim_traj, lengths, keep_best=cfg.fallback_keep))
+    return dist, dist_fallback
 
 
 def _camo_for(task, observations, budget, seed, config) -> tuple[Camo, tuple]:

@@ -68,6 +68,9 @@ class Capabilities:
         needs_truth: needs the true limits (synthetic studies only: the oracle).
         amortized: trained once per body model, no simulation per person.
         baseline: a trivial answer every table shows next to the methods.
+        also_reads: observation spaces read besides the scored one (camo-seq-cs: the joint
+            postures for its proposals, as the authors' CS); data without them is refused,
+            naming ``space``.
     """
 
     spaces: tuple[str, ...] = ("joint", "cartesian")
@@ -78,6 +81,7 @@ class Capabilities:
     needs_truth: bool = False
     amortized: bool = False
     baseline: bool = False
+    also_reads: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -203,6 +207,8 @@ def _prepare(name, task, observations, budget, seed, config):
     impl = spec.load()
     cfg = make_config(name, config)
     observations = check_observations(task, observations, space_of(name, cfg))
+    for other in spec.capabilities.also_reads:
+        check_observations(task, observations, other)
     budget = check_positive_int(budget, "budget")
     seed = check_positive_int(seed, "seed", minimum=0)
     if spec.capabilities.needs_truth:
@@ -374,17 +380,24 @@ _BASELINE = Capabilities(spaces=(), continual=True, simulates=False, posterior=F
 
 register(MethodSpec("camo", "CAMO (Algorithm 1): rejection sampling, per-task KDEs, product, argmax",
                     _camo, _CAMO))
-register(MethodSpec("camo-js", "CAMO on joint-space observations (the paper's CAMO-JS)", _camo,
+register(MethodSpec("camo-js", "CAMO on joint-space observations (the paper's CAMO-JS, Algorithm 1 as written: "
+                    "prior draws every task)", _camo,
                     replace(_CAMO, spaces=("joint",)), base="camo", defaults={"space": "joint"}, paper=True))
-register(MethodSpec("camo-cs", "CAMO on Cartesian observations (the paper's CAMO-CS)", _camo,
+register(MethodSpec("camo-cs", "CAMO on Cartesian observations (the paper's CAMO-CS, Algorithm 1 as written: "
+                    "prior draws every task)", _camo,
                     replace(_CAMO, spaces=("cartesian",)), base="camo", defaults={"space": "cartesian"},
                     paper=True))
 register(MethodSpec("camo-hull", "CAMO-JS with the prior conditioned on the observed postures (not in "
                     "the paper)", _camo, replace(_CAMO, spaces=("joint",)), base="camo",
                     defaults={"space": "joint", "contain_observed": True}))
-register(MethodSpec("camo-seq", "CAMO-JS with the authors' sequential proposals (each task draws from the "
-                    "last task's KDE, clipped to the observed hull)", _camo, replace(_CAMO, spaces=("joint",)),
-                    base="camo", defaults={"space": "joint", "proposal": "sequential"}))
+register(MethodSpec("camo-seq", "CAMO-JS as the authors' code runs it (their JS): sequential proposals, each "
+                    "task draws from the last task's KDE, clipped to the observed hull", _camo,
+                    replace(_CAMO, spaces=("joint",)), base="camo",
+                    defaults={"space": "joint", "proposal": "sequential"}, paper=True))
+register(MethodSpec("camo-seq-cs", "CAMO-CS as the authors' code runs it (their CS): Cartesian scores of "
+                    "candidates from the sequential JS bank (reads the joint observations for its proposals)",
+                    _camo, replace(_CAMO, spaces=("cartesian",), also_reads=("joint",)), base="camo",
+                    defaults={"space": "cartesian", "proposal": "sequential-js"}, paper=True))
 register(MethodSpec("naive", "observed min/max per joint (the paper's baseline)", _naive,
                     replace(_BASELINE, spaces=("joint",)), paper=True))
 register(MethodSpec("nominal", "the model's full range of motion (no inference)", _nominal, _BASELINE))

@@ -4,7 +4,8 @@ For each (chain, dtype) `generate_source` writes straight-line Python: the forwa
 kinematics and position Jacobian of that very chain with its constant transforms baked
 in (terms whose constant is exactly 0 are dropped, +-1 factors become signs, so a
 quarter-turn URDF origin costs no arithmetic), followed by the controller step of
-`controller.py` (closed-form 3x3 solve, no linalg call). Every float literal is wrapped
+`controller.py` (closed-form 3x3 solve, no linalg call; in a float32 kernel the solve runs in
+float64 when the damping is below float32 resolution, as `controller.py` says). Every float literal is wrapped
 in the kernel's dtype ``F(...)`` so float32 maths never promotes to float64.
 
 The source is written once to a cache directory (``$CAMO_SBI_KERNEL_CACHE``, else
@@ -44,11 +45,12 @@ import numpy as np
 from camo_sbi._io import atomic_write_bytes, check_private_dir, make_private_dir
 from camo_sbi._threads import default_workers, run_chunks
 from camo_sbi.simulators.chain import ChainSpec
+from camo_sbi.simulators.controller import SOLVE64_BELOW_LAMBDA2
 
 __all__ = ["KernelCacheWarning", "cache_dir", "check_cache_dir", "generate_source", "kernel_fk",
            "kernel_simulate", "load_kernel", "source_digest"]
 
-GENERATOR_VERSION = "6"
+GENERATOR_VERSION = "7"
 _DTYPES = {np.dtype(np.float32): "float32", np.dtype(np.float64): "float64"}
 
 # --------------------------------------------------------------------------- symbolic code
@@ -159,6 +161,55 @@ def _fk(w: _Writer, spec: ChainSpec, name_x=("x0", "x1", "x2")):
     return pe, joints
 
 
+def _solve(w: _Writer, out: _Writer, cols, n: int, cast: str, sfx: str) -> None:
+    """Emit the damped step into ``out`` (at ``w``'s indent): r = v - J dq0 ; A = J J^T + lam2 I ;
+    w = A^-1 r ; d = J^T w + dq0, in the kernel's dtype (``cast="F"``) or in float64 (``"D"``:
+    the Jacobian, dq0, v and lambda^2 cast in, d cast back to F), temporaries suffixed ``sfx``."""
+    J = range(n)
+    if cast == "D":
+        for k in J:
+            for r in range(3):
+                w.line(f"j{k}_{r}{sfx} = D({w.expr(cols[k][r])})")
+        jc = [[_var(f"j{k}_{r}{sfx}") for r in range(3)] for k in J]
+        for k in J:
+            w.line(f"n{k}{sfx} = D(n{k})")
+        for r in range(3):
+            w.line(f"v{r}{sfx} = D(v{r})")
+        w.line(f"lam2{sfx} = D(lam2)")
+    else:
+        jc = cols
+    nv = [_var(f"n{k}{sfx}") for k in J]
+    for r in range(3):
+        w.mat(_lin([(1.0, _var(f"v{r}{sfx}"))] + [(-1.0, _mul(jc[k][r], nv[k])) for k in J]), name=f"r{r}{sfx}")
+    for r, c in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+        e = _add(*[_mul(jc[k][r], jc[k][c]) for k in J])
+        if r == c:
+            e = _add(e, _var(f"lam2{sfx}"))
+        w.mat(e, name=f"a{r}{c}{sfx}")
+    x = sfx
+    for line in (
+        f"i00{x} = a11{x} * a22{x} - a12{x} * a12{x}",
+        f"i01{x} = a02{x} * a12{x} - a01{x} * a22{x}",
+        f"i02{x} = a01{x} * a12{x} - a02{x} * a11{x}",
+        f"i11{x} = a00{x} * a22{x} - a02{x} * a02{x}",
+        f"i12{x} = a01{x} * a02{x} - a00{x} * a12{x}",
+        f"i22{x} = a00{x} * a11{x} - a01{x} * a01{x}",
+        f"idet{x} = {cast}(1.0) / (a00{x} * i00{x} + a01{x} * i01{x} + a02{x} * i02{x})",
+        f"w0{x} = (i00{x} * r0{x} + i01{x} * r1{x} + i02{x} * r2{x}) * idet{x}",
+        f"w1{x} = (i01{x} * r0{x} + i11{x} * r1{x} + i12{x} * r2{x}) * idet{x}",
+        f"w2{x} = (i02{x} * r0{x} + i12{x} * r1{x} + i22{x} * r2{x}) * idet{x}",
+    ):
+        w.line(line)
+    for k in J:
+        e = _add(*[_mul(jc[k][r], _var(f"w{r}{sfx}")) for r in range(3)], nv[k])
+        if cast == "D":
+            w.mat(e, name=f"dd{k}{sfx}")
+            w.line(f"d{k} = F(dd{k}{sfx})")
+        else:
+            w.mat(e, name=f"d{k}")
+    out.lines.extend(w.lines)
+
+
 def generate_source(spec: ChainSpec, dtype, *, cache: bool = True) -> str:
     """Python source of the numba module for ``spec`` in ``dtype`` (np.float32 / np.float64).
 
@@ -181,6 +232,7 @@ def generate_source(spec: ChainSpec, dtype, *, cache: bool = True) -> str:
         "from numba import njit",
         "",
         f"F = np.{dt}",
+        "D = np.float64",
         "",
     ]
 
@@ -212,30 +264,15 @@ def generate_source(spec: ChainSpec, dtype, *, cache: bool = True) -> str:
             col = z
         cols.append(col)
     step = _Writer(" " * 12)
-    # r = v - J dq0 ; A = J J^T + lam2 I ; w = A^-1 r ; dq = J^T w + dq0
-    for r in range(3):
-        step.mat(_lin([(1.0, _var(f"v{r}"))] + [(-1.0, _mul(cols[k][r], _var(f"n{k}"))) for k in J]), name=f"r{r}")
-    for r, c in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
-        e = _add(*[_mul(cols[k][r], cols[k][c]) for k in J])
-        if r == c:
-            e = _add(e, _var("lam2"))
-        step.mat(e, name=f"a{r}{c}")
-    sim_lines_step = [
-        "i00 = a11 * a22 - a12 * a12",
-        "i01 = a02 * a12 - a01 * a22",
-        "i02 = a01 * a12 - a02 * a11",
-        "i11 = a00 * a22 - a02 * a02",
-        "i12 = a01 * a02 - a00 * a12",
-        "i22 = a00 * a11 - a01 * a01",
-        "idet = F(1.0) / (a00 * i00 + a01 * i01 + a02 * i02)",
-        "w0 = (i00 * r0 + i01 * r1 + i02 * r2) * idet",
-        "w1 = (i01 * r0 + i11 * r1 + i12 * r2) * idet",
-        "w2 = (i02 * r0 + i12 * r1 + i22 * r2) * idet",
-    ]
-    for line in sim_lines_step:
-        step.line(line)
-    for k in J:
-        step.mat(_add(*[_mul(cols[k][r], _var(f"w{r}")) for r in range(3)], _var(f"n{k}")), name=f"d{k}")
+    if dt == "float64":
+        _solve(_Writer(" " * 12), step, cols, n, "F", "")
+    else:  # float32: the solve in float64 when lambda^2 lies below float32 resolution (controller.py)
+        step.line(f"if lam2 < F({SOLVE64_BELOW_LAMBDA2!r}):")
+        _solve(_Writer(" " * 16), step, cols, n, "D", "_d")
+        step.line("else:")
+        _solve(_Writer(" " * 16), step, cols, n, "F", "")
+    for k in J:  # the authors' hard-limit penalty (0 unless lg > 0 and q outside its limits)
+        step.line(f"d{k} = d{k} + lg * (max(lo{k} - q{k}, F(0.0)) + max(q{k} - hi{k}, F(0.0)))")
 
     i3 = " " * 12
     i4 = " " * 16
@@ -243,7 +280,7 @@ def generate_source(spec: ChainSpec, dtype, *, cache: bool = True) -> str:
     sim_src = [
         jit,
         "def simulate(c, n_chunks, theta, goal, start, n_steps, tol, gain, lam2, max_cart, max_joint, null_gain,",
-        "             kd, early_stop, q_out, x_out, length, reached):",
+        "             kd, early_stop, lg, lbuf, lcap, q_out, x_out, length, reached):",
         "    B = theta.shape[0]",
         "    for b in range(c * B // n_chunks, (c + 1) * B // n_chunks):",
         *[f"        lo{k} = theta[b, {2 * k}]\n        hi{k} = theta[b, {2 * k + 1}]" for k in J],
@@ -282,6 +319,10 @@ def generate_source(spec: ChainSpec, dtype, *, cache: bool = True) -> str:
         f"{i4}sc = max_cart / vn",
         *[f"{i4}v{r} = v{r} * sc" for r in range(3)],
         *[f"{i3}n{k} = null_gain * (md{k} - q{k})" for k in J],
+        # the authors' null-space push within lbuf of a limit (their upper term as written)
+        f"{i3}if lg > F(0.0):",
+        *[f"{i4}n{k} = n{k} + F(2.0) * lg * min(max(lo{k} + lbuf - q{k}, F(0.0)), lcap)"
+          f" + F(2.0) * lg * min(max(q{k} - hi{k} - lbuf, F(0.0)), lcap)" for k in J],
         *step.lines,
         f"{i3}m = abs(d0)",
         *[f"{i3}m = max(m, abs(d{k}))" for k in range(1, n)],
@@ -376,7 +417,7 @@ def _signatures(dtype) -> dict[str, tuple]:
     a1 = lambda t: types.Array(t, 1, "C")  # noqa: E731
     a2, a3 = types.Array(F, 2, "C"), types.Array(F, 3, "C")
     i = types.int64
-    return {"simulate": (i, i, a2, a2, a2, i, F, F, F, F, F, F, F, types.boolean, a3, a3, a1(i),
+    return {"simulate": (i, i, a2, a2, a2, i, F, F, F, F, F, F, F, types.boolean, F, F, F, a3, a3, a1(i),
                          a1(types.boolean))}
 
 
@@ -494,7 +535,8 @@ def kernel_fk(spec: ChainSpec, q: np.ndarray) -> np.ndarray:
 def kernel_simulate(spec: ChainSpec, theta: np.ndarray, goal: np.ndarray, start: np.ndarray, *,
                     max_steps: int, tol: float, gain: float, damping: float,
                     max_cartesian_step: float, max_joint_step: float, null_gain: float,
-                    derivative_gain: float = 0.0, early_stop: bool = True, out=None):
+                    derivative_gain: float = 0.0, early_stop: bool = True, limit_gain: float = 0.0,
+                    limit_buffer: float = 0.01, limit_cap: float = 0.2, out=None):
     """Run the controller: theta (B, 2n), goal (B, 3), start (B, n), all C-contiguous, one dtype.
 
     Returns (q (B, T, n), ee (B, T, 3), length (B,) int64, reached (B,) bool); ``out`` may
@@ -508,7 +550,8 @@ def kernel_simulate(spec: ChainSpec, theta: np.ndarray, goal: np.ndarray, start:
                np.empty(B, np.int64), np.empty(B, np.bool_))
     _run(load_kernel(spec, dtype).simulate, B,
          theta, goal, start, np.int64(T), F(tol), F(gain), F(damping * damping),
-         F(max_cartesian_step), F(max_joint_step), F(null_gain), F(derivative_gain), bool(early_stop), *out)
+         F(max_cartesian_step), F(max_joint_step), F(null_gain), F(derivative_gain), bool(early_stop),
+         F(limit_gain), F(limit_buffer), F(limit_cap), *out)
     return out
 
 

@@ -180,6 +180,7 @@ class KinematicSimulator:
                         max_steps=T, tol=c.tol, gain=c.gain, damping=c.damping,
                         max_cartesian_step=c.max_cartesian_step, max_joint_step=c.max_joint_step,
                         null_gain=c.null_gain, derivative_gain=c.derivative_gain, early_stop=c.early_stop,
+                        limit_gain=c.limit_gain, limit_buffer=c.limit_buffer, limit_cap=c.limit_cap,
                         out=(q.numpy(), ee.numpy(), length.numpy(), reached.numpy()))
         return Trajectories(q, ee, length, reached)
 
