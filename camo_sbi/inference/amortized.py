@@ -152,7 +152,8 @@ __all__ = [
     "train",
 ]
 
-FORMAT = "camo_sbi.amortized/1"
+FORMAT = "camo_sbi.amortized/2"  # /2: the metadata carries the payload's sha256
+_FORMAT_1 = "camo_sbi.amortized/1"
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 FORMS = ("set", "per-reach")
 COMBINE = ("mcmc", "is", "smc")  # samplers of the per-reach form's product posterior
@@ -229,9 +230,11 @@ class TrainConfig:
     sim_dtype: str = "float32"
     n_threads: int | None = 1
     balance: float = 0.0
+    lr_schedule: str = "constant"
 
     def __post_init__(self):
         check_positive_int(self.simulations, "simulations", minimum=10)
+        check_choice(self.lr_schedule, sbi_adapter.LR_SCHEDULES, "lr_schedule")
         check_positive_float(self.balance, "balance", allow_zero=True)
         check_choice(self.form, FORMS, "form")
         check_positive_int(self.max_set, "max_set", minimum=2)
@@ -278,6 +281,7 @@ class TrainConfig:
         d["noise"] = NoiseModel(**d["noise"])
         d["spaces"] = tuple(d["spaces"])
         d.setdefault("balance", 0.0)  # files written before the setting existed
+        d.setdefault("lr_schedule", "constant")
         return cls(**d)
 
 
@@ -554,14 +558,23 @@ _SET_EMBED = 64
 _SET_EMBEDDING = "pooled-mean-max-min-phi/1"
 
 
-def _new_flow(settings: TrainConfig, n_inputs: int, n_conditions: int, seed: int) -> nn.Module:
-    """The untrained flow of ``settings.form``; ``n_conditions``: features per reach."""
+def _new_flow(settings: TrainConfig, n_inputs: int, n_conditions: int, seed: int, *,
+              reader: bool = False) -> nn.Module:
+    """The untrained flow of ``settings.form``; ``n_conditions``: features per reach.
+
+    ``reader``: the NSF built as `sbi_adapter.NsfReader` (inference only, no sbi import; the
+    weights must then be loaded), else sbi's trainable flow."""
     is_set = settings.form == "set"
-    net = sbi_adapter.build_flow(settings.density_estimator, n_inputs, _SET_EMBED if is_set else n_conditions,
-                                 hidden_features=settings.hidden_features,
-                                 num_transforms=settings.num_transforms,
-                                 embedding_dim=None if is_set else settings.embedding_dim,
-                                 embedding_hidden=settings.embedding_hidden, seed=seed)
+    if reader:
+        net = sbi_adapter.NsfReader(n_inputs, _SET_EMBED if is_set else n_conditions,
+                                    hidden_features=settings.hidden_features,
+                                    num_transforms=settings.num_transforms)
+    else:
+        net = sbi_adapter.build_flow(settings.density_estimator, n_inputs, _SET_EMBED if is_set else n_conditions,
+                                     hidden_features=settings.hidden_features,
+                                     num_transforms=settings.num_transforms,
+                                     embedding_dim=None if is_set else settings.embedding_dim,
+                                     embedding_hidden=settings.embedding_hidden, seed=seed)
     if not is_set:
         return _Flow(net, n_inputs, n_conditions)
     with torch.random.fork_rng(devices=[]):
@@ -758,8 +771,9 @@ class AmortizedEstimator:
     def to_bytes(self) -> bytes:
         state = {f"{space}.{k}": v.detach().cpu().clone() for space, f in self.flows.items()
                  for k, v in f.state_dict().items()}
+        metadata = {**self.metadata, "sha256": payload_sha256(self.metadata, state)}
         buf = io.BytesIO()
-        torch.save({"format": FORMAT, "metadata": json.dumps(self.metadata, sort_keys=True),
+        torch.save({"format": FORMAT, "metadata": json.dumps(metadata, sort_keys=True),
                     "state_dict": state}, buf)
         return buf.getvalue()
 
@@ -853,7 +867,7 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
                 learning_rate=config.learning_rate, validation_fraction=config.validation_fraction,
                 stop_after_epochs=config.stop_after_epochs, max_epochs=config.max_epochs,
                 max_seconds=config.max_train_seconds, progress=progress, desc=f"training {space}",
-                balance=config.balance, prior_log_prob=npe.logistic_log_prob)
+                balance=config.balance, prior_log_prob=npe.logistic_log_prob, lr_schedule=config.lr_schedule)
         info.pop("training_loss")
         info["n_invalid"] = int((~finite).sum())
         flows[space] = flow
@@ -882,19 +896,56 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
     return AmortizedEstimator(metadata, flows)
 
 
+def payload_sha256(metadata: dict, state: dict) -> str:
+    """sha256 of an estimator file's payload: its metadata (without the "sha256" entry, as sorted
+    JSON) and every tensor of its state dict (key, dtype, shape and raw bytes, in key order)."""
+    h = hashlib.sha256(json.dumps({k: v for k, v in metadata.items() if k != "sha256"}, sort_keys=True).encode())
+    for key in sorted(state):
+        t = state[key].detach().cpu().contiguous()
+        h.update(f"\n{key}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
+def _uses_reader(settings: TrainConfig) -> bool:
+    """Whether a loaded flow is evaluated by `sbi_adapter.NsfReader` (NSF without an sbi embedding net)."""
+    return settings.density_estimator == "nsf" and (settings.form == "set" or settings.embedding_dim is None)
+
+
 def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
-    """Rebuild an estimator from `AmortizedEstimator.to_bytes` (``torch.load(weights_only=True)``)."""
+    """Rebuild an estimator from `AmortizedEstimator.to_bytes` (``torch.load(weights_only=True)``).
+
+    The payload's sha256 (`payload_sha256`, stored in the metadata) is verified before anything
+    is built: a damaged or edited file is a ValueError naming it. NSF flows are rebuilt as
+    `sbi_adapter.NsfReader` (same weights, same draws, no sbi import); others through sbi.
+    """
     try:
         blob = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling error means "not our file"
-        raise ValueError(f"estimator: {name} is not a camo_sbi amortized estimator ({exc})") from exc
-    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+        raise ValueError(f"estimator: {name} is not a camo_sbi amortized estimator or is damaged "
+                         f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from exc
+    if not isinstance(blob, dict) or blob.get("format") not in (FORMAT, _FORMAT_1):
         found = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
         raise ValueError(f"estimator: {name} has format {found!r}, expected {FORMAT!r} (retrain it with this "
                          f"version of camo_sbi)")
-    meta = json.loads(blob["metadata"])
-    if meta.get("format") != FORMAT:
-        raise ValueError(f"estimator: {name}'s metadata has format {meta.get('format')!r}, expected {FORMAT!r}")
+    missing = [k for k in ("metadata", "state_dict") if k not in blob]
+    if missing or not isinstance(blob["metadata"], str) or not isinstance(blob["state_dict"], dict):
+        raise ValueError(f"estimator: {name} has no valid {' or '.join(missing) or 'metadata and state_dict'} "
+                         f"entry (damaged, or not written by `camo-sbi amortize`)")
+    if blob["format"] == _FORMAT_1:
+        raise ValueError(f"estimator: {name} has format {_FORMAT_1!r}, written before estimator files carried a "
+                         f"checksum; retrain it with `camo-sbi amortize` (format {FORMAT!r})")
+    try:
+        meta = json.loads(blob["metadata"])
+    except ValueError as exc:
+        raise ValueError(f"estimator: {name}'s metadata is not valid JSON (damaged file)") from exc
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise ValueError(f"estimator: {name}'s metadata has format {found!r}, expected {FORMAT!r}")
+    stored = meta.get("sha256")
+    if not isinstance(stored, str) or stored != payload_sha256(meta, blob["state_dict"]):
+        raise ValueError(f"estimator: {name} fails its sha256 check (stored {str(stored)[:12]}..., the payload "
+                         f"differs): the file is damaged or was edited; retrain it or restore a copy")
     settings = TrainConfig.from_json(meta["settings"])
     if settings.form == "set" and meta.get("set_embedding") != _SET_EMBEDDING:
         raise ValueError(f"estimator: {name} is a set-form estimator with set embedding "
@@ -905,7 +956,8 @@ def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
     for k, space in enumerate(settings.spaces):
         prefix = f"{space}."
         state = {key[len(prefix):]: v for key, v in blob["state_dict"].items() if key.startswith(prefix)}
-        flow = _new_flow(settings, n_in, meta["features"][space]["n_kept"], _seed(meta["seed"], 3, k))
+        flow = _new_flow(settings, n_in, meta["features"][space]["n_kept"], _seed(meta["seed"], 3, k),
+                         reader=_uses_reader(settings))
         try:
             flow.load_state_dict(state, strict=True)
         except RuntimeError as exc:
