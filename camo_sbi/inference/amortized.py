@@ -742,17 +742,19 @@ class AmortizedEstimator:
     @torch.no_grad()
     def sample_set(self, observations, space: str, n: int, seed: int, *, n_threads: int | None = 1):
         """(n, 2n) float64 draws of q(theta | the set of reaches) and their log densities (theta coordinates)."""
-        cond = self.set_condition(observations, space)
         flow = self.flows[space]
         lo, w = self.low[self.free_mask], (self.high - self.low)[self.free_mask]
+        # everything under n_threads: small element-wise ops on the default threads cost up to
+        # 100x more on a busy machine (measured: logsigmoid of (1000, 14) 49 ms vs 0.07 ms)
         with torch.random.fork_rng(devices=[]), npe.torch_threads(n_threads):
+            cond = self.set_condition(observations, space)
             torch.manual_seed(seed)
             z, lp = flow.sample_and_log_prob((n,), cond)
             z, lp = z.reshape(n, -1), lp.reshape(-1).double()
-        free, logdet = npe.from_unconstrained(z, lo, w, "logit")
-        theta = self.low.repeat(n, 1)
-        theta[:, self.free_mask] = free
-        return theta, lp - logdet
+            free, logdet = npe.from_unconstrained(z, lo, w, "logit")
+            theta = self.low.repeat(n, 1)
+            theta[:, self.free_mask] = free
+            return theta, lp - logdet
 
     def posterior(self, observations, space: str, *, n_threads: int | None = 1) -> npe.NpePosterior:
         """The combined posterior of the reaches (`npe.NpePosterior`, the same flow N times)."""

@@ -156,7 +156,8 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
     "cosine" (the rate falls per step from ``learning_rate`` to 0 along a half cosine over
     ``max_epochs`` epochs; an early stop cuts it short).
 
-    Returns {"epochs", "best_validation_loss", "training_loss", "validation_loss" (per epoch), "stopped" ("converged",
+    Returns {"epochs", "best_validation_loss", "training_loss", "validation_loss" (per epoch),
+    "epoch_seconds" (seconds from the start to the end of each epoch), "stopped" ("converged",
     "max_epochs" or "max_seconds"), "time_train", "n_train", "n_validation"}.
     """
     from tqdm import tqdm
@@ -191,7 +192,7 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
         total_steps = max_epochs * math.ceil(train.shape[0] / batch_size)
         step = 0
         best, best_state, since, stopped = math.inf, None, 0, "max_epochs"
-        history, val_history = [], []
+        history, val_history, clock = [], [], []
         bar = tqdm(range(max_epochs), desc=desc, unit="epoch", disable=not progress, leave=False)
         for _ in bar:
             estimator.train()
@@ -222,6 +223,7 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
                                for s in range(0, n_val, 8192)) / n_val)
             history.append(total / train.shape[0])
             val_history.append(vl)
+            clock.append(time.perf_counter() - t0)
             if vl < best:
                 best, since = vl, 0
                 best_state = copy.deepcopy(estimator.state_dict())
@@ -239,7 +241,7 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
         estimator.load_state_dict(best_state)
     estimator.eval()
     return {"epochs": len(history), "best_validation_loss": best, "training_loss": history,
-            "validation_loss": val_history, "stopped": stopped,
+            "validation_loss": val_history, "epoch_seconds": clock, "stopped": stopped,
             "time_train": time.perf_counter() - t0, "n_train": int(train.shape[0]), "n_validation": n_val}
 
 
