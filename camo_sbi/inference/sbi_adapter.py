@@ -157,7 +157,8 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
     ``max_epochs`` epochs; an early stop cuts it short).
 
     Returns {"epochs", "best_validation_loss", "training_loss", "validation_loss" (per epoch),
-    "epoch_seconds" (seconds from the start to the end of each epoch), "stopped" ("converged",
+    "epoch_seconds" and "epoch_cpu_seconds" (wall and process CPU seconds from the start to the
+    end of each epoch), "stopped" ("converged",
     "max_epochs" or "max_seconds"), "time_train", "n_train", "n_validation"}.
     """
     from tqdm import tqdm
@@ -192,7 +193,8 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
         total_steps = max_epochs * math.ceil(train.shape[0] / batch_size)
         step = 0
         best, best_state, since, stopped = math.inf, None, 0, "max_epochs"
-        history, val_history, clock = [], [], []
+        history, val_history, clock, cpu_clock = [], [], [], []
+        c0 = time.process_time()
         bar = tqdm(range(max_epochs), desc=desc, unit="epoch", disable=not progress, leave=False)
         for _ in bar:
             estimator.train()
@@ -224,6 +226,7 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
             history.append(total / train.shape[0])
             val_history.append(vl)
             clock.append(time.perf_counter() - t0)
+            cpu_clock.append(time.process_time() - c0)
             if vl < best:
                 best, since = vl, 0
                 best_state = copy.deepcopy(estimator.state_dict())
@@ -241,7 +244,8 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
         estimator.load_state_dict(best_state)
     estimator.eval()
     return {"epochs": len(history), "best_validation_loss": best, "training_loss": history,
-            "validation_loss": val_history, "epoch_seconds": clock, "stopped": stopped,
+            "validation_loss": val_history, "epoch_seconds": clock,
+            "epoch_cpu_seconds": cpu_clock, "stopped": stopped,
             "time_train": time.perf_counter() - t0, "n_train": int(train.shape[0]), "n_validation": n_val}
 
 
