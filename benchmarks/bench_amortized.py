@@ -29,7 +29,6 @@ import time
 
 import numpy as np
 
-
 _COLD = {
     "now": "from camo_sbi.inference.amortized import load_estimator; load_estimator(PATH)",
     "before": ("import json; from camo_sbi.inference import amortized as A; "

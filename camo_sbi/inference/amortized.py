@@ -107,7 +107,10 @@ importance sampler.
 **Files**: one ``torch.save`` dict {"format", "metadata" (JSON text), "state_dict"} read with
 ``torch.load(weights_only=True)``; the metadata (format version, model name and fingerprint:
 joint names, bounds, start, URDF and controller; prior box; spaces; summary settings; noise;
-feature masks; training cost) is checked against every task before use.
+feature masks; training cost; the sha256 of the payload, `payload_sha256`, verified before
+anything is built) is checked against every task before use. Loading rebuilds each NSF as
+`sbi_adapter.NsfReader` from the metadata and loads only its weights: no sbi import, the same
+draws (MAF flows, sbi embedding nets and one-input flows are rebuilt through sbi).
 """
 
 from __future__ import annotations
@@ -147,6 +150,7 @@ __all__ = [
     "TrainConfig",
     "load_estimator",
     "model_fingerprint",
+    "payload_sha256",
     "run",
     "simulate_training_set",
     "train",
