@@ -107,7 +107,10 @@ importance sampler.
 **Files**: one ``torch.save`` dict {"format", "metadata" (JSON text), "state_dict"} read with
 ``torch.load(weights_only=True)``; the metadata (format version, model name and fingerprint:
 joint names, bounds, start, URDF and controller; prior box; spaces; summary settings; noise;
-feature masks; training cost) is checked against every task before use.
+feature masks; training cost; the sha256 of the payload, `payload_sha256`, verified before
+anything is built) is checked against every task before use. Loading rebuilds each NSF as
+`sbi_adapter.NsfReader` from the metadata and loads only its weights: no sbi import, the same
+draws (MAF flows, sbi embedding nets and one-input flows are rebuilt through sbi).
 """
 
 from __future__ import annotations
@@ -143,16 +146,19 @@ from camo_sbi.task import SPACES, NoiseModel
 __all__ = [
     "AmortizedConfig",
     "AmortizedEstimator",
+    "FAST_SET_TRAINING",
     "FORMAT",
     "TrainConfig",
     "load_estimator",
     "model_fingerprint",
+    "payload_sha256",
     "run",
     "simulate_training_set",
     "train",
 ]
 
-FORMAT = "camo_sbi.amortized/1"
+FORMAT = "camo_sbi.amortized/2"  # /2: the metadata carries the payload's sha256
+_FORMAT_1 = "camo_sbi.amortized/1"
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 FORMS = ("set", "per-reach")
 COMBINE = ("mcmc", "is", "smc")  # samplers of the per-reach form's product posterior
@@ -161,6 +167,18 @@ _BOX_TOL = 1e-9
 
 
 # ----------------------------------------------------------------------------------- configs
+
+# The optimiser settings a TrainConfig takes when they are left None, per form: for now the same
+# for both. FAST_SET_TRAINING is the faster set-form alternative of
+# benchmarks/bench_amortized_train.py (50 000 Panda simulations: the same validation loss in
+# 2.85x less CPU time), NOT the default because the calibration got worse (mean |coverage -
+# alpha| 0.028 vs 0.015 on 30 subjects, 0.021 vs 0.012 on 60); on the per-reach MAF toy of
+# tests/test_amortized.py it moved an upper limit 5.6 posterior sd off.
+_OPTIMISER_DEFAULTS = {
+    "set": {"training_batch_size": 512, "learning_rate": 1e-3, "lr_schedule": "constant", "max_epochs": 40},
+    "per-reach": {"training_batch_size": 512, "learning_rate": 1e-3, "lr_schedule": "constant", "max_epochs": 40},
+}
+FAST_SET_TRAINING = {"training_batch_size": 2048, "learning_rate": 3e-3, "lr_schedule": "cosine", "max_epochs": 30}
 
 
 @dataclass(frozen=True)
@@ -191,13 +209,19 @@ class TrainConfig:
         hidden_features, num_transforms: flow size.
         embedding_dim, embedding_hidden: None, or an MLP embedding of the condition (3 layers of
             ``embedding_hidden`` units, ``embedding_dim`` outputs) trained with the flow.
-        training_batch_size, learning_rate, validation_fraction, stop_after_epochs,
+        training_batch_size, learning_rate, lr_schedule, validation_fraction, stop_after_epochs,
         max_epochs: maximum-likelihood training with early stopping (a batch holds
-            ``training_batch_size`` reaches: for the set form that many // max_set sets).
-            max_epochs = 40 keeps 200 000 Panda simulations under 20 minutes on 2 cores
-            (measured, set form, NSF: 14.7 min wall from a fresh clone with another job on the
-            second core, 13.4 min of CPU; per-reach MAF: 21.5 min at load 6-8); the validation
-            loss was still falling, so more epochs buy accuracy on a quieter machine.
+            ``training_batch_size`` reaches: for the set form that many // max_set sets;
+            ``lr_schedule`` "cosine" lowers the rate along a half cosine over ``max_epochs``,
+            "constant" keeps it). Left None, training_batch_size, learning_rate, lr_schedule
+            and max_epochs take the form's defaults (`_OPTIMISER_DEFAULTS`: 512 reaches, 1e-3,
+            constant, 40 epochs for both forms; 200 000 Panda simulations took 14.7 min, set
+            form, NSF, fresh clone). ``FAST_SET_TRAINING`` (2048, 3e-3, cosine, 30 epochs)
+            reaches the same validation loss in 2.85x less CPU time on 50 000 Panda
+            simulations but calibrates worse (`benchmarks/bench_amortized_train.py`, README
+            "Measured performance"), so it is an option, not the default.
+            `dataclasses.replace` keeps resolved values: replace ``form`` on a config built
+            with the other form's defaults and they stay.
         max_train_seconds: per space, stop after the epoch that crosses it (None: no limit).
         simulation_batch_size: trajectories per ``simulate`` call.
         sim_dtype: "float32" or "float64" for the simulations.
@@ -219,21 +243,26 @@ class TrainConfig:
     num_transforms: int = 5
     embedding_dim: int | None = None
     embedding_hidden: int = 128
-    training_batch_size: int = 512
-    learning_rate: float = 1e-3
+    training_batch_size: int | None = None
+    learning_rate: float | None = None
     validation_fraction: float = 0.05
     stop_after_epochs: int = 8
-    max_epochs: int = 40
+    max_epochs: int | None = None
     max_train_seconds: float | None = None
     simulation_batch_size: int = 10_000
     sim_dtype: str = "float32"
     n_threads: int | None = 1
     balance: float = 0.0
+    lr_schedule: str | None = None
 
     def __post_init__(self):
         check_positive_int(self.simulations, "simulations", minimum=10)
         check_positive_float(self.balance, "balance", allow_zero=True)
         check_choice(self.form, FORMS, "form")
+        for name, value in _OPTIMISER_DEFAULTS[self.form].items():  # None: the form's measured default
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
+        check_choice(self.lr_schedule, sbi_adapter.LR_SCHEDULES, "lr_schedule")
         check_positive_int(self.max_set, "max_set", minimum=2)
         if self.form == "set" and self.simulations < 10 * self.max_set:
             raise ValueError(f"simulations: the set form needs at least {10 * self.max_set} (10 sets of "
@@ -278,6 +307,7 @@ class TrainConfig:
         d["noise"] = NoiseModel(**d["noise"])
         d["spaces"] = tuple(d["spaces"])
         d.setdefault("balance", 0.0)  # files written before the setting existed
+        d.setdefault("lr_schedule", "constant")
         return cls(**d)
 
 
@@ -554,14 +584,23 @@ _SET_EMBED = 64
 _SET_EMBEDDING = "pooled-mean-max-min-phi/1"
 
 
-def _new_flow(settings: TrainConfig, n_inputs: int, n_conditions: int, seed: int) -> nn.Module:
-    """The untrained flow of ``settings.form``; ``n_conditions``: features per reach."""
+def _new_flow(settings: TrainConfig, n_inputs: int, n_conditions: int, seed: int, *,
+              reader: bool = False) -> nn.Module:
+    """The untrained flow of ``settings.form``; ``n_conditions``: features per reach.
+
+    ``reader``: the NSF built as `sbi_adapter.NsfReader` (inference only, no sbi import; the
+    weights must then be loaded), else sbi's trainable flow."""
     is_set = settings.form == "set"
-    net = sbi_adapter.build_flow(settings.density_estimator, n_inputs, _SET_EMBED if is_set else n_conditions,
-                                 hidden_features=settings.hidden_features,
-                                 num_transforms=settings.num_transforms,
-                                 embedding_dim=None if is_set else settings.embedding_dim,
-                                 embedding_hidden=settings.embedding_hidden, seed=seed)
+    if reader:
+        net = sbi_adapter.NsfReader(n_inputs, _SET_EMBED if is_set else n_conditions,
+                                    hidden_features=settings.hidden_features,
+                                    num_transforms=settings.num_transforms)
+    else:
+        net = sbi_adapter.build_flow(settings.density_estimator, n_inputs, _SET_EMBED if is_set else n_conditions,
+                                     hidden_features=settings.hidden_features,
+                                     num_transforms=settings.num_transforms,
+                                     embedding_dim=None if is_set else settings.embedding_dim,
+                                     embedding_hidden=settings.embedding_hidden, seed=seed)
     if not is_set:
         return _Flow(net, n_inputs, n_conditions)
     with torch.random.fork_rng(devices=[]):
@@ -729,17 +768,19 @@ class AmortizedEstimator:
     @torch.no_grad()
     def sample_set(self, observations, space: str, n: int, seed: int, *, n_threads: int | None = 1):
         """(n, 2n) float64 draws of q(theta | the set of reaches) and their log densities (theta coordinates)."""
-        cond = self.set_condition(observations, space)
         flow = self.flows[space]
         lo, w = self.low[self.free_mask], (self.high - self.low)[self.free_mask]
+        # everything under n_threads: small element-wise ops on the default threads cost up to
+        # 100x more on a busy machine (measured: logsigmoid of (1000, 14) 49 ms vs 0.07 ms)
         with torch.random.fork_rng(devices=[]), npe.torch_threads(n_threads):
+            cond = self.set_condition(observations, space)
             torch.manual_seed(seed)
             z, lp = flow.sample_and_log_prob((n,), cond)
             z, lp = z.reshape(n, -1), lp.reshape(-1).double()
-        free, logdet = npe.from_unconstrained(z, lo, w, "logit")
-        theta = self.low.repeat(n, 1)
-        theta[:, self.free_mask] = free
-        return theta, lp - logdet
+            free, logdet = npe.from_unconstrained(z, lo, w, "logit")
+            theta = self.low.repeat(n, 1)
+            theta[:, self.free_mask] = free
+            return theta, lp - logdet
 
     def posterior(self, observations, space: str, *, n_threads: int | None = 1) -> npe.NpePosterior:
         """The combined posterior of the reaches (`npe.NpePosterior`, the same flow N times)."""
@@ -758,8 +799,9 @@ class AmortizedEstimator:
     def to_bytes(self) -> bytes:
         state = {f"{space}.{k}": v.detach().cpu().clone() for space, f in self.flows.items()
                  for k, v in f.state_dict().items()}
+        metadata = {**self.metadata, "sha256": payload_sha256(self.metadata, state)}
         buf = io.BytesIO()
-        torch.save({"format": FORMAT, "metadata": json.dumps(self.metadata, sort_keys=True),
+        torch.save({"format": FORMAT, "metadata": json.dumps(metadata, sort_keys=True),
                     "state_dict": state}, buf)
         return buf.getvalue()
 
@@ -853,7 +895,7 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
                 learning_rate=config.learning_rate, validation_fraction=config.validation_fraction,
                 stop_after_epochs=config.stop_after_epochs, max_epochs=config.max_epochs,
                 max_seconds=config.max_train_seconds, progress=progress, desc=f"training {space}",
-                balance=config.balance, prior_log_prob=npe.logistic_log_prob)
+                balance=config.balance, prior_log_prob=npe.logistic_log_prob, lr_schedule=config.lr_schedule)
         info.pop("training_loss")
         info["n_invalid"] = int((~finite).sum())
         flows[space] = flow
@@ -882,19 +924,58 @@ def train(simulator, *, model: str, config: TrainConfig | None = None, seed: int
     return AmortizedEstimator(metadata, flows)
 
 
+def payload_sha256(metadata: dict, state: dict) -> str:
+    """sha256 of an estimator file's payload: its metadata (without the "sha256" entry, as sorted
+    JSON) and every tensor of its state dict (key, dtype, shape and raw bytes, in key order)."""
+    h = hashlib.sha256(json.dumps({k: v for k, v in metadata.items() if k != "sha256"}, sort_keys=True).encode())
+    for key in sorted(state):
+        t = state[key].detach().cpu().contiguous()
+        h.update(f"\n{key}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
+def _uses_reader(settings: TrainConfig, n_inputs: int) -> bool:
+    """Whether a loaded flow is evaluated by `sbi_adapter.NsfReader`: an NSF of 2+ inputs (sbi builds
+    a one-input NSF differently) without an sbi embedding net."""
+    return (settings.density_estimator == "nsf" and n_inputs > 1
+            and (settings.form == "set" or settings.embedding_dim is None))
+
+
 def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
-    """Rebuild an estimator from `AmortizedEstimator.to_bytes` (``torch.load(weights_only=True)``)."""
+    """Rebuild an estimator from `AmortizedEstimator.to_bytes` (``torch.load(weights_only=True)``).
+
+    The payload's sha256 (`payload_sha256`, stored in the metadata) is verified before anything
+    is built: a damaged or edited file is a ValueError naming it. NSF flows are rebuilt as
+    `sbi_adapter.NsfReader` (same weights, same draws, no sbi import); others through sbi.
+    """
     try:
         blob = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling error means "not our file"
-        raise ValueError(f"estimator: {name} is not a camo_sbi amortized estimator ({exc})") from exc
-    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+        raise ValueError(f"estimator: {name} is not a camo_sbi amortized estimator or is damaged "
+                         f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from exc
+    if not isinstance(blob, dict) or blob.get("format") not in (FORMAT, _FORMAT_1):
         found = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
         raise ValueError(f"estimator: {name} has format {found!r}, expected {FORMAT!r} (retrain it with this "
                          f"version of camo_sbi)")
-    meta = json.loads(blob["metadata"])
-    if meta.get("format") != FORMAT:
-        raise ValueError(f"estimator: {name}'s metadata has format {meta.get('format')!r}, expected {FORMAT!r}")
+    missing = [k for k in ("metadata", "state_dict") if k not in blob]
+    if missing or not isinstance(blob["metadata"], str) or not isinstance(blob["state_dict"], dict):
+        raise ValueError(f"estimator: {name} has no valid {' or '.join(missing) or 'metadata and state_dict'} "
+                         f"entry (damaged, or not written by `camo-sbi amortize`)")
+    if blob["format"] == _FORMAT_1:
+        raise ValueError(f"estimator: {name} has format {_FORMAT_1!r}, written before estimator files carried a "
+                         f"checksum; retrain it with `camo-sbi amortize` (format {FORMAT!r})")
+    try:
+        meta = json.loads(blob["metadata"])
+    except ValueError as exc:
+        raise ValueError(f"estimator: {name}'s metadata is not valid JSON (damaged file)") from exc
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise ValueError(f"estimator: {name}'s metadata has format {found!r}, expected {FORMAT!r}")
+    stored = meta.get("sha256")
+    if not isinstance(stored, str) or stored != payload_sha256(meta, blob["state_dict"]):
+        raise ValueError(f"estimator: {name} fails its sha256 check (stored {str(stored)[:12]}..., the payload "
+                         f"differs): the file is damaged or was edited; retrain it or restore a copy")
     settings = TrainConfig.from_json(meta["settings"])
     if settings.form == "set" and meta.get("set_embedding") != _SET_EMBEDDING:
         raise ValueError(f"estimator: {name} is a set-form estimator with set embedding "
@@ -905,7 +986,8 @@ def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
     for k, space in enumerate(settings.spaces):
         prefix = f"{space}."
         state = {key[len(prefix):]: v for key, v in blob["state_dict"].items() if key.startswith(prefix)}
-        flow = _new_flow(settings, n_in, meta["features"][space]["n_kept"], _seed(meta["seed"], 3, k))
+        flow = _new_flow(settings, n_in, meta["features"][space]["n_kept"], _seed(meta["seed"], 3, k),
+                         reader=_uses_reader(settings, n_in))
         try:
             flow.load_state_dict(state, strict=True)
         except RuntimeError as exc:

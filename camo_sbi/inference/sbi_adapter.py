@@ -49,6 +49,7 @@ SBI_SUPPORTED = ((0, 25), (0, 28))
 """Supported sbi versions: [0.25, 0.28), the range pyproject.toml pins."""
 
 FLOW_KINDS = ("maf", "nsf")
+LR_SCHEDULES = ("constant", "cosine")
 
 
 def sbi_version() -> tuple[int, ...]:
@@ -138,7 +139,8 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
                           validation_fraction: float = 0.05, stop_after_epochs: int = 10,
                           max_epochs: int = 100, max_seconds: float | None = None,
                           clip_max_norm: float = 5.0, progress: bool = False,
-                          desc: str = "training", balance: float = 0.0, prior_log_prob=None) -> dict:
+                          desc: str = "training", balance: float = 0.0, prior_log_prob=None,
+                          lr_schedule: str = "constant") -> dict:
     """Maximum-likelihood training of ``estimator`` on (input, condition) pairs, in place.
 
     Adam on ``estimator.loss`` (sbi's negative log-likelihood), gradient norms clipped at
@@ -150,9 +152,13 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
     logistic sigmoid, marginal pairs made by shuffling the inputs within the batch; it pushes
     the estimator toward conservative (not over-confident) posteriors. Seeded: the split,
     the batch order and any dropout come from ``seed`` inside ``fork_rng``. ``progress``: a tqdm
-    bar over epochs.
+    bar over epochs. ``lr_schedule``: "constant" (Adam at ``learning_rate`` throughout) or
+    "cosine" (the rate falls per step from ``learning_rate`` to 0 along a half cosine over
+    ``max_epochs`` epochs; an early stop cuts it short).
 
-    Returns {"epochs", "best_validation_loss", "training_loss", "stopped" ("converged",
+    Returns {"epochs", "best_validation_loss", "training_loss", "validation_loss" (per epoch),
+    "epoch_seconds" and "epoch_cpu_seconds" (wall and process CPU seconds from the start to the
+    end of each epoch), "stopped" ("converged",
     "max_epochs" or "max_seconds"), "time_train", "n_train", "n_validation"}.
     """
     from tqdm import tqdm
@@ -170,6 +176,7 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
     if max_seconds is not None:
         check_positive_float(max_seconds, "max_seconds")
     check_positive_float(balance, "balance", allow_zero=True)
+    check_choice(lr_schedule, LR_SCHEDULES, "lr_schedule")
     if balance > 0 and not callable(prior_log_prob):
         raise TypeError("prior_log_prob: balance > 0 needs a callable prior log density of the inputs")
     n = x.shape[0]
@@ -183,8 +190,11 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
         perm = torch.randperm(n, generator=gen)
         val, train = perm[:n_val], perm[n_val:]
         opt = torch.optim.Adam(estimator.parameters(), lr=learning_rate)
+        total_steps = max_epochs * math.ceil(train.shape[0] / batch_size)
+        step = 0
         best, best_state, since, stopped = math.inf, None, 0, "max_epochs"
-        history = []
+        history, val_history, clock, cpu_clock = [], [], [], []
+        c0 = time.process_time()
         bar = tqdm(range(max_epochs), desc=desc, unit="epoch", disable=not progress, leave=False)
         for _ in bar:
             estimator.train()
@@ -192,6 +202,10 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
             total = 0.0
             for s in range(0, order.shape[0], batch_size):
                 idx = order[s : s + batch_size]
+                if lr_schedule == "cosine":
+                    for group in opt.param_groups:
+                        group["lr"] = 0.5 * learning_rate * (1.0 + math.cos(math.pi * step / total_steps))
+                step += 1
                 opt.zero_grad()
                 nll = estimator.loss(x[idx], condition=c[idx])
                 loss = nll.mean()
@@ -210,6 +224,9 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
                 vl = float(sum(estimator.loss(x[val[s : s + 8192]], condition=c[val[s : s + 8192]]).sum()
                                for s in range(0, n_val, 8192)) / n_val)
             history.append(total / train.shape[0])
+            val_history.append(vl)
+            clock.append(time.perf_counter() - t0)
+            cpu_clock.append(time.process_time() - c0)
             if vl < best:
                 best, since = vl, 0
                 best_state = copy.deepcopy(estimator.state_dict())
@@ -226,7 +243,9 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
     if best_state is not None:
         estimator.load_state_dict(best_state)
     estimator.eval()
-    return {"epochs": len(history), "best_validation_loss": best, "training_loss": history, "stopped": stopped,
+    return {"epochs": len(history), "best_validation_loss": best, "training_loss": history,
+            "validation_loss": val_history, "epoch_seconds": clock,
+            "epoch_cpu_seconds": cpu_clock, "stopped": stopped,
             "time_train": time.perf_counter() - t0, "n_train": int(train.shape[0]), "n_validation": n_val}
 
 
@@ -349,3 +368,229 @@ def check_tarp(ecp, alpha) -> tuple[float, float]:
 
     atc, p = sbi_check_tarp(ecp, alpha)
     return float(atc), float(p)
+
+
+# ----------------------------------------------------------------------------------- a trained NSF without sbi
+
+
+class _Linear(nn.Module):
+    """The parameters of an ``nn.Linear`` (same state-dict keys), applied with ``F.linear``."""
+
+    def __init__(self, n_in: int, n_out: int):
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(n_out, n_in))
+        self.bias = nn.Parameter(torch.empty(n_out))
+
+    def forward(self, x):
+        return nn.functional.linear(x, self.weight, self.bias)
+
+
+class _ResidualBlock(nn.Module):
+    def __init__(self, hidden: int, n_context: int):
+        super().__init__()
+        self.context_layer = _Linear(n_context, hidden)
+        self.linear_layers = nn.ModuleList([_Linear(hidden, hidden), _Linear(hidden, hidden)])
+
+    def forward(self, x, context):
+        t = self.linear_layers[1](torch.relu(self.linear_layers[0](torch.relu(x))))
+        return x + nn.functional.glu(torch.cat((t, self.context_layer(context)), dim=1), dim=1)
+
+
+class _ResidualNet(nn.Module):
+    def __init__(self, n_in: int, n_out: int, hidden: int, n_context: int, num_blocks: int = 2):
+        super().__init__()
+        self.hidden_features = hidden
+        self.initial_layer = _Linear(n_in + n_context, hidden)
+        self.blocks = nn.ModuleList([_ResidualBlock(hidden, n_context) for _ in range(num_blocks)])
+        self.final_layer = _Linear(hidden, n_out)
+
+    def forward(self, x, context):
+        t = self.initial_layer(torch.cat((x, context), dim=1))
+        for block in self.blocks:
+            t = block(t, context)
+        return self.final_layer(t)
+
+
+_MIN_BIN, _MIN_DERIVATIVE = 1e-3, 1e-3  # nflows' defaults for widths, heights and derivatives
+
+
+def _rq_spline(x, uw, uh, ud, inverse: bool, bound: float):
+    """nflows' ``unconstrained_rational_quadratic_spline`` with linear tails (same operations)."""
+    inside = (x >= -bound) & (x <= bound)
+    ud = nn.functional.pad(ud, pad=(1, 1))
+    constant = math.log(math.exp(1 - _MIN_DERIVATIVE) - 1)
+    ud[..., 0] = constant
+    ud[..., -1] = constant
+    if not torch.any(inside):
+        return x.clone(), torch.zeros_like(x)
+    every = bool(inside.all())  # the usual case: no masking copies (same values either way)
+    if not every:
+        out, lad = x.clone(), torch.zeros_like(x)
+        x, uw, uh, ud = x[inside], uw[inside, :], uh[inside, :], ud[inside, :]
+    nb = uw.shape[-1]
+
+    def knots(u):
+        s = _MIN_BIN + (1 - _MIN_BIN * nb) * torch.softmax(u, dim=-1)
+        c = nn.functional.pad(torch.cumsum(s, dim=-1), pad=(1, 0), mode="constant", value=0.0)
+        c = 2 * bound * c - bound
+        c[..., 0] = -bound
+        c[..., -1] = bound
+        return c, c[..., 1:] - c[..., :-1]
+
+    cw, widths = knots(uw)
+    derivatives = _MIN_DERIVATIVE + nn.functional.softplus(ud)
+    ch, heights = knots(uh)
+    locations = ch if inverse else cw
+    locations[..., -1] += 1e-6
+    idx = (torch.sum(x[..., None] >= locations, dim=-1) - 1)[..., None]
+    in_cw = cw.gather(-1, idx)[..., 0]
+    in_w = widths.gather(-1, idx)[..., 0]
+    in_ch = ch.gather(-1, idx)[..., 0]
+    delta = heights / widths
+    in_delta = delta.gather(-1, idx)[..., 0]
+    in_d = derivatives.gather(-1, idx)[..., 0]
+    in_d1 = derivatives[..., 1:].gather(-1, idx)[..., 0]
+    in_h = heights.gather(-1, idx)[..., 0]
+    if inverse:
+        a = (x - in_ch) * (in_d + in_d1 - 2 * in_delta) + in_h * (in_delta - in_d)
+        b = in_h * in_d - (x - in_ch) * (in_d + in_d1 - 2 * in_delta)
+        c = -in_delta * (x - in_ch)
+        discriminant = b.pow(2) - 4 * a * c
+        root = (2 * c) / (-b - torch.sqrt(discriminant))
+        y = root * in_w + in_cw
+        t1 = root * (1 - root)
+        denominator = in_delta + ((in_d + in_d1 - 2 * in_delta) * t1)
+        numerator = in_delta.pow(2) * (in_d1 * root.pow(2) + 2 * in_delta * t1 + in_d * (1 - root).pow(2))
+        ld = -(torch.log(numerator) - 2 * torch.log(denominator))
+    else:
+        theta = (x - in_cw) / in_w
+        t1 = theta * (1 - theta)
+        numerator = in_h * (in_delta * theta.pow(2) + in_d * t1)
+        denominator = in_delta + ((in_d + in_d1 - 2 * in_delta) * t1)
+        y = in_ch + numerator / denominator
+        dnum = in_delta.pow(2) * (in_d1 * theta.pow(2) + 2 * in_delta * t1 + in_d * (1 - theta).pow(2))
+        ld = torch.log(dnum) - 2 * torch.log(denominator)
+    if every:
+        return y, ld
+    out[inside], lad[inside] = y, ld
+    return out, lad
+
+
+class _Coupling(nn.Module):
+    """nflows' ``PiecewiseRationalQuadraticCouplingTransform`` (linear tails), sbi's NSF settings."""
+
+    def __init__(self, n: int, hidden: int, n_context: int, even: bool, num_bins: int, bound: float):
+        super().__init__()
+        mask = torch.arange(n) % 2 == (0 if even else 1)  # sbi's create_alternating_binary_mask
+        self.register_buffer("identity_features", torch.nonzero(~mask).reshape(-1))
+        self.register_buffer("transform_features", torch.nonzero(mask).reshape(-1))
+        self.num_bins, self.bound = num_bins, bound
+        self.transform_net = _ResidualNet(int((~mask).sum()), int(mask.sum()) * (3 * num_bins - 1), hidden, n_context)
+
+    def run(self, x, context, inverse: bool):
+        ident, trans = x[:, self.identity_features], x[:, self.transform_features]
+        p = self.transform_net(ident, context).reshape(x.shape[0], trans.shape[1], -1)
+        nb, scale = self.num_bins, math.sqrt(self.transform_net.hidden_features)
+        y, lad = _rq_spline(trans, p[..., :nb] / scale, p[..., nb : 2 * nb] / scale, p[..., 2 * nb :], inverse,
+                            self.bound)
+        out = torch.empty_like(x)
+        out[:, self.identity_features] = ident
+        out[:, self.transform_features] = y
+        return out, lad.reshape(x.shape[0], -1).sum(dim=1)
+
+
+class _LULinear(nn.Module):
+    """nflows' ``LULinear`` (eps 1e-3): x -> L U x + bias with unit-diagonal L."""
+
+    def __init__(self, n: int):
+        super().__init__()
+        self.n = n
+        self.bias = nn.Parameter(torch.zeros(n))
+        self.lower_entries = nn.Parameter(torch.zeros(n * (n - 1) // 2))
+        self.upper_entries = nn.Parameter(torch.zeros(n * (n - 1) // 2))
+        self.unconstrained_upper_diag = nn.Parameter(torch.zeros(n))
+
+    def _lower_upper(self):
+        n = self.n
+        lo_i, up_i, dg = torch.tril_indices(n, n, -1), torch.triu_indices(n, n, 1), torch.arange(n)
+        lower = self.lower_entries.new_zeros(n, n)
+        lower[lo_i[0], lo_i[1]] = self.lower_entries
+        lower[dg, dg] = 1.0
+        diag = nn.functional.softplus(self.unconstrained_upper_diag) + 1e-3
+        upper = self.upper_entries.new_zeros(n, n)
+        upper[up_i[0], up_i[1]] = self.upper_entries
+        upper[dg, dg] = diag
+        return lower, upper, torch.sum(torch.log(diag))
+
+    def run(self, x, context, inverse: bool):
+        lower, upper, logdet = self._lower_upper()
+        if inverse:  # nflows' (deprecated) triangular_solve: solve_triangular differs in the last bit
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                y, _ = torch.triangular_solve((x - self.bias).t(), lower, upper=False, unitriangular=True)
+                y, _ = torch.triangular_solve(y, upper, upper=True, unitriangular=False)
+            return y.t(), -logdet * x.new_ones(x.shape[0])
+        y = nn.functional.linear(nn.functional.linear(x, upper), lower, self.bias)
+        return y, logdet * x.new_ones(x.shape[0])
+
+
+class NsfReader(nn.Module):
+    """A trained sbi NSF (`build_flow("nsf", ...)`, no embedding net) evaluated without importing sbi.
+
+    It holds the same parameters under the same state-dict keys as sbi's ``NFlowsFlow`` (so
+    ``load_state_dict(strict=True)`` reads a saved flow's weights) and performs the same
+    operations in the same order as nflows (Gaussian base, alternating rational-quadratic
+    coupling layers with linear tails and LU linear layers): the same seed gives the same
+    draws (``tests/test_amortized.py`` compares it with the sbi flow). For inference only:
+    ``sample``, ``sample_and_log_prob`` and ``log_prob`` with sbi's shapes; no training.
+    Importing sbi (and nflows, which imports matplotlib) costs ~2 s per process; this is
+    what makes a cold estimator load take a fraction of a second.
+    """
+
+    def __init__(self, n_inputs: int, n_conditions: int, *, hidden_features: int, num_transforms: int,
+                 num_bins: int = 10, tail_bound: float = 3.0):
+        super().__init__()
+        layers = []
+        for i in range(num_transforms):
+            layers += [_Coupling(n_inputs, hidden_features, n_conditions, i % 2 == 0, num_bins, tail_bound),
+                       _LULinear(n_inputs)]
+        self.net = nn.Module()
+        self.net._transform = nn.Module()
+        self.net._transform._transforms = nn.ModuleList(layers)
+        self.n_inputs = n_inputs
+        self._log_z = 0.5 * n_inputs * math.log(2 * math.pi)
+
+    def _cascade(self, x, context, inverse: bool):
+        total = x.new_zeros(x.shape[0])
+        layers = self.net._transform._transforms
+        for layer in (reversed(layers) if inverse else layers):
+            x, lad = layer.run(x, context, inverse)
+            total = total + lad
+        return x, total
+
+    def _base_log_prob(self, noise):
+        return -0.5 * (noise**2).reshape(noise.shape[0], -1).sum(dim=1) - torch.tensor(self._log_z,
+                                                                                       dtype=torch.float64)
+
+    @torch.no_grad()
+    def sample_and_log_prob(self, sample_shape, condition):
+        b, n = condition.shape[0], int(torch.Size(sample_shape).numel())
+        noise = torch.randn(b * n, self.n_inputs)
+        log_prob = self._base_log_prob(noise)
+        x, lad = self._cascade(noise, condition.repeat_interleave(n, dim=0), inverse=True)
+        return x.reshape((*sample_shape, b, -1)), (log_prob - lad).reshape((*sample_shape, -1))
+
+    @torch.no_grad()
+    def sample(self, sample_shape, condition):
+        b, n = condition.shape[0], int(torch.Size(sample_shape).numel())
+        x, _ = self._cascade(torch.randn(b * n, self.n_inputs), condition.repeat_interleave(n, dim=0), inverse=True)
+        return x.reshape(b, n, -1).transpose(0, 1).reshape((*sample_shape, b, self.n_inputs))
+
+    @torch.no_grad()
+    def log_prob(self, input, condition):  # noqa: A002 - sbi's argument name
+        x = input if input.dim() == 3 else input.unsqueeze(0)
+        s, b = x.shape[0], max(x.shape[1], condition.shape[0])
+        x = x.expand(s, b, x.shape[-1]).reshape(s * b, -1)
+        c = condition.expand(b, condition.shape[-1]).unsqueeze(0).expand(s, b, -1).reshape(s * b, -1)
+        noise, lad = self._cascade(x, c, inverse=False)
+        return (self._base_log_prob(noise) + lad).reshape(s, b)
