@@ -178,7 +178,8 @@ def test_reproduce_rerun_skips_finished_cells(repro):
         (["--sampling", "sobol"], "--sampling"),
         (["--subjects", "nobody"], "nobody"),
         (["--design", "active"], "--design: active design needs --setting informative"),
-        (["--setting", "informative", "--design", "active"], "--design: active is not available"),
+        (["--setting", "informative", "--design", "active", "--design-method", "naive"],
+         "--design-method: naive returns no posterior draws to design with"),
     ],
 )
 def test_reproduce_bad_options_exit_2(extra, needle, tmp_path, capsys):
