@@ -64,7 +64,7 @@ def test_goal_just_beyond_the_bound_ranks_first(toy, criterion):
     info = rank_goals(task, result, cands, seed=0, budget=len(ANGLES) * 100, criterion=criterion)
     assert info.status == "ok" and info.n_draws == 100 and info.n_simulations == 500
     assert list(info.index[:2]) == [4, 3]  # beyond the spread first, then within it
-    by_angle = dict(zip(info.index.tolist(), info.scores.tolist()))
+    by_angle = dict(zip(info.index.tolist(), info.scores.tolist(), strict=True))
     # goals inside every draw: ~0 (the controller's pull toward mid-range moves their end points by µm)
     assert max(by_angle[i] for i in range(3)) < 1e-3 * by_angle[4]
     if criterion == "variance":

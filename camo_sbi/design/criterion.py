@@ -36,8 +36,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from camo_sbi._validation import as_tensor, check_choice, check_finite, check_positive_float, check_positive_int, \
-    numpy_generator
+from camo_sbi._validation import (
+    as_tensor,
+    check_choice,
+    check_finite,
+    check_positive_float,
+    check_positive_int,
+    numpy_generator,
+)
 from camo_sbi.budget import CountingSimulator
 from camo_sbi.inference.result import PosteriorResult
 from camo_sbi.task import Task, contain
