@@ -10,6 +10,8 @@ hold out the same validation sets and differ only in the optimiser settings:
   constant 1e-3, at most 40 epochs);
 - "now": `amortized.FAST_SET_TRAINING` (2048 reaches, 3e-3 on a cosine schedule, 30 epochs),
   the faster alternative; not the default, because its calibration was worse (README).
+  ``--now-threads N`` also gives it N torch threads (both arms default to TrainConfig's one
+  thread); CPU seconds then stop being the guide, wall seconds on a quiet machine are.
 
 The comparison is at EQUAL VALIDATION LOSS: for each arm, the training seconds (process CPU
 and wall, per epoch from `fit_density_estimator`'s clocks) until its validation loss first
@@ -43,6 +45,8 @@ def main() -> None:
     p.add_argument("--simulations", type=int, default=50_000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--now-threads", type=int, default=None,
+                   help="torch threads of the 'now' arm (default: TrainConfig's, 1, as 'before')")
     args = p.parse_args()
 
     from camo_sbi.experiments.subjects import build_model
@@ -50,7 +54,10 @@ def main() -> None:
 
     before = TrainConfig(simulations=args.simulations)
     now = dataclasses.replace(before, **FAST_SET_TRAINING)
-    changed = {k: (getattr(before, k), getattr(now, k)) for k in BEFORE if getattr(before, k) != getattr(now, k)}
+    if args.now_threads is not None:
+        now = dataclasses.replace(now, n_threads=args.now_threads)
+    changed = {k: (getattr(before, k), getattr(now, k)) for k in (*BEFORE, "n_threads")
+               if getattr(before, k) != getattr(now, k)}
     print(f"model {args.model}, {args.simulations} simulations, seed {args.seed}; settings before -> now: {changed}")
     print(f"load average at start: {os.getloadavg()}")
     sim = build_model(args.model)

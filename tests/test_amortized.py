@@ -637,6 +637,7 @@ def test_amortize_bad_options_exit_2(extra, needle, tmp_path, capsys):
     assert len(err) == 1 and needle in err[0], err
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_amortize_then_compare_with_the_file(tmp_path):
     import pandas as pd
 

@@ -268,6 +268,7 @@ def _args(out, seed=0):
                               "--keep-best", "15", "--seed", str(seed), "--out", str(out)])
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_hrc_experiment_small_is_seeded(tmp_path):
     import pandas as pd
 

@@ -250,6 +250,7 @@ def test_compare_rerun_returns_same_table(compare_table):
     pd.testing.assert_frame_equal(df2, df)  # including wall_time: finished cells were skipped
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_compare_parallel_workers_same_table(compare_table, tmp_path):
     _, df = compare_table
     df2 = _compare(tmp_path / "w2", "--workers", "2")

@@ -96,6 +96,7 @@ def test_compare_on_dask_gives_the_same_table(tmp_path, address):
     assert (counts == 1).all()
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_reproduce_panda_on_dask_gives_the_same_table(tmp_path, address):
     cmd = ["reproduce", "panda", "--runs", "1", "--tasks", "2", "--test-goals", "3", "--samples", "300",
            "--methods", "camo-js"]

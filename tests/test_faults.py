@@ -993,6 +993,7 @@ def test_two_identical_runs_at_once(busy_reference, tmp_path):
 # ------------------------------------------------------------------------------ the report's body
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_report_rebuilds_the_run_s_own_body(tmp_path):
     """compare --model human --height 1.6: the posteriors record the ModelSpec and the report's
     posterior-predictive figures are drawn with a 1.6 m body, not the default 1.75 m one."""

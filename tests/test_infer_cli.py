@@ -427,6 +427,7 @@ def test_ee_only_reaches_from_five_start_postures_are_inferred(tmp_path, sim, ca
         assert (e[0::2] <= q.numpy().min(axis=0) + 1e-6).all() and (e[1::2] >= q.numpy().max(axis=0) - 1e-6).all(), m
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_infer_a_folder_of_subjects_writes_one_limits_csv(recording, tmp_path, capsys):
     """Done-when of issue 27: ``infer --observations DIR/`` (one subject per file) writes one
     combined limits.csv with a subject column, and one report."""
@@ -453,6 +454,7 @@ def test_infer_a_folder_of_subjects_writes_one_limits_csv(recording, tmp_path, c
     assert not (tmp_path / "o2").exists()  # every file is checked before anything runs
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_body_scale_free_on_a_body_5_percent_taller(tmp_path, sim, capsys):
     """Done-when of issue 27: recordings of a body 5% taller report s within 0.02 of 1.05; without
     --body-scale free the run warns that the body does not fit the model."""
@@ -486,6 +488,7 @@ def test_demo_and_calibrate_on_a_urdf(tmp_path):
     assert set(cov.task) == {"arm7"} and set(cov.method) == {"camo", "naive"}
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_infer_with_an_amortized_estimator(recording, sim, tmp_path, capsys):
     """`infer --amortized FILE` runs npe-amortized on a recording whose reaches start at the
     model's start (0 simulations); an estimator that does not fit the recording (trained with

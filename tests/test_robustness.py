@@ -46,6 +46,7 @@ def test_robustness_command_small(tmp_path):
         main([*argv[:-2], "--budget", "50", "--out", str(out)])
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_robustness_body_scale_free(tmp_path):
     """--body-scale free: s estimated from the observed body's joint and end-effector recordings
     (within 0.01 of 1.10 / 0.95), and the oracle, on the rescaled model, predicts the mis-sized body's

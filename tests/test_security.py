@@ -317,6 +317,7 @@ def _run_kde(env) -> subprocess.CompletedProcess:
                           env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), **env})
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_numba_cache_dir_that_is_shared_is_never_read(tmp_path):
     """NUMBA_CACHE_DIR world-writable with a planted index file: one warning, compiled in memory,
     the pickle never runs. The same planted file in a private directory does run: the check is real."""
