@@ -626,6 +626,8 @@ def test_set_form_toy_posterior_recovered(tmp_path):
     (["--seed", "-1"], "--seed"),
     (["--form", "pairs"], "--form"),
     (["--flow", "glow"], "--flow"),
+    (["--threads", "0"], "--threads"),
+    (["--fast", "--form", "per-reach"], "--fast"),
 ])
 def test_amortize_bad_options_exit_2(extra, needle, tmp_path, capsys):
     from camo_sbi.experiments.cli import main
@@ -635,6 +637,19 @@ def test_amortize_bad_options_exit_2(extra, needle, tmp_path, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0], err
+
+
+def test_amortize_fast_and_threads_reach_the_training_config():
+    """--fast is FAST_SET_TRAINING's optimiser, --threads the training's torch threads; --max-epochs still wins."""
+    from camo_sbi.experiments.amortize import train_config
+    from camo_sbi.inference.amortized import FAST_SET_TRAINING
+
+    default = train_config(simulations=1000, spaces=("joint",))
+    cfg = train_config(simulations=1000, spaces=("joint",), fast=True, threads=2)
+    assert {k: getattr(cfg, k) for k in FAST_SET_TRAINING} == FAST_SET_TRAINING != {
+        k: getattr(default, k) for k in FAST_SET_TRAINING}
+    assert cfg.n_threads == 2 and default.n_threads == 1
+    assert train_config(simulations=1000, spaces=("joint",), fast=True, max_epochs=5).max_epochs == 5
 
 
 @pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)

@@ -345,8 +345,9 @@ def test_compare_with_abc_smc_and_npe(tmp_path):
     for m in ("abc-smc", "npe"):
         for k in (1, 2):
             assert 0 < v[(m, k, "n_simulations")] <= 100 * k  # counted, within the cap
-    # one posterior per cell: the two methods and the three baselines, one seed, one budget
-    assert len(list((out / "posteriors").glob("*.nc"))) == 2 + len(BASELINES)
+    # one file per cell, one seed, one budget: the two methods' posteriors, the three baselines' point estimates
+    assert len(list((out / "posteriors").glob("*.nc"))) == 2
+    assert len(list((out / "estimates").glob("*.nc"))) == len(BASELINES)
     pd.testing.assert_frame_equal(_compare(out, *args), df)  # resumable: finished cells skipped
 
 

@@ -1058,7 +1058,8 @@ def test_infer_records_the_model_and_version_and_refuses_other_settings(infer_ru
     assert _snapshot(out) == before
     # --force replaces the run: no posterior of the old methods stays beside the new limits.csv
     assert cli_main([*argv, "--methods", "nominal", "--force", "--out", str(out)]) == 0
-    assert sorted(p.name for p in (out / "posteriors").iterdir()) == ["nominal.nc"]
+    assert not (out / "posteriors").exists()  # nominal is a point estimate: estimates/
+    assert sorted(p.name for p in (out / "estimates").iterdir()) == ["nominal.nc"]
     assert set(pd.read_csv(out / "limits.csv").method) == {"nominal"}
     assert json.loads((out / "manifest.json").read_text())["settings"]["methods"] == "nominal"
 

@@ -182,8 +182,8 @@ def test_infer_writes_report_posteriors_and_predictions(inferred, sim):
     assert html[first:].split('alt="', 1)[1].startswith("limits figure")  # the report opens with it
     assert "not exercised" in html
     assert "http://" not in html and "https://" not in html  # self-contained
-    for m in ("camo", "naive", "nominal", "npe"):
-        assert (out / "posteriors" / f"{m}.nc").is_file()
+    for m in ("camo", "naive", "nominal", "npe"):  # naive and nominal are point estimates: estimates/
+        assert (out / ("estimates" if m in ("naive", "nominal") else "posteriors") / f"{m}.nc").is_file()
         pred = load_recordings(out / "predictions" / f"{m}.csv", sim, resample=None)
         assert len(pred) == 2
         np.testing.assert_allclose(pred[1].goal.numpy(), [-0.1, 0.3, 0.7])

@@ -64,6 +64,7 @@ from camo_sbi.diagnostics.style import (
     method_style,
     paper_figure,
 )
+from camo_sbi.diagnostics.files import ESTIMATE_DIR, POSTERIOR_DIR
 from camo_sbi.inference.result import PosteriorResult
 
 __all__ = [
@@ -73,6 +74,7 @@ __all__ = [
     "DRAWS_RESAMPLED",
     "draws_kind",
     "limit_draws",
+    "output_dir",
     "true_limits",
     "observed_arrays",
     "VAR_NAME",
@@ -547,6 +549,12 @@ def _check_prob(hdi_prob) -> float:
     if not 0 < float(hdi_prob) < 1:
         raise ValueError(f"hdi_prob: must lie in (0, 1), got {hdi_prob}")
     return float(hdi_prob)
+
+
+def output_dir(idata: az.InferenceData) -> str:
+    """The run-directory folder of ``idata``'s file: ``estimates`` for a point estimate, else
+    ``posteriors`` (`camo_sbi.diagnostics.files`)."""
+    return ESTIMATE_DIR if draws_kind(idata) == DRAWS_POINT else POSTERIOR_DIR
 
 
 def draws_kind(idata: az.InferenceData) -> str:

@@ -9,6 +9,7 @@ Reads, from ``run_dir`` (every input optional)::
     results.csv        tidy: task, subject, method, budget,  -> "Comparison table",
                        seed, n_tasks, metric, value             "Error vs tasks", "Error vs budget"
     posteriors/*.nc    InferenceData from arviz_io            -> "Posteriors", "Diagnostics"
+    estimates/*.nc     the same, for point estimates (`files`)
     coverage.csv       method, alpha, coverage[, coordinate,  -> "Calibration"
                        task, ...] (central_interval_coverage)
 
@@ -206,11 +207,12 @@ def _load_results(run_dir: Path) -> tuple[pd.DataFrame | None, str]:
 
 def _load_posteriors(run_dir: Path, limit: int):
     """-> list of (path, idata or None, error message), note."""
-    d = run_dir / "posteriors"
-    files = sorted(d.glob("*.nc")) if d.is_dir() else []
-    if not files:
-        return [], "no posteriors/*.nc files in the run directory"
     from camo_sbi.diagnostics import arviz_io
+    from camo_sbi.diagnostics.files import saved_files
+
+    files = saved_files(run_dir)  # posteriors/*.nc, then the point estimates' estimates/*.nc
+    if not files:
+        return [], "no posteriors/*.nc or estimates/*.nc files in the run directory"
 
     out = []
     for p in files[:limit]:
@@ -819,7 +821,7 @@ def _diagnostics(posts, why: str) -> str:
             body.append('<p class="meta">Position of the true limit in each marginal '
                         "(posterior quantile; near 0 or 1: the truth is in a tail).</p>"
                         + _table_html(_in_degrees(arviz_io.truth_position(idata), idata, ("truth",))))
-        body.insert(0, f'<p class="meta">file posteriors/{_esc(path.name)}</p>')
+        body.insert(0, f'<p class="meta">file {_esc(path.parent.name)}/{_esc(path.name)}</p>')
         out.append(f"<details><summary>{_esc(_words(idata))}</summary>{''.join(body)}</details>")
     head = ""
     if meta_rows:
@@ -840,8 +842,10 @@ def _inputs_digest(run_dir: Path, title: str, max_posteriors: int, options) -> s
     here = Path(__file__).parent
     files = [here / f"{m}.py" for m in _DRAWING_MODULES]
     files += [run_dir / n for n in ("config.json", "results.csv", "coverage.csv")]
-    posts = sorted((run_dir / "posteriors").glob("*.nc")) if (run_dir / "posteriors").is_dir() else []
-    h.update(json.dumps([p.name for p in posts]).encode())
+    from camo_sbi.diagnostics.files import saved_files
+
+    posts = saved_files(run_dir)
+    h.update(json.dumps([f"{p.parent.name}/{p.name}" for p in posts]).encode())
     for p in files + posts[:max_posteriors]:
         h.update(p.name.encode() + b"\0")
         if p.is_file():

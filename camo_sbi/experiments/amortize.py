@@ -36,16 +36,31 @@ def parse_spaces(text: str) -> tuple[str, ...]:
 
 
 def train_config(*, simulations: int, spaces, noise_joint_deg: float = 0.0, noise_ee_mm: float = 0.0,
-                 max_epochs: int | None = None, form: str | None = None, flow: str | None = None):
-    """The `TrainConfig` of the CLI options (ValueError naming the option otherwise)."""
-    from camo_sbi.inference.amortized import TrainConfig
+                 max_epochs: int | None = None, form: str | None = None, flow: str | None = None,
+                 fast: bool = False, threads: int | None = None):
+    """The `TrainConfig` of the CLI options (ValueError naming the option otherwise).
+
+    ``fast``: `amortized.FAST_SET_TRAINING`'s optimiser settings (set form only);
+    ``threads``: torch threads while training (TrainConfig.n_threads).
+    """
+    from camo_sbi.inference.amortized import FAST_SET_TRAINING, TrainConfig
     from camo_sbi.task import NoiseModel
 
     try:
         noise = NoiseModel(joint_deg=noise_joint_deg, ee_mm=noise_ee_mm)
     except ValueError as exc:
         raise ValueError(f"--noise-{str(exc).split(':')[0].replace('_', '-')}: {str(exc).split(': ', 1)[1]}") from exc
-    extra = {} if max_epochs is None else {"max_epochs": max_epochs}
+    extra = {}
+    if fast:
+        if form not in (None, "set"):
+            raise ValueError(f"--fast: its settings are the set form's, not --form {form}'s")
+        extra.update(FAST_SET_TRAINING)
+    if max_epochs is not None:
+        extra["max_epochs"] = max_epochs
+    if threads is not None:
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise ValueError(f"--threads: expected an integer >= 1, got {threads!r}")
+        extra["n_threads"] = threads
     if form is not None:
         extra["form"] = form
     if flow is not None:
@@ -143,6 +158,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--form", default=None, help="set (default: one flow q(theta | set of 1..10 reaches)) or "
                                                 "per-reach (one flow per reach, combined by the i.i.d. rule)")
     p.add_argument("--flow", default=None, help="nsf (default: neural spline flow) or maf")
+    p.add_argument("--fast", action="store_true",
+                   help="the faster optimiser settings (2048 reaches a batch, 3e-3 on a cosine schedule, 30 "
+                        "epochs): the same validation loss in 2.8x less CPU time on 50k Panda simulations, "
+                        "calibration measured in the README's performance section")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads while training (default: 1; 2 on a quiet 2-core machine trains ~1.6x "
+                        "faster in wall time with the same losses)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
 
@@ -154,7 +176,8 @@ def main(args) -> int:
         raise ValueError(f"--seed: must be >= 0, got {args.seed}")
     cfg = train_config(simulations=args.simulations, spaces=parse_spaces(args.space),
                        noise_joint_deg=args.noise_joint_deg, noise_ee_mm=args.noise_ee_mm,
-                       max_epochs=args.max_epochs, form=args.form, flow=args.flow)
+                       max_epochs=args.max_epochs, form=args.form, flow=args.flow, fast=args.fast,
+                       threads=args.threads)
     out = Path(args.out)
     if out.exists() and not args.force:
         raise ValueError(f"--out: {out} exists (use --force to overwrite)")

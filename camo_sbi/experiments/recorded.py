@@ -522,7 +522,7 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
 
 
 #: what an infer run writes into --out (removed when --force replaces a run of other settings)
-_INFER_OUTPUTS = ("limits.csv", "report.html", "config.json", "posteriors", "predictions", "work", "figures",
+_INFER_OUTPUTS = ("limits.csv", "report.html", "config.json", "posteriors", "estimates", "predictions", "work", "figures",
                   "starts.csv", "next_goals.csv", "subjects")
 
 
@@ -689,12 +689,11 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
 
     import camo_sbi
     from camo_sbi._validation import derive_seed
-    from camo_sbi.diagnostics.arviz_io import observed_arrays, save_netcdf, to_inference_data
+    from camo_sbi.diagnostics.arviz_io import observed_arrays, output_dir, save_netcdf, to_inference_data
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import save_recordings
     from camo_sbi.task import Observation, predict
 
-    (out / "posteriors").mkdir(parents=True, exist_ok=True)
     results = {}
     observed, observed_dims = observed_arrays(task)  # the recorded reaches, in every posterior file
     bar = tqdm(plan, desc="infer", unit="method")
@@ -707,7 +706,9 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
                                   budget=args.budget, observed=observed, observed_dims=observed_dims,
                                   attrs={"task": model.name, "observations": str(args.observations),
                                          "model_spec": model.to_json()})
-        save_netcdf(idata, out / "posteriors" / f"{name}.nc")
+        d = out / output_dir(idata)  # posteriors/, or estimates/ for a point estimate
+        d.mkdir(parents=True, exist_ok=True)
+        save_netcdf(idata, d / f"{name}.nc")
     bar.close()
     table = limits_table(results, sim, task)
     atomic_write_text(out / "limits.csv", table.to_csv(index=False))
