@@ -57,6 +57,7 @@ from matplotlib.figure import Figure
 from scipy.stats import wasserstein_distance
 
 from camo_sbi._validation import check_positive_int, numpy_generator
+from camo_sbi.diagnostics.files import ESTIMATE_DIR, POSTERIOR_DIR
 from camo_sbi.diagnostics.style import (
     DOUBLE_COLUMN,
     MIN_FONT_PT,
@@ -64,7 +65,6 @@ from camo_sbi.diagnostics.style import (
     method_style,
     paper_figure,
 )
-from camo_sbi.diagnostics.files import ESTIMATE_DIR, POSTERIOR_DIR
 from camo_sbi.inference.result import PosteriorResult
 
 __all__ = [

@@ -185,7 +185,12 @@ def run_cell(spec: dict, out: str) -> str:
 
 def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
     from camo_sbi._validation import derive_seed
-    from camo_sbi.diagnostics.arviz_io import observed_arrays, output_dir, save_netcdf, to_inference_data
+    from camo_sbi.diagnostics.arviz_io import (
+        observed_arrays,
+        output_dir,
+        save_netcdf,
+        to_inference_data,
+    )
 
     observed, dims = observed_arrays(task)
     idata = to_inference_data(res, sim.joint_names, prior=task.prior, true_theta=task.true_theta,

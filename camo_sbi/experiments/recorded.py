@@ -689,7 +689,12 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
 
     import camo_sbi
     from camo_sbi._validation import derive_seed
-    from camo_sbi.diagnostics.arviz_io import observed_arrays, output_dir, save_netcdf, to_inference_data
+    from camo_sbi.diagnostics.arviz_io import (
+        observed_arrays,
+        output_dir,
+        save_netcdf,
+        to_inference_data,
+    )
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import save_recordings
     from camo_sbi.task import Observation, predict
