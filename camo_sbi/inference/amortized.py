@@ -170,9 +170,9 @@ _BOX_TOL = 1e-9
 
 # The optimiser settings a TrainConfig takes when they are left None, per form: for now the same
 # for both. FAST_SET_TRAINING is the faster set-form alternative of
-# benchmarks/bench_amortized_train.py (50 000 Panda simulations: the same validation loss in
-# 2.85x less CPU time), NOT the default because the calibration got worse (mean |coverage -
-# alpha| 0.028 vs 0.015 on 30 subjects, 0.021 vs 0.012 on 60); on the per-reach MAF toy of
+# benchmarks/bench_amortized_train.py (`camo-sbi amortize --fast`): it reaches the default's
+# validation loss several times sooner but is more over-confident, so it is NOT the default
+# (the numbers: README, "Measured performance"); on the per-reach MAF toy of
 # tests/test_amortized.py it moved an upper limit 5.6 posterior sd off.
 _OPTIMISER_DEFAULTS = {
     "set": {"training_batch_size": 512, "learning_rate": 1e-3, "lr_schedule": "constant", "max_epochs": 40},
@@ -217,9 +217,9 @@ class TrainConfig:
             and max_epochs take the form's defaults (`_OPTIMISER_DEFAULTS`: 512 reaches, 1e-3,
             constant, 40 epochs for both forms; 200 000 Panda simulations took 14.7 min, set
             form, NSF, fresh clone). ``FAST_SET_TRAINING`` (2048, 3e-3, cosine, 30 epochs)
-            reaches the same validation loss in 2.85x less CPU time on 50 000 Panda
-            simulations but calibrates worse (`benchmarks/bench_amortized_train.py`, README
-            "Measured performance"), so it is an option, not the default.
+            reaches the same validation loss sooner but calibrates worse
+            (`benchmarks/bench_amortized_train.py`, README "Measured performance"), so it is
+            an option (`amortize --fast`), not the default.
             `dataclasses.replace` keeps resolved values: replace ``form`` on a config built
             with the other form's defaults and they stay.
         max_train_seconds: per space, stop after the epoch that crosses it (None: no limit).
