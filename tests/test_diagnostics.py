@@ -289,12 +289,30 @@ def test_coverage_weighted_importance_samples():
 def test_weighted_quantile_matches_numpy_hazen():
     x = np.random.default_rng(0).standard_normal((101, 3))
     q = np.array([0.05, 0.5, 0.95])
-    np.testing.assert_allclose(calibration.weighted_quantile(x, q, np.ones(101)),
+    np.testing.assert_allclose(calibration.weighted_quantile(x, np.ones(101), q),
                                np.quantile(x, q, axis=0, method="hazen"), atol=1e-12)
     # integer weights behave like repeated samples (up to interpolation at the ends)
     xs = np.array([0.0, 1.0, 2.0])
-    med = calibration.weighted_quantile(xs, np.array([0.5]), np.array([1.0, 1.0, 4.0]))
+    med = calibration.weighted_quantile(xs, np.array([1.0, 1.0, 4.0]), np.array([0.5]))
     assert med[0, 0] > 1.0
+
+
+def test_one_weighted_quantile_for_estimates_limits_and_calibration():
+    """The calibration's quantile is the inference layer's (one definition), and a scalar level gives (D,)."""
+    from camo_sbi.inference import result
+
+    assert calibration.weighted_quantile is result.weighted_quantile
+    rng = np.random.default_rng(1)
+    x, w = rng.standard_normal((50, 4)), rng.random(50)
+    both = result.weighted_quantile(x, w, [0.05, 0.95])
+    np.testing.assert_array_equal(result.weighted_quantile(x, w, 0.05), both[0])
+    np.testing.assert_array_equal(result.weighted_median(x, w), result.weighted_quantile(x, w, 0.5))
+    # Hazen by hand for three weighted samples: midpoint CDF 0.1, 0.35, 0.75 at values 0, 1, 2
+    one = result.weighted_quantile(np.array([2.0, 0.0, 1.0]), np.array([0.5, 0.2, 0.3]), 0.55)
+    np.testing.assert_allclose(one, [1.5])
+    for bad, name in (((x, w, 1.5), "q:"), ((x, -w, 0.5), "w:"), ((x[:0], None, 0.5), "x:")):
+        with pytest.raises(ValueError, match=name):
+            result.weighted_quantile(*bad)
 
 
 def test_sbc_ranks_uniform_when_calibrated():

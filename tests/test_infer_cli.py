@@ -172,6 +172,18 @@ def test_infer_posterior_interval_is_the_weighted_quantile(inferred):
     assert list(idata.posterior.limits.coords["joint"].values) == JOINTS
     npe = df[df.method == "npe"]
     assert (npe.upper_90_deg - npe.lower_90_deg > 0).all()  # a posterior, not a point
+    # the interval written is the one calibrate measures: its central 90% interval of the stored
+    # weighted samples, by the one weighted quantile (camo_sbi.diagnostics.calibration uses it too)
+    from camo_sbi.diagnostics.calibration import weighted_quantile
+
+    cd = idata.constant_data
+    samples = cd["weighted_samples"].values.reshape(cd["weights"].size, -1)
+    lo, hi = np.degrees(weighted_quantile(samples, cd["weights"].values, [0.05, 0.95]))
+    k = [2 * JOINTS.index(j) + (b == "upper") for j, b in zip(npe.joint, npe.bound, strict=True)]
+    np.testing.assert_allclose(npe.lower_90_deg, lo[k], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(npe.upper_90_deg, hi[k], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(npe.median_deg, np.degrees(weighted_quantile(samples, cd["weights"].values, 0.5))[k],
+                               rtol=1e-6, atol=1e-9)
 
 
 def test_infer_writes_report_posteriors_and_predictions(inferred, sim):

@@ -306,7 +306,8 @@ def test_point_estimators_from_the_weighted_posterior():
     assert np.array_equal(est["argmax"], kept[np.argmax(w)])
     np.testing.assert_allclose(est["mean"], w @ kept, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(est["median"], weighted_quantile(kept, w, 0.5))
-    np.testing.assert_array_equal(est["outer"], weighted_quantile(kept, w, [0.1, 0.9, 0.1, 0.9]))
+    outer = weighted_quantile(kept, w, [0.1, 0.9])  # (2, 4): 0.1 for the lower bounds, 0.9 for the upper
+    np.testing.assert_array_equal(est["outer"], [outer[0, 0], outer[1, 1], outer[0, 2], outer[1, 3]])
     assert (est["outer"][0::2] <= est["median"][0::2]).all() and (est["outer"][1::2] >= est["median"][1::2]).all()
     with pytest.raises(ValueError, match="^outer_quantile:"):
         CamoConfig(outer_quantile=0.7)

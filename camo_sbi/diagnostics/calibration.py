@@ -29,7 +29,7 @@ from camo_sbi.diagnostics.style import (
     paper_figure,
 )
 from camo_sbi.inference import sbi_adapter
-from camo_sbi.inference.result import PosteriorResult
+from camo_sbi.inference.result import PosteriorResult, weighted_quantile  # the one definition (re-exported)
 
 __all__ = [
     "DEFAULT_ALPHAS",
@@ -119,28 +119,6 @@ def _alphas(alphas) -> np.ndarray:
 # --------------------------------------------------------------------------- coverage
 
 
-def weighted_quantile(x: np.ndarray, q: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """Quantiles of each column of ``x`` (N, D) at levels ``q`` (Q,) -> (Q, D).
-
-    The CDF places each sample's mass at its midpoint (Hazen): with equal weights this
-    equals ``np.quantile(x, q, axis=0, method="hazen")``. Zero-weight samples are dropped.
-    """
-    x = np.asarray(x, dtype=np.float64)
-    q = np.asarray(q, dtype=np.float64)
-    if x.ndim == 1:
-        x = x[:, None]
-    if weights is None:
-        return np.quantile(x, q, axis=0, method="hazen").reshape(q.size, x.shape[1])
-    w = np.asarray(weights, dtype=np.float64)
-    keep = w > 0
-    x, w = x[keep], w[keep] / w[keep].sum()
-    order = np.argsort(x, axis=0)
-    xs = np.take_along_axis(x, order, axis=0)
-    ws = w[order]
-    cdf = np.cumsum(ws, axis=0) - 0.5 * ws
-    return np.stack([np.interp(q, cdf[:, d], xs[:, d]) for d in range(x.shape[1])], axis=1)
-
-
 def central_interval_coverage(samples_per_subject, true_thetas, alphas=DEFAULT_ALPHAS,
                               weights=None, *, names: Sequence[str] | None = None) -> pd.DataFrame:
     """Fraction of true coordinates inside the central α-interval of their posterior marginal.
@@ -168,7 +146,7 @@ def central_interval_coverage(samples_per_subject, true_thetas, alphas=DEFAULT_A
     inside = np.zeros((len(subj), a.size, D), dtype=bool)
     valid = np.zeros((len(subj), D), dtype=bool)
     for s, (x, w) in enumerate(subj):
-        qs = weighted_quantile(x, q, w)
+        qs = weighted_quantile(x, w, q)
         lo, hi = qs[: a.size], qs[a.size:]
         inside[s] = (lo <= truths[s]) & (truths[s] <= hi)
         valid[s] = np.ptp(x, axis=0) > 0

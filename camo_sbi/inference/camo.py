@@ -408,7 +408,8 @@ class Camo:
             value = w @ kept
         else:
             a = 0.5 if est == "median" else self.config.outer_quantile
-            value = weighted_quantile(kept, w, np.tile([a, 1.0 - a], self.prior.n_joints))
+            qs = weighted_quantile(kept, w, [a, 1.0 - a])  # (2, 2n): a for lower bounds, 1 - a for upper
+            value = np.where(np.arange(kept.shape[1]) % 2 == 0, qs[0], qs[1])
         return self.prior.with_known(torch.from_numpy(value)).numpy()
 
     def density(self):

@@ -179,19 +179,46 @@ def _generator(seed) -> np.random.Generator:
     return np.random.default_rng(int(seed))
 
 
-def weighted_quantile(x: np.ndarray, w: np.ndarray, q) -> np.ndarray:
-    """Coordinate-wise weighted quantile of ``x`` (N, D) with weights ``w`` (N,) -> (D,).
+def weighted_quantile(x: np.ndarray, w: np.ndarray | None, q) -> np.ndarray:
+    """Weighted quantiles of each coordinate of ``x`` (N, D) (or (N,)) at level(s) ``q``.
 
-    ``q``: a level in [0, 1], or (D,) levels, one per coordinate. The value returned for a
-    coordinate is the smallest sample whose cumulative weight reaches ``q`` of the total.
+    The toolkit's one definition: point estimates (medians), limits.csv's intervals and the
+    calibration's central intervals all use it, so the intervals written are the ones whose
+    coverage is measured. Hazen's rule: the CDF places each sample's mass at its midpoint and
+    is linear in between (flat beyond the extreme samples); with equal weights this equals
+    ``np.quantile(x, q, axis=0, method="hazen")``. Zero-weight samples are dropped.
+
+    Args:
+        x: (N, D) samples, or (N,) for one coordinate.
+        w: (N,) non-negative weights with a positive sum, or None for equal weights.
+        q: a level in [0, 1], or (Q,) levels.
+
+    Returns:
+        (D,) for a scalar ``q``, (Q, D) for Q levels.
     """
-    levels = np.broadcast_to(np.asarray(q, dtype=np.float64), (x.shape[1],))
-    out = np.empty(x.shape[1])
-    for j in range(x.shape[1]):
-        order = np.argsort(x[:, j], kind="stable")
-        cw = np.cumsum(w[order])
-        out[j] = x[order[min(np.searchsorted(cw, levels[j] * cw[-1]), len(order) - 1)], j]
-    return out
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
+    if x.ndim != 2 or x.shape[0] == 0:
+        raise ValueError(f"x: expected (N, D) samples with N >= 1, got shape {x.shape}")
+    qa = np.asarray(q, dtype=np.float64)
+    levels = np.atleast_1d(qa)
+    if levels.ndim != 1 or not np.all((levels >= 0) & (levels <= 1)):
+        raise ValueError(f"q: expected a level or levels in [0, 1], got {q!r}")
+    if w is None:
+        out = np.quantile(x, levels, axis=0, method="hazen")
+    else:
+        w = np.asarray(w, dtype=np.float64)
+        if w.shape != (x.shape[0],) or not np.all(np.isfinite(w)) or np.any(w < 0) or not w.sum() > 0:
+            raise ValueError(f"w: expected {x.shape[0]} finite non-negative weights with a positive sum")
+        keep = w > 0
+        xs, ws = x[keep], w[keep] / w[keep].sum()
+        order = np.argsort(xs, axis=0, kind="stable")
+        xs = np.take_along_axis(xs, order, axis=0)
+        ws = ws[order]
+        cdf = np.cumsum(ws, axis=0) - 0.5 * ws
+        out = np.stack([np.interp(levels, cdf[:, d], xs[:, d]) for d in range(x.shape[1])], axis=1)
+    return out[0] if qa.ndim == 0 else out
 
 
 def weighted_median(x: np.ndarray, w: np.ndarray) -> np.ndarray:
