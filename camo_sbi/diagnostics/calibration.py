@@ -29,7 +29,10 @@ from camo_sbi.diagnostics.style import (
     paper_figure,
 )
 from camo_sbi.inference import sbi_adapter
-from camo_sbi.inference.result import PosteriorResult, weighted_quantile  # the one definition (re-exported)
+from camo_sbi.inference.result import (  # the one definition (re-exported)
+    PosteriorResult,
+    weighted_quantile,
+)
 
 __all__ = [
     "DEFAULT_ALPHAS",
