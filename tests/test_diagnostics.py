@@ -665,3 +665,16 @@ def test_report_replays_the_observed_reaches_against_posterior_draws(tmp_path):
     ppc = report._predictive([(run / "posteriors" / "cell.nc", loaded, "")], "")  # the report's section
     assert "not available" not in ppc and ppc.count("<img") == 1
     assert "<h3>camo, budget 300, seed 0, 2 tasks</h3>" in ppc and "50 posterior draws" in ppc
+
+
+def test_hdi_is_arviz_s_and_the_shortest_interval():
+    """posterior_width's HDI comes from az.hdi (no hand-written HDI in the package); checked against
+    the shortest interval holding floor(prob * S) + 1 sorted draws, computed here by brute force."""
+    rng = np.random.default_rng(3)
+    draws = rng.gamma(2.0, 1.0, size=(301, 4))
+    lo, hi = arviz_io._az_hdi(draws, 0.9)
+    s = np.sort(draws, axis=0)
+    k = int(np.floor(0.9 * len(s)))
+    for j in range(draws.shape[1]):
+        i = min(range(len(s) - k), key=lambda i: s[i + k, j] - s[i, j])  # first shortest
+        assert (lo[j], hi[j]) == (s[i, j], s[i + k, j])

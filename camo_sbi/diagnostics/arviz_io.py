@@ -633,17 +633,11 @@ def truth_position(idata: az.InferenceData) -> pd.DataFrame:
     )
 
 
-def _hdi(draws: np.ndarray, prob: float) -> tuple[np.ndarray, np.ndarray]:
-    """Shortest interval holding ``prob`` of the (S, k) draws, per column."""
-    s = np.sort(draws, axis=0)
-    m = s.shape[0]
-    k = max(1, int(np.floor(prob * m)))
-    if k >= m:
-        return s[0], s[-1]
-    widths = s[k:] - s[: m - k]
-    i = np.argmin(widths, axis=0)
-    cols = np.arange(s.shape[1])
-    return s[i, cols], s[i + k, cols]
+def _az_hdi(draws: np.ndarray, prob: float) -> tuple[np.ndarray, np.ndarray]:
+    """``az.hdi`` of (S, k) draws, per column, as (lower (k,), upper (k,)): the draws go in as one
+    chain (arviz's shortest interval holding ``prob`` of the sorted draws)."""
+    h = np.asarray(az.hdi(np.asarray(draws, dtype=np.float64)[None], hdi_prob=prob))
+    return h[:, 0], h[:, 1]
 
 
 def posterior_width(idata: az.InferenceData, hdi_prob: float = 0.94) -> pd.DataFrame:
@@ -660,7 +654,7 @@ def posterior_width(idata: az.InferenceData, hdi_prob: float = 0.94) -> pd.DataF
     _check_idata(idata)
     hdi_prob = _check_prob(hdi_prob)
     draws, joints = _draws(idata)
-    lo, hi = _hdi(draws.reshape(draws.shape[0], -1), hdi_prob)
+    lo, hi = _az_hdi(draws.reshape(draws.shape[0], -1), hdi_prob)
     post_w = hi - lo
     cd = idata.constant_data if "constant_data" in idata.groups() else {}
     if "prior_low" in cd and "prior_high" in cd:
@@ -669,7 +663,7 @@ def posterior_width(idata: az.InferenceData, hdi_prob: float = 0.94) -> pd.DataF
         ).reshape(-1)
     elif "prior" in idata.groups() and VAR_NAME in idata.prior:
         pdraws, _ = _draws(idata, "prior")
-        plo, phi = _hdi(pdraws.reshape(pdraws.shape[0], -1), hdi_prob)
+        plo, phi = _az_hdi(pdraws.reshape(pdraws.shape[0], -1), hdi_prob)
         pw = phi - plo
     else:
         raise ValueError("idata: no prior stored (pass prior to to_inference_data)")
