@@ -97,7 +97,7 @@ from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.distances import dtw_distances
 from camo_sbi.inference.result import STATUS_OK, PosteriorResult, weighted_median
 from camo_sbi.priors import BoxPrior
-from camo_sbi.task import NoiseModel, contain
+from camo_sbi.task import SPACES, NoiseModel, contain
 
 
 def _import_pyabc():
@@ -134,7 +134,6 @@ __all__ = [
     "to_pyabc_prior",
 ]
 
-_SPACES = ("joint", "cartesian")
 _SAMPLERS = ("batched", "single")
 _ESTIMATORS = ("mean", "median", "best")
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -207,7 +206,7 @@ class AbcSmcConfig:
     min_ess_fraction: float = 0.1
 
     def __post_init__(self):
-        check_choice(self.space, _SPACES, "space")
+        check_choice(self.space, SPACES, "space")
         check_positive_int(self.population_size, "population_size", minimum=2)
         check_positive_int(self.max_populations, "max_populations")
         check_positive_float(self.min_epsilon, "min_epsilon", allow_zero=True)

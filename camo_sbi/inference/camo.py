@@ -60,11 +60,10 @@ from camo_sbi.inference.distances import dtw_distances, l2_distance
 from camo_sbi.inference.kde import GaussianKDE, scott_bandwidth
 from camo_sbi.inference.result import STATUS_OK, PosteriorResult, weighted_quantile
 from camo_sbi.priors import BoxPrior
-from camo_sbi.task import NoiseModel, contain
+from camo_sbi.task import SPACES, NoiseModel, contain
 
 __all__ = ["Camo", "CamoConfig", "KdeProposal", "TaskRecord", "run", "run_sequence"]
 
-_SPACES = ("joint", "cartesian")
 _BANDWIDTH_MODES = ("fixed", "scott")
 _SAMPLINGS = ("uniform", "lhs", "grid")
 _DISTANCES = ("dtw", "euclidean")
@@ -158,7 +157,7 @@ class CamoConfig:
         check_positive_int(self.fallback_keep, "fallback_keep")
         check_positive_float(self.bandwidth, "bandwidth")
         check_choice(self.bandwidth_mode, _BANDWIDTH_MODES, "bandwidth_mode")
-        check_choice(self.space, _SPACES, "space")
+        check_choice(self.space, SPACES, "space")
         check_choice(self.sampling, _SAMPLINGS, "sampling")
         check_choice(self.distance, _DISTANCES, "distance")
         check_choice(self.proposal, _PROPOSALS, "proposal")

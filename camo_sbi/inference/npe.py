@@ -80,7 +80,7 @@ from camo_sbi.inference.result import (
     weighted_median,
 )
 from camo_sbi.priors import BoxPrior
-from camo_sbi.task import NoiseModel, contain
+from camo_sbi.task import SPACES, NoiseModel, contain
 
 __all__ = [
     "ImportanceSample",
@@ -101,7 +101,6 @@ __all__ = [
     "torch_threads",
 ]
 
-_SPACES = ("joint", "cartesian")
 _MODELS = ("maf", "nsf")
 _EMBEDDINGS = ("none", "mlp")
 _TRANSFORMS = ("logit", "none")
@@ -179,7 +178,7 @@ class NpeConfig:
     scheduler: str | None = None
 
     def __post_init__(self):
-        check_choice(self.space, _SPACES, "space")
+        check_choice(self.space, SPACES, "space")
         check_positive_int(self.n_points, "n_points")
         check_bool(self.include_length, "include_length")
         check_choice(self.embedding, _EMBEDDINGS, "embedding")
