@@ -259,6 +259,7 @@ def test_compare_parallel_workers_same_table(compare_table, tmp_path):
     pd.testing.assert_frame_equal(b, a, check_exact=True)
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_compare_interrupted_run_resumes_without_duplicates(compare_table, tmp_path):
     _, ref = compare_table
     out = tmp_path / "killed"

@@ -119,6 +119,7 @@ def recording(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_infer_suggest_writes_ranked_next_goals(recording, tmp_path, capsys):
     argv = ["infer", "--observations", str(recording), *MODEL, "--methods", "naive,camo", "--budget", "50",
             "--seed", "0", "--suggest", "3"]

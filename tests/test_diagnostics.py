@@ -495,6 +495,7 @@ def test_forest_plot_is_arviz_in_degrees(prior, truth):
     assert rad.axes[0].get_xlabel() == "limit [rad]"
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_corner_plot_shows_the_restricted_limits_or_the_ones_asked_for(tmp_path, prior, truth):
     run = make_run_dir(tmp_path / "run", prior, truth)
     posts, _ = report._load_posteriors(run, 24)

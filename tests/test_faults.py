@@ -884,6 +884,7 @@ def _resumed_table(out: Path, capsys) -> pd.DataFrame:
     return pd.read_csv(out / "results.csv")
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_sigterm_exits_143_and_leaves_no_worker(tmp_path):
     out = tmp_path / "run"
     proc, workers = _start_compare(out, tmp_path, computing=False)

@@ -201,6 +201,7 @@ def test_infer_writes_report_posteriors_and_predictions(inferred, sim):
         np.testing.assert_allclose(pred[1].goal.numpy(), [-0.1, 0.3, 0.7])
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_ee_only_recording(recording, tmp_path, sim, capsys):
     ee = tmp_path / "ee.csv"
     assert main(["simulate-observations", *MODEL, *LIMITS, "--reaches", "3", "--seed", "4", "--space",
@@ -409,6 +410,7 @@ def test_reaches_from_different_starts(tmp_path, sim, capsys):
         assert (est[0::2] <= s.min(axis=0) + 1e-9).all() and (est[1::2] >= s.max(axis=0) - 1e-9).all(), m
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_ee_only_reaches_from_five_start_postures_are_inferred(tmp_path, sim, capsys):
     """Done-when of issue 27: end-effector-only reaches from 5 start postures. Each start is
     estimated by IK (starts.csv), and every method's limits contain every estimated start."""

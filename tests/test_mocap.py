@@ -151,6 +151,7 @@ def test_c3d_errors_name_the_flag_or_file(tmp_path, sim, reaches):
         load_recording(fake, sim, goal="final", ee_markers=["TOOL"])
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_infer_c3d_with_frame_and_goal_final_matches_the_model_frame_csv(tmp_path, sim, reaches, capsys):
     """Done-when of issue 27: the C3D (mm, lab frame shifted and rotated) with --ee-marker, --frame and
     --goal final gives limits within 2 degrees of the same reaches as a model-frame CSV."""
