@@ -163,8 +163,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "epochs): the same validation loss in 2.8x less CPU time on 50k Panda simulations, "
                         "calibration measured in the README's performance section")
     p.add_argument("--threads", type=int, default=None,
-                   help="torch threads while training (default: 1; 2 on a quiet 2-core machine trains ~1.6x "
-                        "faster in wall time with the same losses)")
+                   help="torch threads while training (default: 1; with --fast on 50k Panda simulations, 2 threads "
+                        "on a quiet 2-core machine trained 1.2x faster in wall time, with the same losses)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
 
