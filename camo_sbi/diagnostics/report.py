@@ -207,12 +207,12 @@ def _load_results(run_dir: Path) -> tuple[pd.DataFrame | None, str]:
 
 def _load_posteriors(run_dir: Path, limit: int):
     """-> list of (path, idata or None, error message), note."""
-    from camo_sbi.diagnostics import arviz_io
     from camo_sbi.diagnostics.files import saved_files
 
     files = saved_files(run_dir)  # posteriors/*.nc, then the point estimates' estimates/*.nc
     if not files:
         return [], "no posteriors/*.nc or estimates/*.nc files in the run directory"
+    from camo_sbi.diagnostics import arviz_io
 
     out = []
     for p in files[:limit]:
