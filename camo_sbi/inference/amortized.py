@@ -67,36 +67,9 @@ stage); a run that does not reach the product within its stage limit is a fallba
 effective sample size below ``min_ess`` sets the fallback status (every fallback is warned
 about by the registry).
 
-What was measured for the set form (200k simulations, NSF, 40 epochs; 50 subjects x 5
-reaches of ``camo-sbi calibrate``): Panda mean |coverage - alpha| 0.016 (slightly
-over-confident), ~0.6 s per subject; see the README for the human, the held-out errors
-and the timings.
-
-What was measured for the per-reach form (Panda, 5 reaches, the 200k-simulation MAF
-estimator, 50 subjects of ``camo-sbi calibrate``): no sampler converges on this target
-within seconds, and the numbers must be read with that in mind.
-
-- IS: degenerate weights (ESS 1-27 of 10 000), over-confident (mean |coverage - alpha|
-  0.183), ~6 s per person.
-- MCMC (default): 0.047 (under-confident), ~5 s per person. Its draws are NOT converged:
-  on the subjects checked, their mean log density was 100+ nats below that of the SMC
-  particles (a 14-D typical set lies ~7 nats below its mode), so their width is the
-  start's, not the posterior's. The chains stay far from the typical set even after 3000
-  sweeps; the 0.047 says the draws are wide, not that the product is calibrated.
-- SMC: 0.285 (over-confident) at ~0.6 s per person; with more moves per stage the
-  particles spread and climb in density, and the calibration moves toward ~0.2 (3 moves
-  0.266, 40 moves 0.229 at ~15 s). So the exact i.i.d. product of this flow is itself
-  over-confident on 5 reaches, by roughly 0.2: the per-reach flow's small systematic
-  errors add up over the reaches (a single reach, sampled exactly from the flow: 0.036,
-  under-confident).
-
-Retraining for up to 100 epochs (early-stopped at 79; validation loss 15.5 vs 17.2) or with balanced NPE's penalty
-(``TrainConfig(balance=100)``, 16.8) left both numbers about unchanged (SMC 0.285 / 0.282,
-MCMC 0.058 / 0.079). Within the per-reach form the default sampler stays MCMC because it is
-the conservative choice and had the lower Panda error (6.9 vs 23.4 mm); ``combine="smc"``
-is the fast option (0.79 s mean, 1.27 s max per Panda person; 1.6 s mean on the human),
-with over-confident draws. The set form avoids the product altogether, which is why it
-became the default.
+Why the set form is the default, and what each form and sampler measured (calibration,
+time per person, the per-reach samplers' failure to converge): `docs/studies/amortized_measurements.md`
+and the README's "Amortized inference" section.
 
 Why one module of ~1000 lines: training, the file format and its fingerprint check, and
 inference are one estimator's life cycle; they share the metadata schema (a change to the
