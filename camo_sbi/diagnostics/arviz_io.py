@@ -75,6 +75,7 @@ __all__ = [
     "draws_kind",
     "limit_draws",
     "output_dir",
+    "save_in_run",
     "true_limits",
     "observed_arrays",
     "VAR_NAME",
@@ -555,6 +556,13 @@ def output_dir(idata: az.InferenceData) -> str:
     """The run-directory folder of ``idata``'s file: ``estimates`` for a point estimate, else
     ``posteriors`` (`camo_sbi.diagnostics.files`)."""
     return ESTIMATE_DIR if draws_kind(idata) == DRAWS_POINT else POSTERIOR_DIR
+
+
+def save_in_run(idata: az.InferenceData, run_dir, name: str) -> Path:
+    """`save_netcdf` of ``idata`` as ``run_dir/<output_dir(idata)>/<name>.nc`` (folder created)."""
+    d = Path(run_dir) / output_dir(idata)
+    d.mkdir(parents=True, exist_ok=True)
+    return save_netcdf(idata, d / f"{name}.nc")
 
 
 def draws_kind(idata: az.InferenceData) -> str:

@@ -185,12 +185,7 @@ def run_cell(spec: dict, out: str) -> str:
 
 def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
     from camo_sbi._validation import derive_seed
-    from camo_sbi.diagnostics.arviz_io import (
-        observed_arrays,
-        output_dir,
-        save_netcdf,
-        to_inference_data,
-    )
+    from camo_sbi.diagnostics.arviz_io import observed_arrays, save_in_run, to_inference_data
 
     observed, dims = observed_arrays(task)
     idata = to_inference_data(res, sim.joint_names, prior=task.prior, true_theta=task.true_theta,
@@ -198,9 +193,7 @@ def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
                               observed_dims=dims, attrs={"task": spec["task"], "status": res.status})
     idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"],
                                   "model_spec": spec["model"].to_json()})  # the report rebuilds exactly this body
-    d = out / output_dir(idata)  # posteriors/, or estimates/ for a point estimate
-    d.mkdir(parents=True, exist_ok=True)
-    save_netcdf(idata, d / f"{spec['key']}.nc")
+    save_in_run(idata, out, spec["key"])  # posteriors/, or estimates/ for a point estimate
 
 
 def make_figures(df, out: Path, formats=("png",)) -> list[Path]:

@@ -226,8 +226,7 @@ def limits_table(results: dict, sim, task=None):
     rows = []
     for name, res in results.items():
         w = res.normalized_weights()
-        lo, hi = weighted_quantile(res.samples, w, a), weighted_quantile(res.samples, w, 1.0 - a)
-        med = weighted_quantile(res.samples, w, 0.5)
+        lo, med, hi = weighted_quantile(res.samples, w, [a, 0.5, 1.0 - a])  # one sort per coordinate
         point = res.samples.shape[0] <= 1
         verdict = calibration_verdict(name, model)
         for j, joint in enumerate(sim.joint_names):
@@ -689,12 +688,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
 
     import camo_sbi
     from camo_sbi._validation import derive_seed
-    from camo_sbi.diagnostics.arviz_io import (
-        observed_arrays,
-        output_dir,
-        save_netcdf,
-        to_inference_data,
-    )
+    from camo_sbi.diagnostics.arviz_io import observed_arrays, save_in_run, to_inference_data
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import save_recordings
     from camo_sbi.task import Observation, predict
@@ -711,9 +705,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
                                   budget=args.budget, observed=observed, observed_dims=observed_dims,
                                   attrs={"task": model.name, "observations": str(args.observations),
                                          "model_spec": model.to_json()})
-        d = out / output_dir(idata)  # posteriors/, or estimates/ for a point estimate
-        d.mkdir(parents=True, exist_ok=True)
-        save_netcdf(idata, d / f"{name}.nc")
+        save_in_run(idata, out, name)  # posteriors/, or estimates/ for a point estimate
     bar.close()
     table = limits_table(results, sim, task)
     atomic_write_text(out / "limits.csv", table.to_csv(index=False))

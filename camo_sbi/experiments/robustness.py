@@ -94,8 +94,7 @@ def coverage90(result, truth, prior) -> float:
     from camo_sbi.inference.result import weighted_quantile
 
     w = result.normalized_weights()
-    lo = weighted_quantile(result.samples, w, 0.05)
-    hi = weighted_quantile(result.samples, w, 0.95)
+    lo, hi = weighted_quantile(result.samples, w, [0.05, 0.95])
     t = torch.as_tensor(truth, dtype=torch.float64).numpy()
     free = prior.free_mask.numpy()
     inside = (lo - 1e-12 <= t) & (t <= hi + 1e-12)
