@@ -84,14 +84,12 @@ def test_plain_summary_runs_without_a_warning_on_every_posterior_file(files):
         assert len(s) == 2 * idata.posterior.sizes["joint"], f.name
         assert np.isfinite(s["mean"]).all() and np.isfinite(s["sd"]).all(), f.name
         n_draws = idata.posterior.sizes["chain"] * idata.posterior.sizes["draw"]
-        if n_draws >= 8:
-            assert f.parent.name == POSTERIOR_DIR and logged == [], (f.name, logged)
-        else:  # a point estimate, or so few effective samples (Kish ESS < 7.2) that arviz's diagnostics need more
-            assert f.parent.name == ESTIMATE_DIR or a["weights_ess"] < 8 * np.log10(8), (f, a["weights_ess"])
-            # arviz logs that its diagnostics need more draws (seen in a run of this file alone; in some
-            # xdist workers' runs nothing reached the handler), and reports no ESS for a point
+        if f.parent.name == POSTERIOR_DIR:  # every sampled posterior: 8 draws or more, nothing logged
+            assert n_draws >= 8 and logged == [], (f.name, n_draws, logged)
+        else:  # a point estimate: arviz logs that its diagnostics need more draws (seen in a run of this
+            # file alone; in some xdist workers' runs nothing reached the handler), and reports no ESS
             assert all(m.startswith("Shape validation failed") for m in logged), (f.name, logged)
-            assert s["ess_bulk"].isna().all() or a["draws"] != "point estimate"
+            assert s["ess_bulk"].isna().all()
     assert {"point estimate", "resampled from weighted samples (not MCMC)"} <= kinds, kinds
 
 
@@ -101,8 +99,8 @@ def test_arviz_ess_never_exceeds_what_the_result_holds(files):
         a = idata.posterior.attrs
         ess = np.nanmax(s[["ess_bulk", "ess_tail"]].to_numpy()) if s[["ess_bulk", "ess_tail"]].notna().any().any() \
             else np.nan
-        if a["draws"] != "point estimate":
-            assert not ess > a["weights_ess"] + 1e-9, (f.name, ess, a["weights_ess"])
+        if a["draws"] != "point estimate":  # at most the Kish ESS, or the 8 draws arviz's diagnostics need
+            assert not ess > max(a["weights_ess"], 8) + 1e-9, (f.name, ess, a["weights_ess"])
 
 
 def test_every_file_carries_observed_data_and_its_samples_with_weights(files):

@@ -13,9 +13,11 @@ Layout of the InferenceData built by :func:`to_inference_data`:
   draws can exceed N); weighted samples resampled
   (systematic, in a seeded random order) to ``arviz_draw_count(Kish ESS)`` draws in 2 chains,
   few enough that arviz's ESS (at most S log10 S for S draws) stays at or below the Kish
-  ESS (below a Kish ESS of 7.23: 2 chains of 3 draws, for which arviz notes in its log that
-  its diagnostics need 4 per chain, and reports them NaN); a point estimate as that point
-  twice (sd 0, arviz's diagnostics NaN, the same note).
+  ESS; never fewer than 8 (2 chains of 4, the fewest its diagnostics read without a
+  logged warning), so below a Kish ESS of 7.2 plain arviz may report up to 8 (it counts
+  a limit that is constant over the draws as one effective sample per draw); a point
+  estimate (or weights that resample to one single sample) as that point twice (sd 0,
+  arviz's diagnostics NaN, with arviz's logged note that they need 4 draws per chain).
 * ``prior``: ``limits`` drawn from the prior (seeded), same dims (optional).
 * ``observed_data``: whatever arrays the caller passes (optional), stored as given
   (no unit conversion).
@@ -30,7 +32,8 @@ Layout of the InferenceData built by :func:`to_inference_data`:
   (the Kish effective sample size the weights imply, ``(sum w)^2 / sum w^2``; N for
   equal weights), n_samples_original, and any scalar extras of the result as
   ``extra_<key>``. The effective sample size of weighted samples is ``weights_ess``; the
-  ess_bulk / ess_tail plain arviz reports on their few resampled draws cannot exceed it.
+  ess_bulk / ess_tail plain arviz reports on their few resampled draws cannot exceed it
+  (or 8, when it is lower).
 
 The file written by :func:`save_netcdf` loads with plain ``arviz.from_netcdf``, and plain
 ``arviz.summary`` prints rows like ``limits[shoulder_pan, lower]`` without a warning (a
@@ -101,6 +104,8 @@ VAR_NAME = "limits"
 DRAWS_INDEPENDENT = "independent draws"
 DRAWS_RESAMPLED = "resampled from weighted samples (not MCMC)"
 DRAWS_POINT = "point estimate"
+_MIN_ARVIZ_DRAWS = 8  # 2 chains of 4: the fewest arviz's diagnostics accept without a log warning
+_REORDER_TRIES = 20
 _MCMC_COLUMNS = ("mcse_mean", "mcse_sd", "ess_bulk", "ess_tail", "r_hat")
 BOUNDS = ("lower", "upper")
 _MIN_DRAWS = 4  # per chain: arviz's diagnostics warn below 4 draws (and below 2 chains)
@@ -432,31 +437,61 @@ def to_inference_data(
 
 def arviz_draw_count(kish_ess: float) -> int:
     """How many draws the ``posterior`` group holds for samples whose Kish ESS is ``kish_ess``
-    (N for N equally weighted ones), so that plain arviz cannot report more effective samples.
+    (N for N equally weighted ones), so that plain arviz reports no more effective samples
+    than the weights hold, wherever it can compute an ESS at all.
 
     arviz's ESS of S draws is S / tau with tau >= 1 / log10(S) (its own floor), so at most
-    S log10(S): the largest even S >= 8 (2 chains of 4, what arviz's diagnostics need) with
-    S log10(S) <= ``kish_ess``. Below a Kish ESS of 7.23 no such S exists: 6 draws (2 chains
-    of 3), for which arviz notes in its log that its diagnostics need 4 per chain and reports
-    them NaN (the honest answer for so few effective samples; with 4 to 7 draws in one chain
-    it would compute them, and warn on the repeated draws).
+    S log10(S): the largest even S >= 8 with S log10(S) <= ``kish_ess``. 8 draws (2 chains
+    of 4) is the fewest arviz's diagnostics accept without logging "Shape validation
+    failed"; so below a Kish ESS of 8 log10(8) = 7.22 the answer is 8, and plain arviz may
+    report up to 8 effective samples for a posterior that holds fewer (its status already
+    says "fallback: low effective sample size"; the file's ``weights_ess`` attribute holds
+    the Kish ESS). Reporting NaN instead would need fewer than 8 draws, which arviz logs as a
+    warning.
     """
-    if kish_ess < 8 * np.log10(8):
-        return 6
-    s = 8
+    if kish_ess < _MIN_ARVIZ_DRAWS * np.log10(_MIN_ARVIZ_DRAWS):
+        return _MIN_ARVIZ_DRAWS
+    s = _MIN_ARVIZ_DRAWS
     while (s + 2) * np.log10(s + 2) <= kish_ess:
         s += 2
     return s
 
 
+def _arviz_reads_quietly(draws: np.ndarray) -> bool:
+    """True when plain ``az.summary`` reads (chains, draws, k) without a warning or a log record."""
+    rec = _LogRecords()
+    logger = getattr(az, "_log", None) or logging.getLogger("arviz")
+    logger.addHandler(rec)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            az.summary({"x": draws})
+    finally:
+        logger.removeHandler(rec)
+    return not caught and not rec.records
+
+
+class _LogRecords(logging.Handler):
+    def __init__(self):
+        super().__init__(level=logging.WARNING)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record):
+        self.records.append(record)
+
+
 def _posterior_draws(result: PosteriorResult, kind: str, n_resample: int | None, rng) -> np.ndarray:
     """(chains, draws, 2n) what the ``posterior`` group holds, in a shape plain ``az.summary``
-    reads without a warning and whose ESS it cannot inflate:
+    reads without a warning and whose ESS it cannot inflate beyond the weights' Kish ESS
+    (or 8, the draws its diagnostics need):
 
     * independent draws: ``arviz_draw_count(N)`` of them (a seeded random subset), in 2 chains;
     * weighted samples: ``arviz_draw_count(Kish ESS)`` draws (or ``n_resample``) by systematic
       resampling, in a seeded random order, in 2 chains; the samples and
-      weights themselves go to ``constant_data`` (``weighted_samples``, ``weights``);
+      weights themselves go to ``constant_data`` (``weighted_samples``, ``weights``). With
+      so few draws that a random order can leave every half-chain constant (arviz then
+      divides 0 by 0 in r_hat), further seeded orders are tried until arviz reads the draws
+      quietly. Draws that resample to one single sample are that point twice, as below;
     * a point estimate: that point twice in one chain (mean = the estimate, sd 0; arviz's
       MCMC diagnostics need 4 draws and are NaN, which is what they are for one point).
     """
@@ -466,9 +501,23 @@ def _posterior_draws(result: PosteriorResult, kind: str, n_resample: int | None,
     if kind == DRAWS_INDEPENDENT:  # a seeded random subset, without replacement
         m = min(n_resample or arviz_draw_count(samples.shape[0]), samples.shape[0])
         draws = samples[rng.permutation(samples.shape[0])[:m]]
-    else:
-        m = n_resample or arviz_draw_count(result.ess)
-        draws = result.systematic(m)[rng.permutation(m)]
+        return _in_chains(draws)
+    m = n_resample or arviz_draw_count(result.ess)
+    resampled = result.systematic(m)
+    if m >= 2 and np.all(resampled == resampled[:1]):  # one sample carries all the draws: a point
+        return np.broadcast_to(resampled[:1], (2, samples.shape[1]))[None].copy()
+    draws = _in_chains(resampled[rng.permutation(m)])
+    if draws.shape[0] * draws.shape[1] <= 2 * _MIN_ARVIZ_DRAWS:
+        for _ in range(_REORDER_TRIES):
+            if _arviz_reads_quietly(draws):
+                break
+            draws = _in_chains(resampled[rng.permutation(m)])
+    return draws
+
+
+def _in_chains(draws: np.ndarray) -> np.ndarray:
+    """(m, k) draws as (chains, m // chains, k): 2 chains of equal length (1 for a single draw)."""
+    m = draws.shape[0]
     chains = 2 if m >= 2 else 1
     m -= m % chains
     return draws[:m].reshape(chains, m // chains, -1)
