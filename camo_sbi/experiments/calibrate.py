@@ -32,7 +32,7 @@ Point estimates. The naive baseline returns one sample (min/max of the observed 
 values): every marginal is a point mass, so its central α-interval is the single point
 [v, v] at every α, and it covers the truth only if v equals the truth exactly. That does
 happen (a reach that drives a joint into its limit is clamped there, so the observed
-extreme IS the true limit; ~10% of coordinates with 2 tasks), so naive's coverage is a flat
+extreme IS the true limit), so naive's coverage is a flat
 line at that tie rate, the same for every α. It is kept in the tables with
 ``point_estimate = True`` and labelled "naive (point estimate)" in the plot; its SBC ranks
 pile up at 0 for lower limits and at L for upper limits (the observed range always lies

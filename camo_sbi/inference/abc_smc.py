@@ -25,8 +25,9 @@ generation's epsilon and kernel from the objects this module created and passed 
 ABCSMC, never from pyabc's internal simulate function (tested with pyabc 0.12.18 and
 0.13.0: ``tests/test_abc_smc.py::test_pyabc_version_is_a_tested_one``).
 
-Batched sampling. pyabc evaluates one particle per model call; at ~1 ms of Python per
-simulate/DTW call that would dominate. `BatchedSampler` (a `pyabc.sampler.Sampler`) instead
+Batched sampling. pyabc evaluates one particle per model call; the Python overhead of one
+simulate/DTW call per particle would dominate (docs/studies/design_measurements.md).
+`BatchedSampler` (a `pyabc.sampler.Sampler`) instead
 draws a batch of proposals from pyabc's own transition (rejecting, without simulating,
 proposals outside the prior box as pyabc does), simulates the batch with one ``simulate``
 call per task, computes its distances with one ``dtw_distances`` call per task, and accepts
@@ -38,11 +39,10 @@ constant and cancels on normalisation), in log space where that ratio is not fin
 simulate call per particle and task), as a reference.
 
 Degenerate populations. In 14-18 free coordinates with 100 particles the importance
-weights degenerate (final ESS 1-5 of 100 on the Panda and the human), and with pyabc's own
-kernel the weighted covariance then loses rank within ~8 generations until every proposal
-has density 0 and pyabc stops with "population total weight nan" (5 of 8 human seeds at
-budget 2000 crashed). The kernel's eigenvalue floor removes the crash; the status reports
-what is left: see `run_unwarned` for the status rules (prior-only, low ESS, pyabc error,
+weights degenerate, and with pyabc's own kernel the weighted covariance then loses rank
+until every proposal has density 0 and pyabc stops with "population total weight nan"
+(how often, and how fast: docs/studies/design_measurements.md). The kernel's eigenvalue
+floor removes the crash; the status reports what is left: see `run_unwarned` for the status rules (prior-only, low ESS, pyabc error,
 failed).
 
 Early rejection (``config.early_rejection``, default on): distances are non-negative, so a
@@ -178,12 +178,8 @@ class AbcSmcConfig:
             is not used: it reseeds from the OS, so its results would not be reproducible.
         min_ess_fraction: the result's status is ``"fallback: low effective sample size
             ..."`` when the final population's ESS is below this fraction of
-            ``population_size`` (0 disables the check). Measured: toy model (4 free
-            coordinates), 22 runs of the test configurations: ESS 0.17-0.9 N except one
-            ``initial_epsilon="from_sample"`` run at 0.07 N; Panda (14 free, budgets 500
-            and 2000, 3 seeds) 0.01-0.09 N and human (18 free, budget 2000, 8 seeds)
-            0.011-0.037 N: posteriors of a handful of particles (and strongly
-            over-confident in the calibration study).
+            ``population_size`` (0 disables the check). The final ESS seen on the toy, Panda
+            and human models: docs/studies/design_measurements.md.
     """
 
     space: str = "joint"
@@ -475,8 +471,8 @@ class StableMultivariateNormalTransition(Transition):
     and returns the same values as pyabc's kernel, bit for bit.
 
     It differs on a degenerate population. When a few particles carry nearly all the
-    weight (an ESS of 1-5 of 100 particles in 14-18 free coordinates is common here), the
-    weighted covariance loses rank: its eigenvalue spread grows ~10x per generation. Once
+    weight (common here in 14-18 free coordinates), the weighted covariance loses rank
+    generation after generation (docs/studies/design_measurements.md). Once
     the smallest eigenvalue falls below ~2.2e-10 of the largest, scipy's
     ``multivariate_normal(allow_singular=True)`` (pyabc's density) is zero off the
     covariance's support, while numpy's sampler does not stay exactly on it: every

@@ -6,9 +6,8 @@ Kernel sums run in one numba loop per query point (parallel over queries): squar
 scaled differences accumulated directly in float64 (no precision lost to the
 ``|x|^2 + |y|^2 - 2 x.y`` expansion) into one (m,) row per query, then a max-shifted
 logsumexp, so evaluating m kernels at N points makes no (N, m) temporaries. The centres
-are stored transposed (d, m) so the inner loop vectorises without reordering any sum;
-this is 1.8x faster than the earlier one-pass online logsumexp and agrees with it to
-2e-16 relative (``benchmarks/bench_kde.py``).
+are stored transposed (d, m) so the inner loop vectorises without reordering any sum
+(against the earlier one-pass online logsumexp: ``benchmarks/bench_kde.py``).
 
 Note: the paper's Eq. 4 prints the constant as ``2 pi``; a normalised Gaussian kernel
 has ``(2 pi)^(-d/2)``. With one bandwidth shared by all tasks the constant does not

@@ -543,8 +543,8 @@ class NsfReader(nn.Module):
     coupling layers with linear tails and LU linear layers): the same seed gives the same
     draws (``tests/test_amortized.py`` compares it with the sbi flow). For inference only:
     ``sample``, ``sample_and_log_prob`` and ``log_prob`` with sbi's shapes; no training.
-    Importing sbi (and nflows, which imports matplotlib) costs ~2 s per process; this is
-    what makes a cold estimator load take a fraction of a second.
+    Importing sbi (and nflows, which imports matplotlib) costs seconds per process; not
+    importing it is what makes a cold estimator load fast (docs/studies/design_measurements.md).
     """
 
     def __init__(self, n_inputs: int, n_conditions: int, *, hidden_features: int, num_transforms: int,

@@ -77,12 +77,10 @@ class ControllerConfig:
             theirs: 0.01).
         limit_cap: the push's clip ``clip(., 0, limit_cap)`` (theirs: 0.2).
 
-    The defaults were tuned on goals sampled uniformly inside the limits (1000 goals,
-    from the start posture): the Panda reaches 99.9 % of them with its full URDF
-    limits (mean 21 points) and ~92 % with random limits bracketing the start (the
-    rest stall against a clamped joint); the 9-DOF human model ~93 % / ~95 %. A larger
-    ``null_gain`` lowers these rates (the null-space term then dominates the joint-step
-    cap); 0.01 keeps every trajectory a continuous function of all limits.
+    The defaults were tuned on the share of goals sampled uniformly inside the limits
+    that the arm reaches (docs/studies/design_measurements.md). A larger ``null_gain``
+    lowers that share (the null-space term then dominates the joint-step cap); 0.01 keeps
+    every trajectory a continuous function of all limits.
     """
 
     max_steps: int = 100

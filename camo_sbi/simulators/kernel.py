@@ -20,8 +20,9 @@ temporary directory.
 The kernels are serial ``nogil`` functions of a row chunk ``(c, n_chunks)``; `kernel_simulate`
 runs the chunks on the process's shared thread runner (`camo_sbi._threads`), one per CPU or
 ``NUMBA_NUM_THREADS``. Each sample is computed independently and sequentially, so results do
-not depend on the number of threads. (Serial kernels compile about 2.5x faster than numba's
-``parallel=True``/``prange``: that is most of a new chain's cold start.) Only ``simulate`` is
+not depend on the number of threads. (Serial kernels compile faster than numba's
+``parallel=True``/``prange``, and compilation is most of a new chain's cold start:
+docs/studies/design_measurements.md.) Only ``simulate`` is
 compiled when a kernel is loaded; ``fk`` (used by `kernel_fk`, the tests' check) compiles on its
 first call.
 """
