@@ -17,6 +17,7 @@ __all__ = [
     "check_positive_int",
     "check_positive_float",
     "check_theta",
+    "SEED_STREAMS",
     "derive_seed",
     "numpy_generator",
     "torch_generator",
@@ -127,10 +128,30 @@ def torch_generator(seed_or_gen, name: str = "seed", device="cpu") -> torch.Gene
     return g
 
 
-def derive_seed(*parts: int) -> int:
-    """A 63-bit integer seed derived from the non-negative integers ``parts`` (numpy SeedSequence).
+#: Named seed streams: what each stream seeds, once for every command. Each name stands for
+#: the integer the commands used before they had names, so every number stays the same.
+SEED_STREAMS = {
+    "observation-noise": 5,  # noise added to synthetic recordings (robustness)
+    "method": 7,  # a method's run on a cell's task
+    "sbc": 11,  # SBC ranks' posterior draws (calibrate)
+    "posterior-file": 13,  # resampling and prior draws of a saved netCDF posterior
+    "suggest-candidates": 23,  # candidate goals for infer --suggest
+    "suggest-ranking": 24,  # their ranking
+}
+
+
+def derive_seed(*parts: int | str) -> int:
+    """A 63-bit integer seed derived from ``parts`` (numpy SeedSequence): non-negative integers
+    and names of `SEED_STREAMS` (e.g. ``derive_seed(base, run, "method")``).
 
     Distinct part tuples give independent streams; used to give every run, cell and method
-    its own seed from one base seed.
+    its own seed from one base seed. An unknown stream name is a ValueError naming ``parts``.
     """
-    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(2, np.uint64)[0] >> 1)
+    ints = []
+    for p in parts:
+        if isinstance(p, str):
+            if p not in SEED_STREAMS:
+                raise ValueError(f"parts: unknown seed stream {p!r}; expected one of {sorted(SEED_STREAMS)}")
+            p = SEED_STREAMS[p]
+        ints.append(int(p))
+    return int(np.random.SeedSequence(ints).generate_state(2, np.uint64)[0] >> 1)

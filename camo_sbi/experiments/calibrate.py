@@ -260,13 +260,13 @@ def run_cell(spec: dict, out: str) -> str:
     store = ResultStore(out)
     sim = spec["model_spec"].build()
     task, attempt = draw_subject(sim, spec["model"], spec["subject"], n_tasks=spec["tasks"], seed=spec["seed"])
-    res = run_method(spec["method"], task, budget=spec["budget"], seed=derive_seed(spec["seed"], spec["subject"], 7),
+    res = run_method(spec["method"], task, budget=spec["budget"], seed=derive_seed(spec["seed"], spec["subject"], "method"),
                      config=json.loads(spec["config"]))
     free = task.prior.free_mask.numpy()
     names = [n for n, f in zip(coordinate_names(sim), free, strict=True) if f]
     w = res.normalized_weights()
     rows = subject_rows(res.samples[:, free], res.weights, task.true_theta.numpy()[free], names,
-                        sbc_draws=spec["sbc_draws"], seed=derive_seed(spec["seed"], spec["subject"], 11))
+                        sbc_draws=spec["sbc_draws"], seed=derive_seed(spec["seed"], spec["subject"], "sbc"))
     meta = {"wall_time": res.wall_time, "compile_time": res.compile_time, "n_simulations": res.n_simulations, "n_samples": res.samples.shape[0],
             "ess": float(1.0 / np.sum(w**2)), "attempt": attempt, **task_binding_metrics(task)}
     rows += [{"record": "meta", "name": k, "alpha": np.nan, "value": float(v)} for k, v in meta.items()]

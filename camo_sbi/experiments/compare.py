@@ -158,7 +158,7 @@ def run_cell(spec: dict, out: str) -> str:
     informative = task_binding_metrics(task)
     workdir = out / "work" / spec["key"]
     results = run_method_sequence(spec["method"], task, budget=spec["budget"],
-                                  seed=derive_seed(spec["base_seed"], spec["seed"], 7),
+                                  seed=derive_seed(spec["base_seed"], spec["seed"], "method"),
                                   config={**method_config(spec["method"], spec["space"], workdir,
                                                           spec.get("estimator")),
                                           **json.loads(spec.get("config", "{}"))})
@@ -189,7 +189,7 @@ def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
 
     observed, dims = observed_arrays(task)
     idata = to_inference_data(res, sim.joint_names, prior=task.prior, true_theta=task.true_theta,
-                              seed=derive_seed(spec["base_seed"], spec["seed"], 13), observed=observed,
+                              seed=derive_seed(spec["base_seed"], spec["seed"], "posterior-file"), observed=observed,
                               observed_dims=dims, attrs={"task": spec["task"], "status": res.status})
     idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"],
                                   "model_spec": spec["model"].to_json()})  # the report rebuilds exactly this body

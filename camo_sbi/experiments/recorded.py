@@ -591,8 +591,8 @@ def _suggest(out: Path, task, results: dict, n: int, seed: int) -> None:
     if name is None:
         raise ValueError(f"--suggest: none of the methods run ({', '.join(results)}) returned posterior draws; "
                          "add one that does (e.g. camo, abc-smc, npe)")
-    cands = nominal_workspace_goals(task.simulator, SUGGEST_CANDIDATES, derive_seed(seed, 23))
-    info = rank_goals(task, results[name], cands, seed=derive_seed(seed, 24),
+    cands = nominal_workspace_goals(task.simulator, SUGGEST_CANDIDATES, derive_seed(seed, "suggest-candidates"))
+    info = rank_goals(task, results[name], cands, seed=derive_seed(seed, "suggest-ranking"),
                       budget=SUGGEST_CANDIDATES * SUGGEST_DRAWS)
     table = pd.DataFrame({"rank": range(1, n + 1), "goal_x": info.goals[:n, 0], "goal_y": info.goals[:n, 1],
                           "goal_z": info.goals[:n, 2], "score": info.scores[:n], "criterion": info.criterion,
@@ -701,7 +701,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
         cfg = _method_config(name, space, args.budget, out / "work", overrides.get(name))
         res = run_method(name, task, budget=args.budget, seed=args.seed, config=cfg)
         results[name] = res
-        idata = to_inference_data(res, sim.joint_names, prior=task.prior, seed=derive_seed(args.seed, 13),
+        idata = to_inference_data(res, sim.joint_names, prior=task.prior, seed=derive_seed(args.seed, "posterior-file"),
                                   budget=args.budget, observed=observed, observed_dims=observed_dims,
                                   attrs={"task": model.name, "observations": str(args.observations),
                                          "model_spec": model.to_json()})

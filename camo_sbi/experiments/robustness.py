@@ -142,7 +142,7 @@ def run_cell(spec: dict, out: str) -> str:
         sim = sim.scaled(scale)  # the model the methods infer on and predict with
     start = sim.start.to(torch.float64)
     goals = reachable_goals(body, theta, spec["test_goals"],
-                            torch_generator(derive_seed(spec["base_seed"], spec["seed"], 5)), start)
+                            torch_generator(derive_seed(spec["base_seed"], spec["seed"], "observation-noise")), start)
     starts = start.expand(goals.shape[0], -1).clone()
     prior = BoxPrior(sim.bounds, obs[0].start)
     task = Task(name=model.name, subject=spec["subject"], simulator=sim, prior=prior, observations=obs,
@@ -156,7 +156,7 @@ def run_cell(spec: dict, out: str) -> str:
         cfg = dict(_CONFIGS.get(method, {}))
         if capabilities(method).workdir:
             cfg["workdir"] = str(Path(out) / "work" / spec["key"])
-        res = run_method(method, task, budget=spec["budget"], seed=derive_seed(spec["base_seed"], spec["seed"], 7),
+        res = run_method(method, task, budget=spec["budget"], seed=derive_seed(spec["base_seed"], spec["seed"], "method"),
                          config=cfg)
         pred = predict(sim, res.estimate, starts, goals)
         metrics = {"cartesian_error_mm": float(cartesian_error_mm(true_test, pred).mean()),
