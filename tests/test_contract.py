@@ -211,3 +211,23 @@ def test_oracle_needs_the_truth(task):
     recorded = replace(task, true_theta=None, test_goals=None, test_starts=None)
     with pytest.raises(ValueError, match="^method 'oracle':"):
         run_method("oracle", recorded, budget=BUDGET, seed=0)
+
+
+def test_budget_rules_are_declared_on_the_method_not_written_as_name_checks():
+    """issue 26: a per-method budget rule lives on the method (registry), never as ``m == "abc-smc"``
+    in a command; a grid refuses a config its budget cannot pay for, by the method's own rule."""
+    import pathlib
+    import re
+
+    from camo_sbi.inference.registry import budget_defaults, check_budget
+
+    assert budget_defaults("abc-smc", 150) == {"population_size": 50}
+    assert budget_defaults("abc-smc", 3000) == {"population_size": 100}
+    assert budget_defaults("camo", 150) == {}
+    with pytest.raises(ValueError, match=r"^budget: abc-smc needs at least 160 simulations per task"):
+        check_budget("abc-smc", {"population_size": 80, "initial_epsilon": "from_sample"}, 100)
+    check_budget("abc-smc", {"population_size": 80}, 80)  # exactly enough
+    check_budget("camo", None, 1)
+    experiments = pathlib.Path(__file__).parents[1] / "camo_sbi" / "experiments"
+    for f in experiments.glob("*.py"):
+        assert not re.search(r"""[=!]= ?["']abc-smc["']""", f.read_text()), f.name

@@ -113,15 +113,11 @@ def _parse_methods(text: str) -> list[str]:
 
 
 def method_config(method: str, budget: int, overrides: dict | None = None) -> dict:
-    """The config dict a cell runs ``method`` with: calibration defaults, then ``overrides``.
+    """The config dict a cell runs ``method`` with: the values the method declares for this
+    per-task budget (`registry.budget_defaults`), then ``overrides``."""
+    from camo_sbi.inference.registry import budget_defaults
 
-    ABC-SMC's first population costs ``population_size`` particles and may not exceed the
-    per-task budget; by default it is min(100, budget // 3) so at least ~3 populations fit.
-    """
-    cfg: dict = {}
-    if method == "abc-smc":
-        cfg["population_size"] = max(2, min(100, budget // 3))
-    return {**cfg, **(overrides or {})}
+    return {**budget_defaults(method, budget), **(overrides or {})}
 
 
 def cell_specs(args) -> list[dict]:
@@ -150,10 +146,13 @@ def cell_specs(args) -> list[dict]:
                 raise ValueError("--amortized: npe-amortized needs an estimator file (main() trains one when none "
                                  "is given)")
             configs[m] = {**configs[m], "estimator": str(args.amortized)}
+    from camo_sbi.inference.registry import check_budget
+
     for m, cfg in configs.items():
-        if m == "abc-smc" and cfg.get("population_size", 100) > args.budget:
-            raise ValueError(f"--budget: abc-smc population_size {cfg['population_size']} exceeds the "
-                             f"per-task budget {args.budget}")
+        try:
+            check_budget(m, cfg, args.budget)
+        except ValueError as exc:
+            raise ValueError(f"--{exc}") from exc
     specs = []
     for subject in range(args.subjects):
         for m in methods:

@@ -84,7 +84,6 @@ CONDITIONS = (
 )
 DEFAULT_CONDITIONS = ("clean", "noise 1deg/5mm", "noise 3deg/15mm", "rate x3", "taller 5%", "shorter 5%")
 _DEFAULT_METHODS = "camo-js,camo-cs,camo-hull,npe,naive,nominal,oracle"
-_CONFIGS = {"abc-smc": {"population_size": 100}}
 
 
 def coverage90(result, truth, prior) -> float:
@@ -120,7 +119,7 @@ def run_cell(spec: dict, out: str) -> str:
     from camo_sbi._validation import derive_seed, torch_generator
     from camo_sbi.evaluation.metrics import binding_bounds, cartesian_error_mm, limit_errors
     from camo_sbi.experiments.store import ResultStore
-    from camo_sbi.inference.registry import capabilities, run_method
+    from camo_sbi.inference.registry import budget_defaults, capabilities, run_method
     from camo_sbi.priors import BoxPrior
     from camo_sbi.scenarios.reaching import reachable_goals, task_binding_metrics
     from camo_sbi.task import Task, predict
@@ -153,7 +152,7 @@ def run_cell(spec: dict, out: str) -> str:
     rows = []
     base = {k: spec[k] for k in ("task", "subject", "seed", "condition")}
     for method in spec["methods"]:
-        cfg = dict(_CONFIGS.get(method, {}))
+        cfg = budget_defaults(method, spec["budget"])
         if capabilities(method).workdir:
             cfg["workdir"] = str(Path(out) / "work" / spec["key"])
         res = run_method(method, task, budget=spec["budget"], seed=derive_seed(spec["base_seed"], spec["seed"], "method"),

@@ -797,6 +797,15 @@ def run(task, observations, *, budget: int, seed: int, config: AbcSmcConfig | No
     return result
 
 
+def min_budget(config: AbcSmcConfig) -> int:
+    """The fewest simulations per task that pay for ``config``'s first population (with
+    ``initial_epsilon="from_sample"``, its calibration sample as well)."""
+    n_pop = config.population_size
+    if config.initial_epsilon == "from_sample":
+        n_pop = 2 * n_pop  # calibration sample + a first population at ~50% acceptance
+    return n_pop
+
+
 def run_unwarned(task, observations, *, budget: int, seed: int,
                  config: AbcSmcConfig | None = None) -> PosteriorResult:
     """ABC-SMC on the joint posterior given ``observations``, within ``budget`` per task.
@@ -829,9 +838,7 @@ def run_unwarned(task, observations, *, budget: int, seed: int,
     """
     config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
                                                                AbcSmcConfig)
-    n_pop = config.population_size
-    if config.initial_epsilon == "from_sample":
-        n_pop = 2 * n_pop  # calibration sample + a first population at ~50% acceptance
+    n_pop = min_budget(config)
     if n_pop > budget:
         raise ValueError(
             f"budget: {budget} simulations per task cannot pay for a first population of "

@@ -37,6 +37,8 @@ __all__ = [
     "capabilities",
     "get_method",
     "make_config",
+    "budget_defaults",
+    "check_budget",
     "names",
     "register",
     "run_method",
@@ -46,12 +48,15 @@ __all__ = [
 
 
 class Implementation(NamedTuple):
-    """What a method's module provides: the run contract, its config class and, for a
-    continual method, ``run_sequence`` (a generator yielding the result after each task)."""
+    """What a method's module provides: the run contract, its config class, for a
+    continual method ``run_sequence`` (a generator yielding the result after each task),
+    and ``min_budget(config) -> int`` when a config needs a least per-task budget (the rule
+    the method's own ``run`` enforces; `check_budget` lets a grid refuse before it starts)."""
 
     run: Callable[..., PosteriorResult]
     config: type
     run_sequence: Callable | None = None
+    min_budget: Callable[[Any], int] | None = None
 
 
 @dataclass(frozen=True)
@@ -95,6 +100,9 @@ class MethodSpec:
         base: for a variant, the name of the method it specialises (shares its loader).
         defaults: for a variant, the config values it stands for (always applied).
         paper: True for what the paper itself runs (its CAMO-JS / CAMO-CS and naive).
+        budget_defaults: ``budget -> {field: value}``, config values a grid gives the method at
+            that per-task budget under the user's ``--config`` (abc-smc: a first population
+            that leaves room for about three); None: none. Read through `budget_defaults`.
     """
 
     name: str
@@ -104,6 +112,7 @@ class MethodSpec:
     base: str | None = None
     defaults: Mapping[str, Any] = field(default_factory=dict)
     paper: bool = False
+    budget_defaults: Callable[[int], Mapping[str, Any]] | None = None
 
     def load(self) -> Implementation:
         impl = self.loader()
@@ -187,6 +196,24 @@ def make_config(name: str, config=None, **overrides):
         return config_cls(**{**spec.defaults, **overrides})
     changes = {**spec.defaults, **overrides}
     return replace(config, **changes) if changes else config
+
+
+def budget_defaults(name: str, budget: int) -> dict:
+    """The config values method ``name`` declares for a per-task ``budget`` ({} if none)."""
+    rule = get_method(name).budget_defaults
+    return dict(rule(budget)) if rule is not None else {}
+
+
+def check_budget(name: str, config, budget: int) -> None:
+    """ValueError naming ``budget`` when ``config`` (dict, config object or None) needs more
+    simulations per task than ``budget``, by the method's own rule (`Implementation.min_budget`)."""
+    spec = get_method(name)
+    rule = spec.load().min_budget
+    if rule is None:
+        return
+    need = int(rule(make_config(name, config)))
+    if budget < need:
+        raise ValueError(f"budget: {name} needs at least {need} simulations per task with its config, got {budget}")
 
 
 def space_of(name: str, config) -> str | None:
@@ -360,7 +387,12 @@ def _abc_smc() -> Implementation:
     from camo_sbi.inference import abc_smc
 
     # abc_smc.run warns on a non-ok status itself; run_method warns here instead (once)
-    return Implementation(abc_smc.run_unwarned, abc_smc.AbcSmcConfig)
+    return Implementation(abc_smc.run_unwarned, abc_smc.AbcSmcConfig, min_budget=abc_smc.min_budget)
+
+
+def _abc_budget_defaults(budget: int) -> dict:
+    """A first population of min(100, budget // 3) particles (at least 2): about three fit."""
+    return {"population_size": max(2, min(100, budget // 3))}
 
 
 def _npe() -> Implementation:
@@ -404,7 +436,7 @@ register(MethodSpec("nominal", "the model's full range of motion (no inference)"
 register(MethodSpec("oracle", "the true limits (synthetic studies; every prediction error is 0)", _oracle,
                     replace(_BASELINE, needs_truth=True)))
 register(MethodSpec("abc-smc", "ABC-SMC (pyabc) on the joint posterior of all observed tasks", _abc_smc,
-                    Capabilities(workdir=True)))
+                    Capabilities(workdir=True), budget_defaults=_abc_budget_defaults))
 register(MethodSpec("npe", "neural posterior estimation (sbi), one flow per task, combined", _npe,
                     Capabilities(continual=True, workdir=True)))
 register(MethodSpec("npe-amortized", "amortized NPE (sbi): one flow per body model, trained once, conditioned on "
