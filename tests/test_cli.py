@@ -20,15 +20,15 @@ PREDICTION = {"cartesian_error_mm", "joint_error_deg", "eq2_cartesian", "eq2_joi
 TIMINGS = ("wall_time", "compile_time")
 BINDING = {"binding_test_fraction", "binding_test_reaches", "binding_train_fraction", "binding_train_reaches",
            "binding_test_bound_min_fraction"}
-REPRO_METRICS = PREDICTION | BINDING | {"limit_error_deg", "n_simulations", *TIMINGS}
+PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
+PER_JOINT = {f"limit_error_deg_{j}" for j in PANDA_JOINTS}  # the scorer's per-joint limit errors
+REPRO_METRICS = PREDICTION | BINDING | PER_JOINT | {"limit_error_deg", "n_simulations", *TIMINGS}
 LIMIT_GROUPS = {"limit_error_binding_deg", "limit_error_free_deg"}
 BASELINES = ("naive", "nominal", "oracle")
 
 COMPARE = ["compare", "--model", "panda", "--methods", "camo,naive", "--budgets", "100", "--seeds", "2",
            "--tasks", "2", "--test-goals", "3", "--no-report"]
-PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
-COMPARE_METRICS = (PREDICTION | BINDING | {"limit_error_deg", "n_simulations", *TIMINGS}
-                   | {f"limit_error_deg_{j}" for j in PANDA_JOINTS})
+COMPARE_METRICS = PREDICTION | BINDING | PER_JOINT | {"limit_error_deg", "n_simulations", *TIMINGS}
 PPC = {"ppc_cartesian_error_mm", "pp_mean_cartesian_error_mm"}  # posterior methods only
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

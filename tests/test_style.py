@@ -149,7 +149,10 @@ def test_radian_metrics_are_shown_in_degrees():
     assert df["value"].iloc[0] == np.pi  # the input (the file's radians) is untouched
     assert style.metric_label("reference_joint").endswith("[deg]")
     assert style.metric_label("eq2_joint").endswith("[deg]")
-    assert not any(style.metric_label(m).endswith("[rad]") for m in style.METRIC_LABELS)
+    from camo_sbi.evaluation import catalog
+
+    assert not any(style.metric_label(m.row("j1")).endswith("[rad]") for m in catalog.METRICS)
+    assert style.metric_label("limit_error_deg_panda_joint2") == "|limit error| of panda_joint2 [deg]"
 
 
 def _texts_pt(fig) -> list[float]:

@@ -73,7 +73,6 @@ RESULTS_COLUMNS = ("task", "subject", "method", "budget", "seed", "n_tasks", "me
 """Required columns of results.csv; an optional ``status`` column marks non-ok runs."""
 _MAX_TABLE_ROWS = 400
 _MAX_C2ST_PAIRS = 12  # each costs ~1 s (500 draws per side, 5-fold random forest)
-_MAX_METRIC_PANELS = 9
 _PPC_DRAWS = 50
 _CORNER_LIMITS = 4
 _DAGGER = "†"
@@ -251,11 +250,17 @@ def _budget_text(b) -> str:
     return "any budget" if pd.isna(b) else f"{b:g}"
 
 
-def _metric_order(metrics) -> list[str]:
-    from camo_sbi.diagnostics.style import METRIC_LABELS
+def _table_metrics(names) -> list[str]:
+    """The metrics of ``names`` with a table of their own, in the catalog's order (unknown ones
+    last, by name): not the per-joint families (`_joint_table`) nor what describes the task
+    rather than a method (``group="task"``: the binding counts, said beside the tables)."""
+    from camo_sbi.evaluation import catalog
 
-    known = list(METRIC_LABELS)
-    return sorted(set(metrics), key=lambda m: (known.index(m) if m in known else len(known), m))
+    def own_table(n):
+        m = catalog.find(n)
+        return m is None or not (m.per_joint or m.group == "task")
+
+    return [n for n in catalog.ordered(names) if own_table(n)]
 
 
 def _status_marks(sub: pd.DataFrame) -> dict[str, list[str]]:
@@ -282,25 +287,28 @@ def _metric_table(sub: pd.DataFrame, metric: str, marks: dict[str, list[str]]) -
     return _captioned(pd.DataFrame(rows), metric_label(metric))
 
 
-def _joint_table(sub: pd.DataFrame, marks: dict[str, list[str]]) -> str:
+def _joint_table(sub: pd.DataFrame, marks: dict[str, list[str]], metric) -> str:
+    """One table of a per-joint metric family (``metric``: its catalog entry): methods as
+    rows, joints as columns, at the largest budget."""
     from camo_sbi.diagnostics.style import method_order
 
-    m = sub[sub["metric"].str.startswith("limit_error_deg_")]
+    m = sub[sub["metric"].map(metric.matches)]
     bmax = m["budget"].max()
     m = m[(m["budget"] == bmax) | m["budget"].isna()]
-    joints = list(dict.fromkeys(x[len("limit_error_deg_"):] for x in m["metric"]))
+    joints = list(dict.fromkeys(x[len(metric.prefix):] for x in m["metric"]))
     rows = []
     for method in method_order(m["method"]):
         g = m[m["method"] == method]
         rows.append({"method": method + (f" {_DAGGER}" if method in marks else ""),
-                     **{j: _ci_cell(g.loc[g["metric"] == f"limit_error_deg_{j}", "value"].to_numpy())
+                     **{j: _ci_cell(g.loc[g["metric"] == metric.row(j), "value"].to_numpy())
                         for j in joints}})
-    cap = f"|limit error| per joint [deg], budget {_budget_text(bmax)}"
+    cap = f"{metric.display_label('each joint')}, budget {_budget_text(bmax)}"
     return '<div class="wide">' + _captioned(pd.DataFrame(rows), cap) + "</div>"
 
 
 def _comparison(res: pd.DataFrame | None, why: str) -> str:
     from camo_sbi.diagnostics.style import cell_rule
+    from camo_sbi.evaluation import catalog
 
     if res is None:
         return _note(why)
@@ -312,8 +320,7 @@ def _comparison(res: pd.DataFrame | None, why: str) -> str:
         seeds = sub.groupby(["method", "budget", "metric"], dropna=False)["value"].count()
         n = sorted(set(int(v) for v in seeds))
         marks = _status_marks(sub)
-        metrics = _metric_order(m for m in sub["metric"].unique()
-                                if not m.startswith(("limit_error_deg_", "binding_")))
+        metrics = _table_metrics(sub["metric"].unique())
         if len(groups) > 1:
             out.append(f"<h3>task {_esc(task)}, subject {_esc(subject)}</h3>")
         out.append(f'<p class="meta">After {n_last:g} observed tasks. Each cell: {_esc(cell_rule(n, "seeds"))} '
@@ -321,8 +328,9 @@ def _comparison(res: pd.DataFrame | None, why: str) -> str:
                    "as columns. Angles in degrees.</p>")
         out.append(_binding_note(sub))
         out.append('<div class="tables">' + "".join(_metric_table(sub, m, marks) for m in metrics) + "</div>")
-        if sub["metric"].str.startswith("limit_error_deg_").any():
-            out.append(_joint_table(sub, marks))
+        for family in (m for m in catalog.METRICS if m.per_joint):
+            if sub["metric"].map(family.matches).any():
+                out.append(_joint_table(sub, marks, family))
         if marks:
             lines = "; ".join(f"{_esc(m)}: {_esc(', '.join(st))}" for m, st in marks.items())
             out.append(f'<p class="meta">{_DAGGER} some runs of this method did not end with status "ok" '
@@ -351,6 +359,7 @@ def _largest(df: pd.DataFrame, by: str) -> pd.DataFrame:
 
 def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: str) -> str:
     from camo_sbi.diagnostics.style import display_metric, few_runs, paper_style, run_counts
+    from camo_sbi.evaluation import catalog
 
     if res is None:
         return _note(why)
@@ -362,9 +371,13 @@ def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: 
     parts = []
     for task, tdf in res.groupby("task"):
         sub = _largest(tdf, fixed)
-        metrics = _metric_order(m for m in sub["metric"].unique()
-                                if not m.startswith(("limit_error_deg_", "binding_")))
-        shown = metrics[:_MAX_METRIC_PANELS]
+        metrics = _table_metrics(sub["metric"].unique())
+        # the headline metrics, and any the catalog does not know (no flag says they are not)
+        shown = catalog.headline(metrics) + [m for m in metrics if catalog.find(m) is None]
+        if not shown:
+            parts.append(_note(f"task {task}: no headline metric in results.csv, no figure (the tables hold "
+                               "the values)"))
+            continue
         with paper_style():
             fig = _xy_panels(sub, shown, x, xlabel)
         cap = (f"task {task}: each method at its largest {fixed.replace('_', ' ')}; line = mean, "
@@ -372,7 +385,7 @@ def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: 
                   if few_runs(run_counts(sub, x)) else
                   "band = 95% confidence interval of the mean over seeds and subjects (Student t)."))
         if len(metrics) > len(shown):
-            cap += f" Showing {len(shown)} of {len(metrics)} metrics (all are in the tables)."
+            cap += f" Showing the {len(shown)} headline metrics of {len(metrics)} (all are in the tables)."
         parts.append(_fig_html(fig, cap, alt=f"{xlabel} figure for task {task}"))
     return "".join(parts)
 

@@ -61,7 +61,6 @@ __all__ = [
     "DOUBLE_COLUMN",
     "DWARF_FACTOR",
     "FIGURE_FORMATS",
-    "METRIC_LABELS",
     "MIN_FONT_PT",
     "MethodStyle",
     "PAPER_RC",
@@ -220,47 +219,17 @@ def method_order(names: Iterable[str]) -> list[str]:
 
 # --------------------------------------------------------------------------- words
 
-METRIC_LABELS: dict[str, str] = {
-    "cartesian_error_mm": "Cartesian error per point [mm]",
-    "joint_error_deg": "joint error per joint and point [deg]",
-    "eq2_cartesian": "Eq. 2 (Cartesian), Σ goals [m]",
-    "eq2_joint": "Eq. 2 (joint), Σ goals [rad]",
-    "reference_cartesian": "authors' metric (Cart.), Σ goals [m]",
-    "reference_joint": "authors' metric (joint), Σ goals [rad]",
-    "limit_error_deg": "mean |limit error|, free limits [deg]",
-    "limit_error_binding_deg": "mean |limit error|, binding limits [deg]",
-    "limit_error_free_deg": "mean |limit error|, non-binding limits [deg]",
-    "ppc_cartesian_error_mm": "posterior-predictive Cartesian error [mm]",
-    "pp_mean_cartesian_error_mm": "error of the posterior-predictive mean path [mm]",
-    "n_simulations": "simulations used",
-    "wall_time": "wall time [s]",
-    "compile_time": "numba compile time [s]",
-    "precision": "precision", "recall": "recall", "f1": "F1", "accuracy": "accuracy",
-    "limit_error": "mean |limit error| [rad]",
-    "person_fraction": "share of blocks the person can do",
-}
-
-
-# metrics stored in radians (results.csv keeps them so): drawn and tabulated in degrees
-_RADIAN_METRICS = {"eq2_joint", "reference_joint", "limit_error"}
-_DEGREE_LABELS = {
-    "eq2_joint": "Eq. 2 (joint), Σ goals [deg]",
-    "reference_joint": "authors' metric (joint), Σ goals [deg]",
-    "limit_error": "mean |limit error| [deg]",
-}
-
-
 def metric_label(metric: str) -> str:
-    """A metric's name in words with its unit as a person reads it (angles in degrees:
-    `display_metric` converts the values of a metric stored in radians)."""
+    """A metric's name in words with its unit as a person reads it, from the metric catalog
+    (`camo_sbi.evaluation.catalog`; angles in degrees: `display_metric` converts the values
+    of a metric stored in radians); a name the catalog does not know, in words."""
+    from camo_sbi.evaluation import catalog
+
     metric = str(metric)
-    if metric in _DEGREE_LABELS:
-        return _DEGREE_LABELS[metric]
-    if metric in METRIC_LABELS:
-        return METRIC_LABELS[metric]
-    if metric.startswith("limit_error_deg_"):
-        return f"|limit error| of {metric[len('limit_error_deg_'):]} [deg]"
-    return metric.replace("_", " ")
+    m = catalog.find(metric)
+    if m is None:
+        return metric.replace("_", " ")
+    return m.display_label(metric[len(m.prefix):] if m.per_joint else None)
 
 
 def to_degrees(x):
@@ -273,7 +242,11 @@ def display_metric(df: pd.DataFrame, metric_col: str = "metric", value_col: str 
     figure or a table; `metric_label` names the unit). Other rows are returned unchanged."""
     if metric_col not in df.columns:
         return df
-    rad = df[metric_col].astype(str).isin(_RADIAN_METRICS)
+    from camo_sbi.evaluation import catalog
+
+    radians = {n for n in df[metric_col].astype(str).unique()
+               if (m := catalog.find(n)) is not None and m.unit == "rad"}
+    rad = df[metric_col].astype(str).isin(radians)
     if not rad.any():
         return df
     out = df.copy()

@@ -36,6 +36,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from camo_sbi.evaluation import catalog
+
 __all__ = ["ALPHA", "CLAIM_COLUMNS", "CONVERGENCE_TOLERANCE", "FEW_REACHES", "VARIANTS", "binding_line",
            "bootstrap_ci", "convergence_gap", "holm", "hrc_claims", "informative_claims", "manipulator_claims",
            "mark_few_reaches", "paired_less", "paired_table"]
@@ -193,9 +195,8 @@ def manipulator_claims(df: pd.DataFrame, *, setting: str) -> pd.DataFrame:
     tasks = sorted(int(k) for k in df.n_tasks.unique())
     K = tasks[-1]
     rows = []
-    for metric in ("cartesian_error_mm", "reference_cartesian"):
-        if not (df.metric == metric).any():
-            continue
+    primary = catalog.tagged("primary")[0]  # the convergence and CS-vs-JS claims' metric
+    for metric in catalog.tagged("fig2", df.metric.unique()):
         tables = {k: paired_table(df, metric, k) for k in tasks}
         for m in camo:
             for b in baselines:
@@ -207,8 +208,8 @@ def manipulator_claims(df: pd.DataFrame, *, setting: str) -> pd.DataFrame:
                     f"{metric}: mean paired difference (method - baseline) at the worst of {len(tasks)} task "
                     f"counts (k = {worst}); holds if every k is significantly below 0 (p = the largest)",
                     diffs[worst], max(p.values()), _WILCOXON, _significant))
-    if (df.metric == "cartesian_error_mm").any() and 3 in tasks and K > 3 and 1 in tasks:
-        per_k = [paired_table(df, "cartesian_error_mm", k) for k in tasks]
+    if (df.metric == primary).any() and 3 in tasks and K > 3 and 1 in tasks:
+        per_k = [paired_table(df, primary, k) for k in tasks]
         for m in camo:
             e = pd.concat([t[m] for t in per_k], axis=1).dropna().to_numpy()  # (runs, tasks)
             gain_total = e[:, 0] - e[:, -1]
@@ -217,7 +218,7 @@ def manipulator_claims(df: pd.DataFrame, *, setting: str) -> pd.DataFrame:
             learned = paired_less(-gain_total)  # error after K tasks below error after 1
             rows.append(_row(
                 "CAMO converges within 3 tasks", setting, m, "-",
-                f"cartesian_error_mm: convergence gap after 3 tasks = max(|e_3 - e_{K}|, largest rise "
+                f"{primary}: convergence gap after 3 tasks = max(|e_3 - e_{K}|, largest rise "
                 f"after task 3) per run; holds if it learned at all (Wilcoxon p < 0.05 on tasks 1 vs {K}; "
                 f"this row's p) and the gap's upper CI is within the tolerance "
                 f"{CONVERGENCE_TOLERANCE:g} x the mean improvement from 1 to {K} tasks (= {tol:.4g})",
@@ -225,20 +226,18 @@ def manipulator_claims(df: pd.DataFrame, *, setting: str) -> pd.DataFrame:
                 lambda r, tol=tol: (r["p_value"] < ALPHA and np.isfinite(r["ci_high"]) and tol > 0
                                     and r["ci_high"] <= tol)))
     for cs, js in (("camo-cs", "camo-js"), ("camo-seq-cs", "camo-seq")):
-        if not ({cs, js} <= set(df.method) and (df.metric == "cartesian_error_mm").any()):
+        if not ({cs, js} <= set(df.method) and (df.metric == primary).any()):
             continue
-        t = paired_table(df, "cartesian_error_mm", K)
+        t = paired_table(df, primary, K)
         d = (t[cs] - t[js]).dropna().to_numpy()
         margin = 0.1 * float(t[js].mean())
         p = max(paired_less(d - margin), paired_less(-(d + margin)))
         rows.append(_row(
             "CS is as good as JS (equivalent within 10% of JS's error)", setting, cs, js,
-            f"cartesian_error_mm after {K} tasks: mean paired difference {cs} - {js}; equivalence margin "
+            f"{primary} after {K} tasks: mean paired difference {cs} - {js}; equivalence margin "
             f"+-{margin:.4g} (10% of {js}'s mean); holds if both one-sided tests reject (TOST)",
             d, p, "paired Wilcoxon TOST", lambda r: r["p_value"] < ALPHA))
-    for metric in ("joint_error_deg", "reference_joint"):
-        if not (df.metric == metric).any():
-            continue
+    for metric in catalog.tagged("fig3", df.metric.unique()):
         t = paired_table(df, metric, K)
         for m in camo:
             for b in baselines:
@@ -263,9 +262,7 @@ def informative_claims(df: pd.DataFrame, *, setting: str = "informative") -> pd.
     baselines = [b for b in ("naive", "nominal") if b in set(df.method)]
     K = int(df.n_tasks.max())
     rows = []
-    for metric in ("cartesian_error_mm", "limit_error_binding_deg"):
-        if not (df.metric == metric).any():
-            continue
+    for metric in catalog.tagged("informative", df.metric.unique()):
         t = paired_table(df, metric, K)
         for m in methods:
             for b in baselines:
@@ -295,7 +292,7 @@ def hrc_claims(df: pd.DataFrame, *, setting: str = "hrc") -> pd.DataFrame:
     rows = []
     for prior in sorted(df["prior"].unique()):
         sub = df[df["prior"] == prior]
-        at_k = {metric: paired_table(sub, metric, K) for metric in ("precision", "recall", "f1")}
+        at_k = {metric: paired_table(sub, metric, K) for metric in catalog.tagged("fig5")}
         for m in camo:
             for metric, level, floor in (("precision", 0.85, 0.75), ("recall", 1.0, 0.9)):
                 v = at_k[metric][m].dropna().to_numpy()

@@ -46,17 +46,18 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from camo_sbi.evaluation import catalog
 from camo_sbi.simulators.base import Trajectories
 from camo_sbi.task import contain
 
 __all__ = [
     "BINDING_TOL_RAD",
-    "PREDICTION_METRICS",
     "binding_bounds",
     "cartesian_error_mm",
     "eq2_cartesian",
     "eq2_joint",
     "joint_error_deg",
+    "limit_error_groups",
     "limit_errors",
     "prediction_metrics",
     "reachability_metrics",
@@ -66,11 +67,6 @@ __all__ = [
 
 BINDING_TOL_RAD = 1e-3
 """A bound binds if relaxing it moves some joint of some true test reach by more than this (rad)."""
-
-PREDICTION_METRICS = ("cartesian_error_mm", "joint_error_deg", "eq2_cartesian", "eq2_joint",
-                      "reference_cartesian", "reference_joint")
-"""Names of the prediction metrics `prediction_metrics` returns, in table order."""
-
 
 def _pair(true: Trajectories, pred: Trajectories) -> None:
     if not isinstance(true, Trajectories) or not isinstance(pred, Trajectories):
@@ -143,19 +139,27 @@ def reference_joint(true: Trajectories, pred: Trajectories) -> torch.Tensor:
 
 
 def prediction_metrics(true: Trajectories, pred: Trajectories) -> dict[str, float]:
-    """Every prediction metric aggregated over the test reaches as the tables report them.
+    """Every prediction metric of the catalog (``group="prediction"``, in its order) aggregated
+    over the test reaches as the tables report them: ``cartesian_error_mm`` and
+    ``joint_error_deg`` the mean over reaches; ``eq2_*`` and ``reference_*`` the sum over
+    reaches (the paper's Fig. 2 sums over its 20 test goals)."""
+    _pair(true, pred)
+    s = _PairScoring(true, pred)
+    return {m.name: m.reduce(m.score(s)) for m in catalog.METRICS if m.group == "prediction" and m.score}
 
-    ``cartesian_error_mm`` and ``joint_error_deg``: mean over reaches; ``eq2_*`` and
-    ``reference_*``: sum over reaches (the paper's Fig. 2 sums over its 20 test goals).
-    """
-    return {
-        "cartesian_error_mm": float(cartesian_error_mm(true, pred).mean()),
-        "joint_error_deg": float(joint_error_deg(true, pred).mean()),
-        "eq2_cartesian": float(eq2_cartesian(true, pred).sum()),
-        "eq2_joint": float(eq2_joint(true, pred).sum()),
-        "reference_cartesian": float(reference_cartesian(true, pred).sum()),
-        "reference_joint": float(reference_joint(true, pred).sum()),
-    }
+
+class _PairScoring:
+    """What a prediction metric's score reads of `camo_sbi.evaluation.evaluate.Scoring`: one pair."""
+
+    def __init__(self, true: Trajectories, pred: Trajectories):
+        self.true_test, self.pred = true, pred
+
+    def trajectory_error(self, name: str) -> torch.Tensor:
+        return _PER_REACH[name](self.true_test, self.pred)
+
+
+_PER_REACH = {f.__name__: f for f in (cartesian_error_mm, joint_error_deg, eq2_cartesian, eq2_joint,
+                                       reference_cartesian, reference_joint)}
 
 
 def reachability_metrics(true: Trajectories, pred: Trajectories) -> dict[str, float]:
@@ -204,12 +208,11 @@ def binding_bounds(simulator, true_theta, starts, goals, prior, *, tol: float = 
     return out
 
 
-def limit_errors(estimate, true_theta, prior, binding: np.ndarray | None = None) -> dict[str, float]:
-    """Limit errors in degrees over the prior's free coordinates (module docstring).
-
-    ``binding``: (2n,) bool from `binding_bounds`, or None (then only ``limit_error_deg``).
-    A group with no bound in it (e.g. no bound binds) is left out of the result, not NaN.
-    """
+def limit_error_groups(estimate, true_theta, prior, binding: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The absolute errors in degrees of the prior's free bounds, per group: ``limit_error_deg``
+    (every free bound) and, with ``binding`` ((2n,) bool from `binding_bounds`),
+    ``limit_error_binding_deg`` and ``limit_error_free_deg``. A group with no bound in it
+    (e.g. no bound binds) is left out."""
     est = torch.as_tensor(estimate, dtype=torch.float64).reshape(-1)
     truth = torch.as_tensor(true_theta, dtype=torch.float64).reshape(-1)
     err = np.degrees((est - truth).abs().numpy())
@@ -218,5 +221,11 @@ def limit_errors(estimate, true_theta, prior, binding: np.ndarray | None = None)
     if binding is not None:
         groups["limit_error_binding_deg"] = free & binding
         groups["limit_error_free_deg"] = free & ~binding
-    return {name: float(err[mask].mean()) for name, mask in groups.items() if mask.any()}
+    return {name: err[mask] for name, mask in groups.items() if mask.any()}
 
+
+def limit_errors(estimate, true_theta, prior, binding: np.ndarray | None = None) -> dict[str, float]:
+    """Limit errors in degrees over the prior's free coordinates (module docstring): the mean
+    of each group of `limit_error_groups` (None ``binding``: only ``limit_error_deg``; a group
+    with no bound in it is left out of the result, not NaN)."""
+    return {name: float(err.mean()) for name, err in limit_error_groups(estimate, true_theta, prior, binding).items()}

@@ -136,8 +136,6 @@ def _model_setting(model) -> str:
 
 def run_cell(spec: dict, out: str) -> str:
     """Run one cell and write its rows (and final posterior) atomically; returns its key."""
-    import numpy as np
-
     from camo_sbi._validation import derive_seed
     from camo_sbi.evaluation.evaluate import PPC_DRAWS, evaluate_result, true_test_trajectories
     from camo_sbi.evaluation.metrics import binding_bounds
@@ -165,17 +163,9 @@ def run_cell(spec: dict, out: str) -> str:
     rows = []
     base = {k: spec[k] for k in ("task", "subject", "method", "budget", "seed")}
     for res in results:
-        metrics = evaluate_result(task, res, true_test, binding, posterior_predictive_draws=PPC_DRAWS)
-        metrics.update(informative)
-        err = np.degrees(np.abs(res.estimate - task.true_theta.numpy()))
-        for j, name in enumerate(sim.joint_names):
-            metrics[f"limit_error_deg_{name}"] = float(err[2 * j : 2 * j + 2].mean())
-        metrics["n_simulations"] = res.n_simulations
-        metrics["wall_time"] = res.wall_time  # without numba compilation, which is compile_time
-        metrics["compile_time"] = res.compile_time
-        for k in ("training_simulations", "training_time"):  # an amortized method's one-off cost
-            if k in res.extras:
-                metrics[k] = res.extras[k]
+        # every metric of the catalog that applies, per-joint limit errors and costs included
+        metrics = {**evaluate_result(task, res, true_test, binding, posterior_predictive_draws=PPC_DRAWS),
+                   **informative}
         rows += [{**base, "n_tasks": res.n_tasks, "metric": k, "value": v, "status": res.status}
                  for k, v in metrics.items()]
     _save_posterior(out, spec, sim, task, results[-1])
@@ -197,48 +187,62 @@ def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
 
 
 def make_figures(df, out: Path, formats=("png",)) -> list[Path]:
-    """Error vs observed tasks at the largest budget; with at least two budgets, error vs
-    budget (log x) and wall time vs budget; with one budget no error-vs-budget figure (its
-    points are the last ones of error vs tasks) and the wall time as bars per method.
-    Each figure once per format of ``formats`` (``--figure-format``)."""
-    from camo_sbi.diagnostics.style import paper_style
+    """The headline metrics (`camo_sbi.evaluation.catalog`) vs observed tasks at the largest
+    budget; with at least two budgets, vs budget (log x) and wall time vs budget; with one
+    budget no error-vs-budget figure (its points are the last ones of error vs tasks) and the
+    wall time as bars per method. Angles in degrees. Each figure once per format of
+    ``formats`` (``--figure-format``)."""
+    from camo_sbi.diagnostics.style import display_metric, paper_style
 
     with paper_style():
-        return _make_figures(df, out, formats)
+        return _make_figures(display_metric(df), out, formats)
 
 
-def _make_figures(df, out: Path, formats) -> list[Path]:
+def headline_panels(sub, x: str, title, **kw):
+    """A figure of one panel per headline metric in ``sub`` (tidy rows) against ``x``, one
+    legend below; ``title(label)`` the panels' titles. Returns (figure, the metrics drawn)."""
     from camo_sbi.diagnostics.style import (
         band_label,
         figure_legend,
         metric_label,
         new_figure,
-        plot_bars,
         plot_lines,
         run_counts,
+    )
+    from camo_sbi.evaluation import catalog
+
+    metrics = catalog.headline(sub.metric.unique())
+    ncol = min(3, max(1, len(metrics)))
+    nrow = -(-len(metrics) // ncol)
+    fig, axes = new_figure(nrow, ncol)
+    flat = axes.reshape(-1)
+    for ax in flat[len(metrics):]:
+        ax.set_visible(False)
+    for ax, metric in zip(flat, metrics, strict=False):
+        plot_lines(sub[sub.metric == metric], x=x, ax=ax, ylabel=metric_label(metric), title=title(metric),
+                   legend=False, **kw)
+    figure_legend(fig, flat[: len(metrics)], title=band_label(run_counts(sub[sub.metric.isin(metrics)], x)))
+    return fig, metrics
+
+
+def _make_figures(df, out: Path, formats) -> list[Path]:
+    from camo_sbi.diagnostics.style import (
+        metric_label,
+        new_figure,
+        plot_bars,
+        plot_lines,
         save_figures,
     )
 
     paths = []
     last = df[df.n_tasks == df.n_tasks.max()]
     n_last = int(df.n_tasks.max())
-    metrics = ("cartesian_error_mm", "limit_error_deg")
-
-    def pair(sub, x, title, name, **kw):
-        fig, axes = new_figure(1, 2)
-        for ax, metric in zip(axes[0], metrics, strict=True):
-            m = sub[sub.metric == metric]
-            plot_lines(m, x=x, ax=ax, ylabel=metric_label(metric), title=title(metric), legend=False, **kw)
-        figure_legend(fig, axes, title=band_label(run_counts(sub[sub.metric == metrics[0]], x)))
-        paths.extend(save_figures(fig, out / name, formats))
-
     if last.budget.nunique() >= 2:
-        pair(last, "budget", lambda m: f"{'Test' if m.startswith('cart') else 'Joint-limit'} error vs budget "
-                                       f"({n_last} tasks)", "error_vs_budget.png", logx=True)
+        fig, _ = headline_panels(last, "budget", lambda m: f"vs budget ({n_last} tasks)", logx=True)
+        paths.extend(save_figures(fig, out / "error_vs_budget.png", formats))
     bmax = df.budget.max()
-    pair(df[df.budget == bmax], "n_tasks",
-         lambda m: f"{'Test' if m.startswith('cart') else 'Joint-limit'} error vs tasks (budget {bmax:g})",
-         "error_vs_tasks.png")
+    fig, _ = headline_panels(df[df.budget == bmax], "n_tasks", lambda m: f"vs tasks (budget {bmax:g})")
+    paths.extend(save_figures(fig, out / "error_vs_tasks.png", formats))
     wt = last[last.metric == "wall_time"]
     fig, axes = new_figure(1, 1)
     if wt.budget.nunique() >= 2:
@@ -367,6 +371,7 @@ def _figures(df, out: Path, formats) -> list[Path]:
 
 def main(args) -> int:
     from camo_sbi.distributed import dask_client, parse_scheduler
+    from camo_sbi.evaluation import catalog
     from camo_sbi.evaluation.claims import binding_line
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
 
@@ -429,8 +434,8 @@ def main(args) -> int:
             from camo_sbi.experiments.amortize import write_cost_table
 
             write_cost_table(df, args.amortized, out)
-        last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(["cartesian_error_mm", "limit_error_deg",
-                                                                                  "wall_time", "n_simulations"])]
+        shown = catalog.headline(df.metric.unique()) + [m.name for m in catalog.METRICS if m.group == "cost"]
+        last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(shown)]
         summary = last.groupby(["method", "budget", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
         print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
         print(binding_line(df))

@@ -68,7 +68,7 @@ if TYPE_CHECKING:
     import numpy as np
 
 __all__ = [
-    "METRICS",
+    "allocation_metrics_recorded",
     "PRIORS",
     "STRONG_PRIOR_FIXED",
     "add_arguments",
@@ -83,7 +83,16 @@ __all__ = [
 ]
 
 PRIORS = ("strong", "weak")
-METRICS = ("precision", "recall", "f1", "accuracy")
+
+
+def allocation_metrics_recorded() -> list[str]:
+    """The allocation scores each method's row records: the catalog's ``group="allocation"``
+    metrics (`camo_sbi.evaluation.catalog`), each a field of `allocation_metrics`' result."""
+    from camo_sbi.evaluation import catalog
+
+    return [m.name for m in catalog.METRICS if m.group == "allocation"]
+
+
 STRONG_PRIOR_FIXED = ("torso_flexion", "torso_rotation", "forearm_pronation", "wrist_flexion",
                       "wrist_deviation")
 """Joints whose limits the strong prior knows (fixed to the subject's true limits)."""
@@ -261,11 +270,12 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
                      "n_tasks": k, "metric": metric, "value": float(value), "status": status})
 
     base = allocation_metrics(y_true, y_true)  # only its majority-baseline fields are used
+    recorded = allocation_metrics_recorded()
     for kind, method in keys:
         for k, (est, pred) in enumerate(zip(estimates[(kind, method)], predictions[(kind, method)], strict=True)):
             m = allocation_metrics(y_true, pred)
             status = statuses[(kind, method)][k]
-            for metric in METRICS:
+            for metric in recorded:
                 add(kind, method, k + 1, metric, getattr(m, metric), status)
             if est is not None:  # limit errors (degrees) over the free limits; binding on the test grasps
                 for metric, value in limit_errors(est, true_theta, priors[kind], binding[kind]).items():
@@ -274,7 +284,7 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
                 add(kind, method, k + 1, metric, value, status)
     for kind in args.priors:
         for k in range(args.tasks):
-            for metric in METRICS:
+            for metric in recorded:
                 add(kind, "majority", k + 1, metric, getattr(base, f"majority_{metric}"))
             add(kind, "truth", k + 1, "person_fraction", y_true.mean())
     extras = {"y_true": y_true, "test_trials": test_trials, "estimates": estimates,
@@ -306,9 +316,10 @@ def _make_figure(df, out: Path, formats) -> Path:
         run_counts,
         save_figures,
     )
+    from camo_sbi.evaluation import catalog
 
     priors = [p for p in PRIORS if p in set(df["prior"])]
-    metrics = ("precision", "recall", "f1")
+    metrics = catalog.tagged("fig5")  # the paper's Fig. 5: precision, recall and F1 of the allocation
     fig, axes = new_figure(len(priors), len(metrics), aspect=0.8, sharey=True)
     for r, kind in enumerate(priors):
         for c, metric in enumerate(metrics):
@@ -437,8 +448,10 @@ def main(args) -> int:
         claims = hrc_claims(df, setting=f"hrc ({args.subject}, observe {getattr(args, 'observe', 'reach')})")
         atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     wall = time.perf_counter() - t0
-    last = df[(df["n_tasks"] == df["n_tasks"].max())
-              & df["metric"].isin(["precision", "recall", "f1", "limit_error_deg"])]
+    from camo_sbi.evaluation import catalog
+
+    shown = list(dict.fromkeys(catalog.tagged("fig5") + catalog.headline(df["metric"].unique())))
+    last = df[(df["n_tasks"] == df["n_tasks"].max()) & df["metric"].isin(shown)]
     summary = last.groupby(["prior", "method", "metric"])["value"].mean().unstack("metric")
     person = df.loc[df["metric"] == "person_fraction", "value"].mean()
     print(f"after {int(df['n_tasks'].max())} tasks (mean over {df['run'].nunique()} runs; "

@@ -204,12 +204,9 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
         results = run_method_sequence(name, task, budget=args.samples, seed=derive_seed(args.seed, run, 1),
                                       config=method_config(name, args))
         for res in results:
-            metrics = evaluate_result(task, res, true_test, binding, reachability=st.workspace == "nominal")
-            metrics.update(informative)
-            metrics.update(design)
-            metrics["n_simulations"] = res.n_simulations
-            metrics["wall_time"] = res.wall_time  # without numba compilation, which is compile_time
-            metrics["compile_time"] = res.compile_time
+            # every metric of the catalog that applies, per-joint limit errors and costs included
+            metrics = {**evaluate_result(task, res, true_test, binding, reachability=st.workspace == "nominal"),
+                       **informative, **design}
             for metric, value in metrics.items():
                 rows.append({"run": run, "model": model.name, "subject": subject, "method": name,
                              "n_tasks": res.n_tasks, "metric": metric, "value": value, "status": res.status})
@@ -297,28 +294,39 @@ def _make_figures(df, out: Path, formats) -> list[Path]:
         plot_lines,
         save_figures,
     )
+    from camo_sbi.evaluation import catalog
 
     band = band_label(df.run.nunique())
     k = int(df.n_tasks.max())
     last = df[df.n_tasks == k]
+    present = df.metric.unique()
     paths = []
-    fig, axes = new_figure(1, 2)
-    for ax, metric, title in zip(axes[0], ("cartesian_error_mm", "reference_cartesian"),
-                                 ("Error on unseen goals vs observed tasks",
-                                  "The authors' Fig. 2 metric (sum over the test goals)"), strict=True):
-        plot_lines(df[df.metric == metric], ax=ax, ylabel=metric_label(metric), title=title, legend=False)
-    figure_legend(fig, axes, title=band)
-    paths.extend(save_figures(fig, out / "fig2_cartesian_error_vs_tasks.png", formats))
-    fig, axes = new_figure(1, 2)
-    for ax, metric, title in zip(axes[0], ("joint_error_deg", "reference_joint"),
-                                 (f"Joint space after {k} tasks", f"The authors' Fig. 3 metric after {k} tasks"),
-                                 strict=True):
-        plot_bars(last[last.metric == metric], ax=ax, ylabel=metric_label(metric), title=title)
-    paths.extend(save_figures(fig, out / "fig3_final_error.png", formats))
-    groups = [m for m in ("limit_error_binding_deg", "limit_error_free_deg") if (df.metric == m).any()]
+
+    def panels(n):
+        fig, axes = new_figure(1, n)
+        return fig, axes[0]
+
+    fig2 = catalog.tagged("fig2", present)  # the paper's Fig. 2: error on unseen goals vs observed tasks
+    if fig2:
+        fig, axes = panels(len(fig2))
+        for ax, metric in zip(axes, fig2, strict=True):
+            title = ("The authors' Fig. 2 metric (sum over the test goals)" if catalog.get(metric).aggregate == "sum"
+                     else "Error on unseen goals vs observed tasks")
+            plot_lines(df[df.metric == metric], ax=ax, ylabel=metric_label(metric), title=title, legend=False)
+        figure_legend(fig, axes, title=band)
+        paths.extend(save_figures(fig, out / "fig2_cartesian_error_vs_tasks.png", formats))
+    fig3 = catalog.tagged("fig3", present)  # the paper's Fig. 3: the joint-space errors after all tasks
+    if fig3:
+        fig, axes = panels(len(fig3))
+        for ax, metric in zip(axes, fig3, strict=True):
+            title = (f"The authors' Fig. 3 metric after {k} tasks" if catalog.get(metric).aggregate == "sum"
+                     else f"Joint space after {k} tasks")
+            plot_bars(last[last.metric == metric], ax=ax, ylabel=metric_label(metric), title=title)
+        paths.extend(save_figures(fig, out / "fig3_final_error.png", formats))
+    groups = catalog.tagged("limits", present)  # the limits the test reaches identify, and the others
     if groups:
-        fig, axes = new_figure(1, len(groups))
-        for ax, metric in zip(axes[0], groups, strict=True):
+        fig, axes = panels(len(groups))
+        for ax, metric in zip(axes, groups, strict=True):
             which = "binding bounds (the test reaches identify them)" if "binding" in metric else \
                 "free bounds (the test reaches cannot identify them)"
             plot_lines(df[df.metric == metric], ax=ax, ylabel=metric_label(metric), title=which, legend=False)
@@ -404,6 +412,7 @@ def _check(args) -> None:
 
 def main(args) -> int:
     from camo_sbi.distributed import dask_client
+    from camo_sbi.evaluation import catalog
     from camo_sbi.evaluation.claims import binding_line, informative_claims, manipulator_claims
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
     from camo_sbi.experiments.store import cell_key
@@ -451,9 +460,7 @@ def main(args) -> int:
                   else manipulator_claims(df, setting=args.setting))
         atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     wall = time.perf_counter() - t0
-    metrics = ["cartesian_error_mm", "joint_error_deg", "reference_cartesian", "limit_error_binding_deg",
-               "limit_error_free_deg", "reachability_f1"]
-    last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(metrics)]
+    last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(catalog.headline(df.metric.unique()))]
     summary = last.groupby(["method", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
     print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
     print(binding_line(df))

@@ -16,10 +16,12 @@ Conditions (each seed's subject and goals are the same in every condition, so re
   recordings together, `camo_sbi.io.recordings.estimate_body_scale`), for every method; the
   ``body_scale`` metric records s.
 
-Per (seed, condition, method): ``cartesian_error_mm`` of the held-out reaches (the true body's
-reaches vs the model's prediction from the estimate), ``limit_error_binding_deg`` (binding on
-the true body's held-out reaches) and ``coverage90``: the share of the free true limits inside
-the posterior's 90% central interval (a point estimate covers only an exact value). The
+Per (seed, condition, method): every metric of the one scorer (`evaluate_result`, with the
+interval coverage): the prediction metrics of the held-out reaches (the true body's reaches vs
+the model's prediction from the estimate), the limit errors (``limit_error_binding_deg``:
+binding on the true body's held-out reaches; per joint) and ``coverage90``: the share of the
+free true limits inside the posterior's 90% central interval (a point estimate covers only an
+exact value). The table and the figure show the catalog's headline metrics. The
 oracle (the true limits) shows what the condition itself costs: under a mis-sized model even
 the true limits mispredict. Outputs:
 ``results.csv`` (tidy), ``robustness.csv`` (per method and condition: mean over seeds, and the
@@ -29,6 +31,7 @@ error's ratio to the clean condition), ``robustness.png``.
 from __future__ import annotations
 
 import argparse
+import textwrap
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -87,17 +90,11 @@ _DEFAULT_METHODS = "camo-js,camo-cs,camo-hull,npe,naive,nominal,oracle"
 
 
 def coverage90(result, truth, prior) -> float:
-    """Share of the prior's free true limits inside the posterior's 90% central weighted interval."""
-    import torch
+    """Share of the prior's free true limits inside the posterior's 90% central weighted interval
+    (`camo_sbi.evaluation.evaluate.coverage90`, the scorer's ``coverage90``)."""
+    from camo_sbi.evaluation.evaluate import coverage90 as score
 
-    from camo_sbi.inference.result import weighted_quantile
-
-    w = result.normalized_weights()
-    lo, hi = weighted_quantile(result.samples, w, [0.05, 0.95])
-    t = torch.as_tensor(truth, dtype=torch.float64).numpy()
-    free = prior.free_mask.numpy()
-    inside = (lo - 1e-12 <= t) & (t <= hi + 1e-12)
-    return float(inside[free].mean())
+    return score(result, truth, prior)
 
 
 def _observations(sim, theta, n, seed, cond: Condition):
@@ -117,7 +114,8 @@ def run_cell(spec: dict, out: str) -> str:
     import torch
 
     from camo_sbi._validation import derive_seed, torch_generator
-    from camo_sbi.evaluation.metrics import binding_bounds, cartesian_error_mm, limit_errors
+    from camo_sbi.evaluation.evaluate import evaluate_result
+    from camo_sbi.evaluation.metrics import binding_bounds
     from camo_sbi.experiments.store import ResultStore
     from camo_sbi.inference.registry import budget_defaults, capabilities, run_method
     from camo_sbi.priors import BoxPrior
@@ -157,11 +155,8 @@ def run_cell(spec: dict, out: str) -> str:
             cfg["workdir"] = str(Path(out) / "work" / spec["key"])
         res = run_method(method, task, budget=spec["budget"], seed=derive_seed(spec["base_seed"], spec["seed"], "method"),
                          config=cfg)
-        pred = predict(sim, res.estimate, starts, goals)
-        metrics = {"cartesian_error_mm": float(cartesian_error_mm(true_test, pred).mean()),
-                   "coverage90": coverage90(res, theta, prior), "wall_time": res.wall_time,
-                   "compile_time": res.compile_time, **limit_errors(res.estimate, theta, prior, binding),
-                   **informative}
+        # the one scorer: predictions from the model (task.simulator), the truth from the body
+        metrics = {**evaluate_result(task, res, true_test, binding, interval_coverage=True), **informative}
         if spec.get("body_scale") == "free":
             metrics["body_scale"] = scale
         rows += [{**base, "method": method, "metric": k, "value": v, "status": res.status} for k, v in metrics.items()]
@@ -169,31 +164,44 @@ def run_cell(spec: dict, out: str) -> str:
     return spec["key"]
 
 
+def _shown(df: pd.DataFrame) -> list[str]:
+    """The metrics robustness tabulates and draws: the catalog's headline metrics in ``df``."""
+    from camo_sbi.evaluation import catalog
+
+    return catalog.headline(df.metric.unique())
+
+
 def summary_table(df: pd.DataFrame) -> pd.DataFrame:
-    """Per method and condition: mean over seeds of each metric, and the error's ratio to clean
-    (the ratio of the means; ``within_2x_clean`` for the issue's goal)."""
+    """Per method and condition: mean over seeds of each headline metric, the primary metric's
+    (`camo_sbi.evaluation.catalog`, claims tag "primary") ratio to clean (the ratio of the means;
+    ``within_2x_clean`` for the issue's goal), the wall time and the binding shares."""
     import numpy as np
 
+    from camo_sbi.evaluation import catalog
+
+    primary = catalog.tagged("primary")[0]
     wide = df.pivot_table(index=["method", "condition"], columns="metric", values="value", aggfunc="mean")
-    clean = wide.xs("clean", level="condition")["cartesian_error_mm"]
+    clean = wide.xs("clean", level="condition")[primary]
     wide["error_ratio_to_clean"] = [v / clean[m] if clean[m] > 0 else np.nan
-                                    for (m, _), v in wide["cartesian_error_mm"].items()]
+                                    for (m, _), v in wide[primary].items()]
     wide["within_2x_clean"] = wide["error_ratio_to_clean"] <= 2.0
     order = {c.name: i for i, c in enumerate(CONDITIONS)}
     wide = wide.reset_index()
     wide["_o"] = wide["condition"].map(order)
-    cols = ["method", "condition", "cartesian_error_mm", "error_ratio_to_clean", "within_2x_clean",
-            "limit_error_binding_deg", "coverage90", "wall_time", "binding_test_fraction", "binding_train_fraction"]
+    rest = [m for m in _shown(df) if m != primary]
+    task = [m.name for m in catalog.METRICS if m.group == "task" and m.name.endswith("_fraction")]
+    cols = ["method", "condition", primary, "error_ratio_to_clean", "within_2x_clean", *rest, "wall_time",
+            *task]
     return wide.sort_values(["method", "_o"])[[c for c in cols if c in wide.columns]].reset_index(drop=True)
 
 
 def make_figure(df: pd.DataFrame, out: Path, formats=("png",)) -> Path:
     """Per metric, one group of bars per condition (a bar per method: the mean over seeds;
     with fewer than 5 seeds each seed a dot), written once per format; returns the first file."""
-    from camo_sbi.diagnostics.style import paper_style
+    from camo_sbi.diagnostics.style import display_metric, paper_style
 
     with paper_style():
-        return _make_figure(df, out, formats)
+        return _make_figure(display_metric(df), out, formats)
 
 
 def _make_figure(df: pd.DataFrame, out: Path, formats) -> Path:
@@ -206,14 +214,14 @@ def _make_figure(df: pd.DataFrame, out: Path, formats) -> Path:
         jitter,
         method_order,
         method_style,
+        metric_label,
         new_figure,
         run_counts,
         save_figures,
     )
+    from camo_sbi.evaluation import catalog
 
-    metrics = [("cartesian_error_mm", "held-out Cartesian\nerror per point [mm]"),
-               ("limit_error_binding_deg", "binding-limit\nerror [deg]"),
-               ("coverage90", "coverage of the\n90% interval")]
+    metrics = [(m, textwrap.fill(metric_label(m), 24)) for m in _shown(df)]
     conds = [c.name for c in CONDITIONS if c.name in set(df.condition)]
     methods = method_order(sorted(set(df.method)))
     fig, axes = new_figure(len(metrics), 1, width="double", aspect=0.3)
@@ -236,8 +244,8 @@ def _make_figure(df: pd.DataFrame, out: Path, formats) -> Path:
         ax.set_xticks(np.arange(len(conds)), conds)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, axis="y")
-    if metrics[2][0] in set(df.metric):
-        axes[2, 0].axhline(0.9, color="k", lw=0.8, ls=":")
+        if catalog.get(metric).reference is not None:  # a nominal level (the 90% interval's 0.9)
+            ax.axhline(catalog.get(metric).reference, color="k", lw=0.8, ls=":")
     title = band_label(counts).replace("line:", "bar:") if few else \
         f"bars: mean over {df.seed.nunique()} seeds"
     figure_legend(fig, axes, title=title)

@@ -25,10 +25,16 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["HEADLINE_METRICS", "print_summary", "summarize"]
+__all__ = ["print_summary", "summarize", "summary_metrics"]
 
-HEADLINE_METRICS = ("cartesian_error_mm", "joint_error_deg", "limit_error_deg", "limit_error_binding_deg",
-                    "ppc_cartesian_error_mm", "f1", "coverage90", "n_simulations", "wall_time", "compile_time")
+
+def summary_metrics() -> list[str]:
+    """The metrics a summary averages: the catalog's headline metrics and the costs
+    (`camo_sbi.evaluation.catalog`: ``headline``, ``group="cost"``), in its order."""
+    from camo_sbi.evaluation import catalog
+
+    return [m.name for m in catalog.METRICS if (m.headline or m.group == "cost") and not m.per_joint]
+
 _GROUPS = ("task", "subject", "method", "prior", "condition")
 _NOT_LISTED = ("cells", "work")
 
@@ -77,7 +83,7 @@ def _table_summary(df) -> tuple[dict, dict]:
         if col in df.columns:
             at[col] = df[col].max().item()
             df = df[df[col] == df[col].max()]
-    df = df[df["metric"].isin(HEADLINE_METRICS)]
+    df = df[df["metric"].isin(summary_metrics())]
     # the method, and whatever else varies (a study's models and subjects, hrc's priors, robustness's conditions)
     groups = [c for c in _GROUPS if c in df.columns and (c == "method" or df[c].nunique() > 1)]
     mean = {}
