@@ -14,7 +14,7 @@ away from the largest observed value of joint j has two consecutive samples with
 it while another joint moves by more than ``move_tol`` between them; ``lo_j`` likewise. (A
 joint that never leaves its start, e.g. a roll that does not move the end effector, sits at
 both its extremes while the others move: without the first condition it would count.) With joint noise of
-standard deviation s, ``tol`` widens to 3 s (an honest approximation: at a clamp the noise-free
+standard deviation s, ``tol`` widens to 3 sigma (an honest approximation: at a clamp the noise-free
 value is constant, the noisy one scatters around it).
 """
 
