@@ -25,6 +25,12 @@ Subjects of a model (each a (2n,) float64 theta ``[lo_1, hi_1, ...]`` made from 
 
 `fraction_profile` is the Panda's rule, usable by any model: restricting joint j to a fraction
 f keeps ``lo = s - f (s - L)``, ``hi = s + f (U - s)`` around the start posture s.
+
+Worker processes (``--workers N``, a Dask scheduler) are fresh interpreters: they know the
+models registered when this module is imported there. A model registered at run time (a
+script, a notebook, a test) runs in-process (``--workers 1``), or is registered by a module
+its workers import too; a worker that meets an unknown model stops with ``model: unknown body
+model``, never builds another body.
 """
 
 from __future__ import annotations
