@@ -103,10 +103,15 @@ class ModelSpec:
 
     def build(self):
         """The simulator, built once per process (per registration of the model)."""
-        key = (self, None if self.kind == "urdf" else registry.get_model(self.kind))
+        key = _cache_key(self)
         if key not in _SIMS:
             _SIMS[key] = _build(self)
         return _SIMS[key]
+
+
+def _cache_key(spec: ModelSpec) -> tuple:
+    """The spec and the registered model it names (a model registered anew is built anew)."""
+    return spec, None if spec.kind == "urdf" else registry.get_model(spec.kind)
 
 
 def build_simulator(spec: ModelSpec):
@@ -237,7 +242,7 @@ def model_from_args(args, *, build: bool = True) -> ModelSpec:
         spec = ModelSpec(**{**asdict(spec), "limits": tuple((j, float(lo), float(hi)) for j, (lo, hi)
                                                              in zip(sim.joint_names, lim.tolist(), strict=True)),
                             "limits_name": Path(path).stem})
-        _SIMS[spec] = sim
+        _SIMS[_cache_key(spec)] = sim
     return spec
 
 
