@@ -58,13 +58,13 @@ def main() -> None:
     args = p.parse_args()
 
     from camo_sbi.design import rank_goals
-    from camo_sbi.experiments.subjects import INFORMATIVE_PROFILES, build_model, subject_theta
+    from camo_sbi.experiments.subjects import build_model, informative_names, subject_theta
     from camo_sbi.inference.registry import run_method
     from camo_sbi.scenarios.reaching import make_reaching_task, nominal_workspace_goals
 
     print(f"load average before: {os.getloadavg()}")
     sim = build_model(args.model)
-    subject = next(s for s, models in INFORMATIVE_PROFILES.items() if args.model in models)
+    subject = informative_names(args.model)[0]
     method, cfg, budget = args.method, None, 500
     if args.estimator:
         method, cfg, budget = "npe-amortized", {"estimator": args.estimator}, 1

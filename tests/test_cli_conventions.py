@@ -70,8 +70,8 @@ def _all_commands():
 
 @pytest.mark.parametrize("argv", list(_all_commands()), ids=" ".join)
 def test_every_command_help_shows_defaults_lists_and_examples(argv):
-    from camo_sbi.experiments.subjects import HUMAN_PROFILES, PANDA_PROFILES
     from camo_sbi.inference.registry import names
+    from camo_sbi.simulators.registry import get_model, model_names
 
     text = _help(argv)
     command = next(c for c in (*cli.COMMANDS, *cli.REPRODUCE) if c.name == argv[-1])
@@ -81,9 +81,9 @@ def test_every_command_help_shows_defaults_lists_and_examples(argv):
     if "methods" in command.lists:
         assert all(f"  {m}: " in text for m in names())
     if "subjects" in command.lists:
-        assert all(p in text for p in (*PANDA_PROFILES, *HUMAN_PROFILES))
+        assert all(p in text for m in model_names() for p in get_model(m).subjects())
     if "human" in command.lists:
-        assert all(p in text for p in HUMAN_PROFILES)
+        assert all(p in text for p in get_model("human").profiles)
 
 
 def test_compare_help_shows_each_default_value():
@@ -109,10 +109,11 @@ def test_top_level_help_lists_commands_methods_and_examples():
 def test_light_copies_agree_with_their_sources():
     """Names repeated in light modules so that --help needs no torch or pybullet."""
     from camo_sbi.experiments import hrc
-    from camo_sbi.experiments.subjects import HUMAN_PROFILES, subject_names
+    from camo_sbi.experiments.subjects import subject_names
     from camo_sbi.inference.camo import CamoConfig
     from camo_sbi.scenarios.block_stacking import OBSERVED_MOTIONS
     from camo_sbi.simulators import IMPAIRED_PROFILES
+    from camo_sbi.simulators.registry import HUMAN_PROFILES
 
     assert HUMAN_PROFILES == tuple(IMPAIRED_PROFILES) == tuple(subject_names("human"))
     assert hrc.OBSERVED_MOTIONS == OBSERVED_MOTIONS

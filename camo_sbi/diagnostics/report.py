@@ -100,6 +100,7 @@ caption{caption-side:top;text-align:left;font-weight:600;font-size:12px;padding:
 .tables{display:flex;flex-wrap:wrap;gap:.4em 1.6em;align-items:flex-start}
 .wide{max-width:100%;overflow-x:auto}
 .note{background:#fff6e0;border-left:4px solid #e0a000;padding:.4em .8em}
+.error{background:#fde8e8;border-left:4px solid #c00000;padding:.4em .8em}
 .meta{color:#555;font-size:12px}
 figure{margin:.5em 0 1.5em}
 figcaption{font-size:12px;color:#555}
@@ -118,6 +119,14 @@ def _esc(x) -> str:
 
 def _note(msg: str) -> str:
     return f'<p class="note">not available: {_esc(msg)}</p>'
+
+
+def _error(msg: str) -> str:
+    """A problem the reader must act on (not a missing input): marked, and logged as a warning."""
+    import logging
+
+    logging.getLogger(__name__).warning("report: %s", msg)
+    return f'<p class="error"><strong>error:</strong> {_esc(msg)}</p>'
 
 
 def _slug(text: str) -> str:
@@ -583,8 +592,10 @@ def _simulator(task: str, idata):
     """(the simulator the posteriors were computed with, None) or (None, exactly why not).
 
     Rebuilt from the ``model_spec`` attribute the run stored with each posterior (the
-    `ModelSpec` as JSON: model, height, sex, URDF path and sha256, end effector, start, joints),
-    never from the model's name alone: a --height 1.6 human is drawn 1.6 m tall.
+    `ModelSpec` as JSON: model, its settings such as height and sex, URDF path and sha256, end
+    effector, start, joints), never from the model's name alone: a --height 1.6 human is drawn
+    1.6 m tall. A registered model is built by `camo_sbi.simulators.registry`; a model that is
+    not registered here gives an `UnknownModel` reason (the section marks it as an error).
     """
     raw = _attr(idata, "model_spec")
     if raw is None:
@@ -595,7 +606,7 @@ def _simulator(task: str, idata):
         kind = spec["kind"]
     except (TypeError, ValueError, KeyError) as exc:
         return None, f"the posterior files' model_spec is unreadable ({type(exc).__name__}: {exc})"
-    from camo_sbi.simulators import from_urdf, human, panda
+    from camo_sbi.simulators import from_urdf, registry
 
     kwargs = {}
     if spec.get("start") is not None:
@@ -603,12 +614,13 @@ def _simulator(task: str, idata):
     if spec.get("joints") is not None:
         kwargs["joints"] = list(spec["joints"])
     try:
-        if kind == "panda":
-            return panda(**kwargs), None
-        if kind == "human":
-            return human(**{k: spec[k] for k in ("height_m", "sex") if spec.get(k) is not None}, **kwargs), None
         if kind != "urdf":
-            return None, f"unknown model kind {kind!r} in the posterior files"
+            if kind not in registry.model_names():
+                return None, UnknownModel(
+                    f"the body model {kind!r} of the posterior files is not registered in this camo_sbi "
+                    f"(registered: {', '.join(registry.model_names())}): register it "
+                    "(camo_sbi.simulators.registry.register_model) before building the report")
+            return registry.build_model(kind, spec, **kwargs), None
         path = Path(str(spec.get("urdf")))
         try:
             text = path.read_text()
@@ -619,6 +631,10 @@ def _simulator(task: str, idata):
         return from_urdf(text, spec.get("ee"), **kwargs), None
     except ValueError as exc:
         return None, f"the run's model cannot be rebuilt ({exc})"
+
+
+class UnknownModel(str):
+    """The reason `_simulator` gives for a model this registry does not know (shown as an error)."""
 
 
 def _observed(idata) -> dict[str, np.ndarray] | None:
@@ -663,7 +679,8 @@ def _predictive(posts, why: str) -> str:
             continue
         sim, why_not = _simulator(task, with_obs[0][1])
         if sim is None:
-            out.append(_note(f"{label or 'these posteriors'}: {why_not}"))
+            mark = _error if isinstance(why_not, UnknownModel) else _note
+            out.append(mark(f"{label or 'these posteriors'}: {why_not}"))
             continue
         obs = _observed(with_obs[0][1])
         n_reaches = min(4, int(obs["observed_length"].shape[0]))

@@ -99,17 +99,16 @@ def _methods_text() -> str:
 
 
 def _subjects_text() -> str:
-    from camo_sbi.experiments.subjects import HUMAN_PROFILES, ONE_JOINT, PANDA_PROFILES
+    from camo_sbi.simulators.registry import get_model, model_names
 
     return ("subject profiles (--subjects; a --urdf model's subject is its --limits file):\n"
-            + _wrap(f"panda: {', '.join((*PANDA_PROFILES, ONE_JOINT))}") + "\n"
-            + _wrap(f"human: {', '.join((*HUMAN_PROFILES, ONE_JOINT))}"))
+            + "\n".join(_wrap(f"{m}: {', '.join(get_model(m).subjects())}") for m in model_names()))
 
 
 def _impairments_text() -> str:
-    from camo_sbi.experiments.subjects import HUMAN_PROFILES
+    from camo_sbi.simulators.registry import subject_names
 
-    return "impairment profiles of the person (--subject):\n" + _wrap(", ".join(HUMAN_PROFILES))
+    return "impairment profiles of the person (--subject):\n" + _wrap(", ".join(subject_names("human")))
 
 
 def _examples(*lines: str) -> str:

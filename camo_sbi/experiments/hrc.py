@@ -108,9 +108,9 @@ _CELL_SETTINGS = ("subject", "seed", "tasks", "task_unit", "test_trials", "sampl
 
 
 def subject_names() -> list[str]:
-    from camo_sbi.simulators import IMPAIRED_PROFILES
+    from camo_sbi.simulators.registry import subject_names as names
 
-    return list(IMPAIRED_PROFILES)
+    return names("human")
 
 
 def make_prior(sim, true_theta, kind: str, *, fix_torso: bool = False):

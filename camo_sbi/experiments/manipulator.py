@@ -28,8 +28,8 @@ writes it: prior draws every task) run beside them, labelled so.
 ``--setting informative`` (issue 23: a setting in which the limits matter): the toolkit's
 controller; training and test goals drawn from the NOMINAL workspace (FK of configurations
 inside the model's full range), so some are beyond the subject's reach; at least half of the
-test goals bind (`informative_test_goals`); the subjects of
-`subjects.INFORMATIVE_PROFILES` (or the ``--limits`` file); a uniform continuous prior; the
+test goals bind (`informative_test_goals`); the model's ``informative`` subjects
+(`camo_sbi.simulators.registry`; or the ``--limits`` file); a uniform continuous prior; the
 reachability metrics (``reachability_f1``, ...) next to every other; claims: every method
 against naive and nominal on ``cartesian_error_mm`` and ``limit_error_binding_deg``.
 ``--design random`` (default) draws the training goals; ``--design active`` keeps the first and
@@ -68,7 +68,7 @@ from camo_sbi.experiments.models import (
     subject_list,
     true_limits,
 )
-from camo_sbi.experiments.subjects import INFORMATIVE_PROFILES, ONE_JOINT
+from camo_sbi.simulators.registry import ONE_JOINT, get_model
 
 __all__ = ["AUTHORS_LENGTH_UNIT", "SETTINGS", "Setting", "add_arguments", "main", "make_figures", "method_config",
            "run_one"]
@@ -80,7 +80,8 @@ class Setting:
 
     Attributes:
         controller: ``ControllerConfig`` field overrides (None: the model's default controller).
-        subjects: ground-truth profiles cycled over runs (None: every profile of the model).
+        subjects: ground-truth profiles cycled over runs (None: every profile of the model;
+            "informative": the model's informative subjects).
         fixed_goals: the same training and test goals in every run.
         require_reached: goals kept only if the subject's controller reaches them.
         camo: CAMO config fields for every CAMO variant.
@@ -91,7 +92,7 @@ class Setting:
     """
 
     controller: dict | None
-    subjects: tuple[str, ...] | None
+    subjects: tuple[str, ...] | str | None
     fixed_goals: bool
     require_reached: bool
     camo: dict
@@ -122,7 +123,7 @@ SETTINGS = {
         epsilon={"joint": 0.02, "cartesian": 0.01 * AUTHORS_LENGTH_UNIT},
         methods=("camo-seq", "camo-seq-cs", "camo-js", "camo-cs", "camo-hull", "naive", "nominal", "oracle")),
     "informative": Setting(
-        controller=None, subjects=tuple(INFORMATIVE_PROFILES), fixed_goals=False, require_reached=False,
+        controller=None, subjects="informative", fixed_goals=False, require_reached=False,
         camo={"keep_best": 100, "bandwidth": 0.2, "bandwidth_mode": "fixed", "sampling": "uniform",
               "distance": "dtw"},
         methods=("camo-js", "camo-cs", "camo-hull", "camo-seq", "camo-touched", "naive", "nominal", "oracle"),
@@ -427,7 +428,11 @@ def main(args) -> int:
     st = _setting(args)
     model = model_from_args(args)
     sim = _simulator(args, model)
-    given = args.subjects or (",".join(st.subjects) if st.subjects and model.limits is None else None)
+    named = list(get_model(model.kind).informative) if st.subjects == "informative" and model.kind != "urdf" \
+        else st.subjects
+    if st.subjects == "informative" and model.limits is None and not args.subjects and not named:
+        raise ValueError(f"--model: {model.name!r} has no informative subjects; give --subjects or --limits")
+    given = args.subjects or (",".join(named) if named and model.limits is None else None)
     subjects = subject_list(model, given, default_all=True)
     for s in subjects:
         true_limits(model, sim, s)  # validates names before any work

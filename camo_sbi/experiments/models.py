@@ -1,14 +1,18 @@
-"""One way to name the body model on every command: ``--model panda|human`` or ``--urdf``.
+"""One way to name the body model on every command: ``--model NAME`` (a registered model) or ``--urdf``.
 
-    add_model_arguments(parser, limits=True)   # --model/--height/--sex | --urdf/--ee/--start/--joints
+    add_model_arguments(parser, limits=True)   # --model and its settings (--height/--sex: human)
+                                               # | --urdf/--ee/--start/--joints
                                                # [--limits FILE.json --degrees]
     spec = model_from_args(args)                # a picklable `ModelSpec`
     sim = spec.build()                          # cached per process (worker processes rebuild it)
 
+The models, their settings and their subjects come from `camo_sbi.simulators.registry`, read
+when the parser is built: ``--model``'s choices and each setting's flag are the registered ones.
+
 A `ModelSpec` carries everything needed to rebuild the simulator in another process: the
-model name, the human's height and sex, or the URDF path with the sha256 of its text, the
-end-effector link, the actuated joints and the start posture. A worker that finds a URDF
-whose text no longer matches the digest refuses it instead of simulating another robot.
+model name and its settings (the human's height and sex), or the URDF path with the sha256 of
+its text, the end-effector link, the actuated joints and the start posture. A worker that finds
+a URDF whose text no longer matches the digest refuses it instead of simulating another robot.
 
 Ground-truth limits of a synthetic subject (``--limits FILE.json``)::
 
@@ -18,8 +22,8 @@ Every actuated joint must be named exactly once, no other name may appear, and e
 must satisfy ``bound_lo <= lo <= start <= hi <= bound_hi`` (the URDF range, the start
 posture): otherwise ValueError naming the file and the joint (exit 2 on the command line).
 
-Subjects: for the built-in models the named profiles of `camo_sbi.experiments.subjects`
-(``--subjects``), or a ``--limits`` file; for a URDF the ``--limits`` file is the subject
+Subjects: for a registered model its named profiles (`camo_sbi.simulators.registry`,
+``--subjects``), or a ``--limits`` file; for a URDF the ``--limits`` file is the subject
 (its file stem is the subject's name in the tables), and ``--subjects`` is refused.
 """
 
@@ -31,7 +35,9 @@ import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
+
+from camo_sbi.simulators import registry
 
 if TYPE_CHECKING:  # torch is imported where limits are built: the CLI's parser imports this module
     import torch
@@ -39,7 +45,6 @@ if TYPE_CHECKING:  # torch is imported where limits are built: the CLI's parser 
 __all__ = ["ModelSpec", "add_model_arguments", "build_simulator", "load_limits", "model_from_args",
            "parse_floats", "subject_list", "true_limits"]
 
-MODELS = ("panda", "human")
 _SIMS: dict = {}
 
 
@@ -48,8 +53,10 @@ class ModelSpec:
     """What is needed to rebuild a simulator in any process (plain, hashable, picklable).
 
     Attributes:
-        kind: "panda", "human" or "urdf".
-        height_m, sex: the human's anthropometry (None: the model's defaults).
+        kind: a registered model's name ("panda", "human", ...) or "urdf".
+        settings: ((name, value), ...) the model's settings set on the command line, in the
+            order the model declares them (the human's ``height_m`` and ``sex``); the others
+            keep the model's defaults.
         urdf: URDF path (kind "urdf").  digest: sha256 of its text.  ee: end-effector link.
         start: start posture (radians/metres) or None (the model's default).
         joints: actuated joint names or None (every movable joint on the path).
@@ -58,8 +65,7 @@ class ModelSpec:
     """
 
     kind: str = "panda"
-    height_m: float | None = None
-    sex: str | None = None
+    settings: tuple[tuple[str, Any], ...] = ()
     urdf: str | None = None
     digest: str | None = None
     ee: str | None = None
@@ -70,30 +76,42 @@ class ModelSpec:
 
     @property
     def name(self) -> str:
-        """Task name in tables: "panda", "human" or the URDF file stem."""
+        """Task name in tables: the model's name or the URDF file stem."""
         return Path(self.urdf).stem if self.kind == "urdf" else self.kind
 
     @property
     def is_default(self) -> bool:
         """A built-in model with its default settings and no --limits (keeps old cell keys)."""
-        return self.kind in MODELS and self == ModelSpec(kind=self.kind)
+        return self.kind != "urdf" and self == ModelSpec(kind=self.kind)
+
+    def _flat(self) -> dict:
+        d = asdict(self)
+        settings = dict(d.pop("settings"))
+        return {"kind": d.pop("kind"), **settings, **d}
 
     def key(self) -> dict:
-        """The settings that identify the model (for cell keys; the path itself is not part of it)."""
-        d = asdict(self)
+        """The settings that identify the model (for cell keys; the path itself is not part of it),
+        the model's settings beside ``kind`` (``{"kind": "human", "height_m": 1.6}``)."""
+        d = self._flat()
         d.pop("urdf")
         return {k: v for k, v in d.items() if v is not None}
 
     def to_json(self) -> str:
-        """Every field, the URDF path included, as JSON (stored with saved posteriors: the report
-        rebuilds the very body from it)."""
-        return json.dumps(asdict(self), sort_keys=True, default=str)
+        """Every field, the URDF path included, and the model's settings as keys of their own, as
+        JSON (stored with saved posteriors: the report rebuilds the very body from it)."""
+        return json.dumps(self._flat(), sort_keys=True, default=str)
 
     def build(self):
-        """The simulator, built once per process."""
-        if self not in _SIMS:
-            _SIMS[self] = _build(self)
-        return _SIMS[self]
+        """The simulator, built once per process (per registration of the model)."""
+        key = _cache_key(self)
+        if key not in _SIMS:
+            _SIMS[key] = _build(self)
+        return _SIMS[key]
+
+
+def _cache_key(spec: ModelSpec) -> tuple:
+    """The spec and the registered model it names (a model registered anew is built anew)."""
+    return spec, None if spec.kind == "urdf" else registry.get_model(spec.kind)
 
 
 def build_simulator(spec: ModelSpec):
@@ -105,18 +123,15 @@ def _digest(text: str) -> str:
 
 
 def _build(spec: ModelSpec):
-    from camo_sbi.simulators import from_urdf, human, panda
+    from camo_sbi.simulators import from_urdf
 
     kwargs = {}
     if spec.start is not None:
         kwargs["start"] = list(spec.start)
     if spec.joints is not None:
         kwargs["joints"] = list(spec.joints)
-    if spec.kind == "panda":
-        return panda(**kwargs)
-    if spec.kind == "human":
-        hk = {k: v for k, v in (("height_m", spec.height_m), ("sex", spec.sex)) if v is not None}
-        return human(**hk, **kwargs)
+    if spec.kind != "urdf":
+        return registry.build_model(spec.kind, dict(spec.settings), **kwargs)
     path = Path(spec.urdf)
     try:
         text = path.read_text()
@@ -146,10 +161,12 @@ def parse_floats(text, flag: str) -> tuple[float, ...]:
 
 def add_model_arguments(p: argparse.ArgumentParser, *, limits: bool = True) -> None:
     """The shared model options (and, for synthetic studies, ``--limits``/``--degrees``)."""
-    g = p.add_argument_group("body model", "a built-in model (--model) or any serial-chain URDF (--urdf)")
-    g.add_argument("--model", choices=MODELS, default=None, help="built-in model (default: panda)")
-    g.add_argument("--height", type=float, default=None, help="human: standing height in metres")
-    g.add_argument("--sex", choices=("male", "female"), default=None, help="human: anthropometry")
+    g = p.add_argument_group("body model", "a registered model (--model) or any serial-chain URDF (--urdf)")
+    g.add_argument("--model", choices=registry.model_names(), default=None,
+                   help="registered body model (default: panda)")
+    for flag, (setting, owners) in _setting_flags().items():
+        g.add_argument(flag, type=setting.type, choices=setting.choices, default=None,
+                       help=f"{', '.join(owners)}: {setting.help}")
     g.add_argument("--urdf", type=Path, default=None, help="URDF file of your own robot or body")
     g.add_argument("--ee", default=None, help="with --urdf: end-effector link name")
     g.add_argument("--start", default=None, help='start posture "q1,q2,..." (radians/metres, joint order)')
@@ -159,6 +176,15 @@ def add_model_arguments(p: argparse.ArgumentParser, *, limits: bool = True) -> N
                        help='ground-truth limits JSON {"joint": [lo, hi], ...} (radians; required with --urdf)')
         g.add_argument("--degrees", action="store_true",
                        help="the --limits file is in degrees (prismatic joints stay in metres)")
+
+
+def _setting_flags() -> dict:
+    """{flag: (the Setting, [models declaring it])} over the registered models."""
+    out: dict = {}
+    for name in registry.model_names():
+        for s in registry.get_model(name).settings:
+            out.setdefault(s.flag, (s, []))[1].append(name)
+    return out
 
 
 def model_from_args(args, *, build: bool = True) -> ModelSpec:
@@ -180,10 +206,12 @@ def model_from_args(args, *, build: bool = True) -> ModelSpec:
         model = model or "panda"
     elif getattr(args, "ee", None) is None:
         raise ValueError("--ee: --urdf needs the end-effector link name (--ee LINK)")
-    if model != "human":
-        for flag in ("height", "sex"):
-            if getattr(args, flag, None) is not None:
-                raise ValueError(f"--{flag}: only with --model human")
+    if urdf is None and model not in registry.model_names():
+        raise ValueError(f"--model: unknown body model {model!r}; known: {', '.join(registry.model_names())}")
+    declared = () if urdf is not None else registry.get_model(model).settings
+    for flag, (setting, owners) in _setting_flags().items():
+        if getattr(args, setting.dest, None) is not None and setting not in declared:
+            raise ValueError(f"{flag}: only with --model {' or '.join(owners)}")
     start = parse_floats(args.start, "--start") if getattr(args, "start", None) is not None else None
     joints = None
     if getattr(args, "joints", None) is not None:
@@ -197,25 +225,24 @@ def model_from_args(args, *, build: bool = True) -> ModelSpec:
         spec = ModelSpec(kind="urdf", urdf=str(path.resolve()), digest=_digest(path.read_text()), ee=args.ee,
                          start=start, joints=joints)
     else:
-        spec = ModelSpec(kind=model, height_m=getattr(args, "height", None), sex=getattr(args, "sex", None),
-                         start=start)
+        values = {s.name: getattr(args, s.dest, None) for s in declared}
+        spec = ModelSpec(kind=model, settings=registry.get_model(model).settings_from(values), start=start)
     path = getattr(args, "limits", None)
     if not build and path is None:
         return spec
-    if model == "human":
-        from camo_sbi.simulators.human import anthropometry
-
-        try:
-            anthropometry(spec.height_m or 1.75, spec.sex or "male")
-        except ValueError as exc:
-            raise ValueError(f"--height: {exc}") from exc
-    sim = spec.build()  # validates --ee / --start / --joints before any work
+    try:
+        sim = spec.build()  # validates --ee / --start / --joints and the model's settings before any work
+    except ValueError as exc:
+        flag = next((s.flag for s in declared if str(exc).startswith(s.name)), None)
+        if flag is None:
+            raise
+        raise ValueError(f"{flag}: {exc}") from exc
     if path is not None:
         lim = load_limits(path, sim, degrees=bool(getattr(args, "degrees", False)))
         spec = ModelSpec(**{**asdict(spec), "limits": tuple((j, float(lo), float(hi)) for j, (lo, hi)
                                                              in zip(sim.joint_names, lim.tolist(), strict=True)),
                             "limits_name": Path(path).stem})
-        _SIMS[spec] = sim
+        _SIMS[_cache_key(spec)] = sim
     return spec
 
 
@@ -270,9 +297,7 @@ def load_limits(path, sim, *, degrees: bool = False) -> torch.Tensor:
 
 
 def subject_list(spec: ModelSpec, subjects: str | None, *, default_all: bool = False) -> list[str]:
-    """Subject names for a study: the --limits file's, or profiles of a built-in model."""
-    from camo_sbi.experiments.subjects import subject_names
-
+    """Subject names for a study: the --limits file's, or profiles of a registered model."""
     if spec.limits is not None:
         if subjects:
             raise ValueError("--subjects: the --limits file is the subject; give one or the other")
@@ -284,7 +309,7 @@ def subject_list(spec: ModelSpec, subjects: str | None, *, default_all: bool = F
         if not items:
             raise ValueError("--subjects: give at least one profile")
         return items
-    names = subject_names(spec.kind)
+    names = registry.subject_names(spec.kind)
     return names if default_all else names[:1]
 
 
@@ -292,13 +317,11 @@ def true_limits(spec: ModelSpec, sim, name: str) -> torch.Tensor:
     """(2n,) float64 true limits of subject ``name``: the --limits file, or a named profile."""
     import torch
 
-    from camo_sbi.experiments import subjects
-
     if spec.limits is not None:
         if name != spec.limits_name:
             raise ValueError(f"subject: {name!r} is not the --limits subject {spec.limits_name!r}")
         return torch.tensor([v for _, lo, hi in spec.limits for v in (lo, hi)], dtype=torch.float64)
     try:
-        return subjects.subject_theta(sim, spec.kind, name)
+        return registry.subject_theta(sim, spec.kind, name)
     except ValueError as exc:
         raise ValueError(f"--subjects: {exc}") from exc
