@@ -6,6 +6,7 @@ name of the offending argument, never an ``assert``.
 
 from __future__ import annotations
 
+import functools
 import numbers
 
 import numpy as np
@@ -14,12 +15,14 @@ import torch
 __all__ = [
     "as_tensor",
     "check_finite",
+    "check_point_estimate",
     "check_positive_int",
     "check_positive_float",
     "check_theta",
     "SEED_STREAMS",
     "derive_seed",
     "numpy_generator",
+    "renamed_fields",
     "torch_generator",
 ]
 
@@ -62,6 +65,40 @@ def check_choice(x, choices, name: str):
     if x not in choices:
         raise ValueError(f"{name}: expected one of {tuple(choices)}, got {x!r}")
     return x
+
+
+#: The one name of the mode, whatever a method used to call it (README "Vocabulary").
+_OLD_MODE_NAMES = ("argmax", "best", "map")
+
+
+def check_point_estimate(x, choices) -> str:
+    """Validate a ``point_estimate`` (ValueError naming it); an old name of the mode
+    ("argmax", "best", "map") is refused with its new name, "mode"."""
+    if x in _OLD_MODE_NAMES and x not in choices:
+        raise ValueError(f"point_estimate: {x!r} is now called 'mode'; expected one of {tuple(choices)}")
+    return check_choice(x, choices, "point_estimate")
+
+
+def renamed_fields(**old_to_new: str):
+    """Class decorator for a config dataclass whose fields were renamed: an old name given to
+    its constructor is a TypeError naming the new one (``RENAMED`` on the class lists them;
+    `registry.make_config` reads it for dict configs and ``--config``)."""
+
+    def decorate(cls):
+        init = cls.__init__
+
+        @functools.wraps(init)
+        def __init__(self, *args, **kwargs):
+            for old, new in old_to_new.items():
+                if old in kwargs:
+                    raise TypeError(f"{old}: renamed {new!r}; use {new}=")
+            init(self, *args, **kwargs)
+
+        cls.__init__ = __init__
+        cls.RENAMED = dict(old_to_new)
+        return cls
+
+    return decorate
 
 
 def check_positive_int(x, name: str, *, minimum: int = 1) -> int:

@@ -190,7 +190,9 @@ def test_workdir_keeps_history(tmp_path):
         ({"space": "polar"}, ValueError, "space"),
         ({"min_epsilon": -1.0}, ValueError, "min_epsilon"),
         ({"sampler": "multicore"}, ValueError, "sampler"),
-        ({"estimator": "mode"}, ValueError, "estimator"),
+        ({"point_estimate": "mdoe"}, ValueError, "point_estimate"),
+        ({"point_estimate": "best"}, ValueError, "point_estimate"),  # the old name of the mode
+        ({"estimator": "mean"}, ValueError, "config"),  # the old name of point_estimate
         ({"initial_epsilon": 3.0}, ValueError, "initial_epsilon"),
         ({"min_batch_size": 64, "max_batch_size": 8}, ValueError, "max_batch_size"),
         ({"early_rejection": 1}, TypeError, "early_rejection"),

@@ -290,20 +290,20 @@ def test_euclidean_distance_with_epsilon_acceptance():
 
 
 def test_point_estimators_from_the_weighted_posterior():
-    """estimator='mean' / 'median' / 'outer' are functions of the same kept vectors and weights."""
+    """point_estimate='mean' / 'median' / 'outer' are functions of the same kept vectors and weights."""
     from camo_sbi.inference.result import weighted_quantile
 
     true = torch.tensor([-0.6, 0.5, -0.4, 0.7], dtype=torch.float64)
     goals = torch.tensor([[0.9, -0.9, 0.0], [-0.9, 0.9, 0.0]], dtype=torch.float64)
     obs = observe(ToySimulator(), true, goals)
     est = {}
-    for name in ("argmax", "mean", "median", "outer"):
-        _, _, camo = _camo(n_samples=300, keep_best=30, bandwidth=0.01, estimator=name, outer_quantile=0.1)
+    for name in ("mode", "mean", "median", "outer"):
+        _, _, camo = _camo(n_samples=300, keep_best=30, bandwidth=0.01, point_estimate=name, outer_quantile=0.1)
         for o in obs:
             camo.observe(o.start, o.goal, o.q)
         est[name] = camo.estimate()
         kept, w = camo.kept.numpy(), camo.posterior_weights()
-    assert np.array_equal(est["argmax"], kept[np.argmax(w)])
+    assert np.array_equal(est["mode"], kept[np.argmax(w)])
     np.testing.assert_allclose(est["mean"], w @ kept, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(est["median"], weighted_quantile(kept, w, 0.5))
     outer = weighted_quantile(kept, w, [0.1, 0.9])  # (2, 4): 0.1 for the lower bounds, 0.9 for the upper
@@ -311,5 +311,10 @@ def test_point_estimators_from_the_weighted_posterior():
     assert (est["outer"][0::2] <= est["median"][0::2]).all() and (est["outer"][1::2] >= est["median"][1::2]).all()
     with pytest.raises(ValueError, match="^outer_quantile:"):
         CamoConfig(outer_quantile=0.7)
-    with pytest.raises(ValueError, match="^estimator:"):
+    with pytest.raises(ValueError, match="^point_estimate:"):
+        CamoConfig(point_estimate="argmin")
+    # the old names are refused, naming the new ones
+    with pytest.raises(ValueError, match="^point_estimate: 'argmax' is now called 'mode'"):
+        CamoConfig(point_estimate="argmax")
+    with pytest.raises(TypeError, match="^estimator: renamed 'point_estimate'"):
         CamoConfig(estimator="mode")

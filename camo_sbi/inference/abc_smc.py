@@ -91,7 +91,14 @@ import scipy.special
 import scipy.stats as st
 import torch
 
-from camo_sbi._validation import check_bool, check_choice, check_positive_float, check_positive_int
+from camo_sbi._validation import (
+    check_bool,
+    check_choice,
+    check_point_estimate,
+    check_positive_float,
+    check_positive_int,
+    renamed_fields,
+)
 from camo_sbi.distributed import parse_scheduler, run_chunks
 from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.distances import dtw_distances
@@ -135,13 +142,14 @@ __all__ = [
 ]
 
 _SAMPLERS = ("batched", "single")
-_ESTIMATORS = ("mean", "median", "best")
+_POINT_ESTIMATES = ("mean", "median", "mode")
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 _DISTANCE_KEY = "d"
 # a batch proposes this fraction of the proposals expected to complete the population
 _BATCH_FILL = 0.75
 
 
+@renamed_fields(estimator="point_estimate")
 @dataclass(frozen=True)
 class AbcSmcConfig:
     """ABC-SMC settings.
@@ -161,8 +169,10 @@ class AbcSmcConfig:
         sampler: "batched" (`BatchedSampler`) or "single" (pyabc's per-particle pipeline).
         min_batch_size, max_batch_size: proposals simulated per batch; the batch is sized
             to the expected number of proposals still needed (running acceptance rate).
-        estimator: point estimate from the last population: "mean" (weighted mean),
-            "median" (coordinate-wise weighted median) or "best" (smallest distance).
+        point_estimate: from the last population: "mean" (weighted mean), "median"
+            (coordinate-wise weighted median) or "mode" (the particle of smallest distance,
+            where the ABC kernel is highest). Old names ``estimator`` and "best" are refused
+            naming these.
         sim_dtype: "float32" or "float64" for the simulations (CAMO's default: float32).
         log_level: level of pyabc's "ABC" logger during the run ("INFO" shows generations;
             "WARNING" also shows pyabc's near-zero population weight warnings, whose cause,
@@ -193,7 +203,7 @@ class AbcSmcConfig:
     sampler: str = "batched"
     min_batch_size: int = 8
     max_batch_size: int = 4096
-    estimator: str = "mean"
+    point_estimate: str = "mean"
     sim_dtype: str = "float32"
     log_level: str = "ERROR"
     workdir: str | os.PathLike | None = None
@@ -222,7 +232,7 @@ class AbcSmcConfig:
             raise ValueError(
                 f"max_batch_size: must be >= min_batch_size ({self.min_batch_size}), got {self.max_batch_size}"
             )
-        check_choice(self.estimator, _ESTIMATORS, "estimator")
+        check_point_estimate(self.point_estimate, _POINT_ESTIMATES)
         check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
         if self.log_level not in ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"):
             raise ValueError(f"log_level: expected a logging level name, got {self.log_level!r}")
@@ -811,7 +821,7 @@ def run_unwarned(task, observations, *, budget: int, seed: int,
     """ABC-SMC on the joint posterior given ``observations``, within ``budget`` per task.
 
     Returns the last complete population (free coordinates expanded to (N, 2n)) with its
-    importance weights; ``estimate`` per ``config.estimator``. ``extras``: ``epsilons``,
+    importance weights; ``estimate`` per ``config.point_estimate``. ``extras``: ``epsilons``,
     ``acceptance_rates``, ``n_evaluations``, ``n_populations``, per-generation sampler log
     (``generations``), ``aborted_population`` (True if the budget ran out mid-population;
     its simulations are ``n_simulations_discarded``), ``ess``, ``n_weights_guarded`` and
@@ -945,9 +955,9 @@ def run_unwarned(task, observations, *, budget: int, seed: int,
     dist = np.array([p.distance for p in particles], dtype=np.float64)
     samples = prior.expand(torch.from_numpy(free)).numpy()
     w = w / w.sum()
-    if config.estimator == "mean":
+    if config.point_estimate == "mean":
         estimate = w @ samples
-    elif config.estimator == "median":
+    elif config.point_estimate == "median":
         estimate = weighted_median(samples, w)
     else:
         estimate = samples[int(np.argmin(dist))]

@@ -51,8 +51,10 @@ from camo_sbi._validation import (
     check_bool,
     check_choice,
     check_finite,
+    check_point_estimate,
     check_positive_float,
     check_positive_int,
+    renamed_fields,
 )
 from camo_sbi.distributed import parse_scheduler, run_chunks
 from camo_sbi.inference.contract import check_run_args
@@ -68,10 +70,11 @@ _BANDWIDTH_MODES = ("fixed", "scott")
 _SAMPLINGS = ("uniform", "lhs", "grid")
 _DISTANCES = ("dtw", "euclidean")
 _PROPOSALS = ("prior", "sequential", "sequential-js")
-_ESTIMATORS = ("argmax", "mean", "median", "outer")
+_POINT_ESTIMATES = ("mode", "mean", "median", "outer")
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
+@renamed_fields(estimator="point_estimate")
 @dataclass(frozen=True)
 class CamoConfig:
     """Every CAMO hyperparameter.
@@ -109,12 +112,13 @@ class CamoConfig:
         js_epsilon: the JS chain's joint-space epsilon for ``proposal="sequential-js"``
             (the authors' ``THRESH`` 0.02); the chain keeps at most ``keep_best`` of those (None:
             its best ``keep_best``).
-        estimator: the point estimate: "argmax" (Eq. 6, the paper), "mean" (weighted by the
+        point_estimate: "mode" (Eq. 6's argmax, the paper), "mean" (weighted by the
             joint density), "median" (coordinate-wise weighted median) or "outer" (each lower
             bound at its ``outer_quantile`` weighted quantile, each upper bound at 1 -
             ``outer_quantile``: identified bounds stay where the posterior puts them,
-            unidentified ones are left wide). Not in the paper except "argmax".
-        outer_quantile: the level of the "outer" estimator, in (0, 0.5].
+            unidentified ones are left wide). Not in the paper except "mode". (Its old name,
+            ``estimator``, and the mode's, "argmax", are refused naming these.)
+        outer_quantile: the level of the "outer" point estimate, in (0, 0.5].
         sim_dtype: "float32" or "float64" for the candidate simulations.
         chunk_size: candidates per chunk. Chunk c of task n draws its candidates from
             ``numpy.random.default_rng([seed, n, c])`` and is simulated and scored on its own,
@@ -143,7 +147,7 @@ class CamoConfig:
     contain_observed: bool = False
     distance: str = "dtw"
     proposal: str = "prior"
-    estimator: str = "argmax"
+    point_estimate: str = "mode"
     outer_quantile: float = 0.05
     js_epsilon: float | None = None
 
@@ -169,7 +173,7 @@ class CamoConfig:
                                  "chain's epsilon")
         if self.js_epsilon is not None:
             check_positive_float(self.js_epsilon, "js_epsilon")
-        check_choice(self.estimator, _ESTIMATORS, "estimator")
+        check_point_estimate(self.point_estimate, _POINT_ESTIMATES)
         check_positive_float(self.outer_quantile, "outer_quantile")
         if self.outer_quantile > 0.5:
             raise ValueError(f"outer_quantile: must be in (0, 0.5], got {self.outer_quantile}")
@@ -393,14 +397,14 @@ class Camo:
         return self
 
     def estimate(self) -> np.ndarray:
-        """(2n,) the point estimate (``config.estimator``; default: the kept vector with the
+        """(2n,) the point estimate (``config.point_estimate``; default: the kept vector with the
         highest joint density over the tasks so far, Eq. 6)."""
         if not self.records:
             raise RuntimeError("estimate: no task observed yet; call observe() first")
         if self._kept.shape[0] == 0:  # every task failed (no finite candidate): the prior's centre
             return self.prior.with_known(0.5 * (self.prior.low + self.prior.high)).numpy()
-        est = self.config.estimator
-        if est == "argmax":
+        est = self.config.point_estimate
+        if est == "mode":
             return self._kept[int(torch.argmax(self._logp))].numpy().copy()
         kept, w = self._kept.numpy(), self.posterior_weights()
         if est == "mean":

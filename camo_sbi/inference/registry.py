@@ -184,6 +184,9 @@ def make_config(name: str, config=None, **overrides):
     if config is not None and not isinstance(config, config_cls):
         raise TypeError(f"config: expected {config_cls.__name__} for method {name!r}, got {type(config).__name__}")
     known = {f.name for f in dataclasses.fields(config_cls)}
+    for old, new in getattr(config_cls, "RENAMED", {}).items():
+        if old in overrides:
+            raise ValueError(f"config: field {old!r} of method {name!r} is now called {new!r}")
     unknown = sorted(set(overrides) - known)
     if unknown:
         raise ValueError(f"config: unknown field(s) {unknown} for method {name!r}; known: {sorted(known)}")
