@@ -51,39 +51,26 @@ q(theta | the person's N <= max_set reaches) and their log densities in one pass
 
 **Inference, per-reach form** (`run`, no simulation): for reaches x_1..x_N of one person,
 p(theta | x_1..N) ∝ p(theta)^(1-N) ∏_i q(theta | x_i) (sbi's i.i.d. NPE rule, exact when q
-is the exact per-reach posterior), held by `NpePosterior` (the same flow with N
+is the exact per-reach posterior), held by `npe_posterior.NpePosterior` (the same flow with N
 conditions; its log target in the logit coordinates z, with the prior pushed to z as
-standard logistic densities, serves every sampler). ``combine="mcmc"`` (default):
-`NpePosterior.sample_mcmc`, a population MCMC in z: 128 chains started from a Gaussian
-approximation of the product, 300 sweeps (150 of adaptation, discarded), each half of the
-population moved by random-walk Metropolis with the other half's covariance (or a
-differential-evolution move), one batched flow call over half the chains x N reaches per
-half-sweep; equally weighted draws (``weights`` None). An acceptance rate below
-``min_acceptance`` or more than half of the chains never moving sets ``status =
-"fallback: ..."``. ``combine="smc"``: `NpePosterior.sample_smc`, tempered SMC from the
-mixture of the N flows to the product (512 weighted particles, 2 Metropolis moves per
-stage); a run that does not reach the product within its stage limit is a fallback.
-``combine="is"``: the importance sampler of per-task NPE (`NpePosterior.sample`); an
-effective sample size below ``min_ess`` sets the fallback status (every fallback is warned
-about by the registry).
+standard logistic densities, serves every sampler of `samplers`). ``combine="mcmc"``
+(default): `samplers.mcmc`, a population MCMC in z whose chains start from a Gaussian
+approximation of the product, one batched flow call over half the chains x N reaches per
+half-sweep; equally weighted draws (``weights`` None). ``combine="smc"``: `samplers.smc`,
+tempered SMC from the mixture of the N flows to the product. ``combine="is"``:
+`samplers.importance`, the importance sampler of per-task NPE. Every sampler's result passes
+the samplers' one fallback rule (`samplers.WeightedDraws.status` with ``min_ess``: MCMC
+chains that barely moved, SMC that did not reach the product, too small an ESS), and the
+registry warns about every fallback.
 
 Why the set form is the default, and what each form and sampler measured (calibration,
 time per person, the per-reach samplers' failure to converge): `docs/studies/amortized_measurements.md`
 and the README's "Amortized inference" section.
 
-Why one module of ~1000 lines: training, the file format and its fingerprint check, and
-inference are one estimator's life cycle; they share the metadata schema (a change to the
-training settings changes what a file stores and what inference checks), so they change
-together. The samplers themselves live in `npe` (`NpePosterior`), beside per-task NPE's
-importance sampler.
-
-**Files**: one ``torch.save`` dict {"format", "metadata" (JSON text), "state_dict"} read with
-``torch.load(weights_only=True)``; the metadata (format version, model name and fingerprint:
-joint names, bounds, start, URDF and controller; prior box; spaces; summary settings; noise;
-feature masks; training cost; the sha256 of the payload, `payload_sha256`, verified before
-anything is built) is checked against every task before use. Loading rebuilds each NSF as
-`sbi_adapter.NsfReader` from the metadata and loads only its weights: no sbi import, the same
-draws (MAF flows, sbi embedding nets and one-input flows are rebuilt through sbi).
+Modules: this one holds the inference settings, `train`, `run` and the sbi diagnostics;
+`amortized_estimator` the training settings (`TrainConfig`), the estimator object and its file
+(format, fingerprint check, `load_estimator`); `amortized_flows` the networks;
+`amortized_data` the model fingerprint and the training set.
 """
 
 from __future__ import annotations
@@ -151,10 +138,9 @@ class AmortizedConfig:
         combine: how the per-reach form's product posterior is sampled; None (default): the
             estimator's own way, one flow sample for a set-form estimator and "mcmc" for a
             per-reach one. Giving it for a set-form estimator is a ValueError (nothing is
-            combined there). "mcmc" (
-            population MCMC, `NpePosterior.sample_mcmc`, equally weighted draws), "smc"
-            (tempered SMC, `NpePosterior.sample_smc`, ``smc_particles`` weighted draws) or
-            "is" (the importance sampler of `NpePosterior.sample`, weighted draws). None of
+            combined there). "mcmc" (population MCMC, `samplers.mcmc`, equally weighted draws),
+            "smc" (tempered SMC, `samplers.smc`, ``smc_particles`` weighted draws) or "is"
+            (importance sampling, `samplers.importance`, weighted draws). None of
             them converges on the Panda's 5-reach target within seconds; see the module
             docstring for what was measured and why MCMC stays the default.
         n_posterior_samples: draws returned by the set form's flow, MCMC (at most this many,
@@ -177,8 +163,9 @@ class AmortizedConfig:
         min_acceptance: an MCMC acceptance rate below it (or more than half of the chains never
             moving after burn-in) sets ``status = "fallback: ..."``.
         point_estimate: "mean", "median" or "map" (`npe.point_estimate`).
-        min_ess: an importance sample (combine="is") with a smaller effective sample size is
-            reported as ``status = "fallback: ..."``.
+        min_ess: the samplers' one fallback rule (`samplers.WeightedDraws.status`): weighted
+            draws (combine="is" or "smc") with an effective sample size below min(min_ess,
+            N / 2) are reported as ``status = "fallback: ..."``.
         n_threads: torch intra-op threads while sampling (None: unchanged).
     """
 

@@ -5,7 +5,9 @@ a task against it and to rebuild the flows (`amortized` trains and runs it). Fil
 ``torch.save`` dict {"format", "metadata" (JSON text), "state_dict"} read with
 ``torch.load(weights_only=True)``; the metadata (format, model fingerprint, prior box,
 settings, feature masks, training cost, the payload's sha256, `payload_sha256`, verified
-before anything is built) is checked against every task before use.
+before anything is built) is checked against every task before use. Loading rebuilds each
+NSF as `sbi_adapter.NsfReader` from the metadata and loads only its weights: no sbi import,
+the same draws (MAF flows, sbi embedding nets and one-input flows are rebuilt through sbi).
 """
 
 from __future__ import annotations

@@ -94,7 +94,8 @@ class NpeConfig:
             data never depend on where the chunks run).
         sim_dtype: "float32" or "float64" for the simulations.
         workdir: None, or a directory (created) receiving ``npe_posterior_k{k}_seed{seed}.pt``
-            (tensors) and its ``.pt.json`` metadata with the sha256 (reload with `load_posterior`).
+            (tensors) and its ``.pt.json`` metadata with the sha256 (reload with
+            `npe_posterior.load_posterior`).
         device: torch device for training ("cpu").
         n_threads: torch intra-op threads while training and sampling (restored afterwards);
             None keeps the current setting. Small flows train fastest on one thread: with

@@ -235,7 +235,9 @@ class NpePosterior:
             try:
                 draws = samplers.importance(log_target, mixture, n, seed=seed, rounds=is_rounds,
                                             defensive_fraction=defensive_fraction)
-            except RuntimeError:
+            except RuntimeError as exc:
+                if not str(exc).startswith("importance: every importance weight is zero"):
+                    raise
                 raise RuntimeError("sample: every importance weight is zero (the flows put no mass in the box)") \
                     from None
         return self._in_theta(draws)

@@ -19,7 +19,7 @@ Proposals:
 
 Randomness: every draw the samplers make comes from a ``torch.Generator`` seeded by their
 ``seed`` argument; a proposal's own ``sample`` (e.g. an sbi flow) may use the global torch
-RNG, which the caller then forks and seeds (as `npe.NpePosterior` does).
+RNG, which the caller then forks and seeds (as `npe_posterior.NpePosterior` does).
 
 One fallback rule (`WeightedDraws.status`): a sample is a fallback when its sampler reported
 a failure (SMC did not reach the target; MCMC chains barely moved) or when its effective
@@ -51,7 +51,7 @@ _IS_INFLATE = 1.5
 _DRAWS_NAME = {"is": "importance draws", "mcmc": "MCMC draws", "smc": "SMC particles", "flow": "flow draws"}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # tensors: compare fields with torch.equal, not ==
 class WeightedDraws:
     """Weighted draws of a target.
 
@@ -104,7 +104,7 @@ def cholesky(cov: torch.Tensor) -> torch.Tensor:
     return factor if int(info) == 0 else torch.diag(cov.diagonal().clamp_min(1e-12).sqrt())
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Gaussian:
     """N(mean, L L^T): mean (d,) float64, scale_tril L (d, d) lower triangular."""
 
