@@ -61,7 +61,7 @@ def main() -> None:
                      lambda self, xs: [self.phi(xs).mean(1), torch.ones(xs.shape[0], 1)]),
         "linear-mean": (nn.Linear(n_f, 64), lambda self, xs: [xs.mean(1)]),
         "pooled": (nn.Linear(3 * n_f, 64), lambda self, xs: [xs.mean(1), xs.amax(1), xs.amin(1)]),
-        "pooled+mlp": (None, None),  # the shipped _SetFlow.embed
+        "pooled+mlp": (None, None),  # the shipped SetFlow.embed
     }
     print(f"{args.model}: {args.sets} sets x 10 reaches, {n_f} features per reach, {args.flow}, {args.epochs} epochs")
     for name, (rho, parts) in variants.items():
