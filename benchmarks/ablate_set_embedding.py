@@ -10,7 +10,7 @@ coordinates is 2 nats per free limit, 28.0 for the Panda):
 - ``mlp-mean``: the first design, a DeepSet: mean over reaches of a per-reach MLP, then an MLP;
 - ``linear-mean``: a linear layer on the mean of the standardised reach features;
 - ``pooled``: a linear layer on their mean, max and min;
-- ``pooled+mlp``: pooled plus the MLP's mean (`amortized._SetFlow`, the shipped embedding).
+- ``pooled+mlp``: pooled plus the MLP's mean (`amortized_flows.SetFlow`, the shipped embedding).
 
 Measured (Panda, 3000 sets, 30 epochs, MAF, 2 loaded cores): mlp-mean 27.93, linear-mean 21.16,
 pooled 20.32, pooled+mlp 20.26.
@@ -35,7 +35,8 @@ def main() -> None:
 
     from camo_sbi.experiments.subjects import build_model
     from camo_sbi.inference import amortized as A
-    from camo_sbi.inference import npe, sbi_adapter
+    from camo_sbi.inference import amortized_flows as F
+    from camo_sbi.inference import flow_space, sbi_adapter
     from camo_sbi.priors import BoxPrior
 
     torch.set_num_threads(1)
@@ -44,12 +45,12 @@ def main() -> None:
     cfg = A.TrainConfig(simulations=10 * args.sets, form="set", density_estimator=args.flow)
     data = A.simulate_training_set(sim, prior, cfg, 0)
     lo, w = prior.low[prior.free_mask], (prior.high - prior.low)[prior.free_mask]
-    z = npe.to_unconstrained(data["theta"][:, prior.free_mask], lo, w, "logit").float()
+    z = flow_space.to_unconstrained(data["theta"][:, prior.free_mask], lo, w, "logit").float()
     x = data["x"]["joint"]
     reaches = x.reshape(-1, x.shape[-1])
     keep = reaches.std(0) > 1e-8 * (1 + reaches.abs().amax(0))
     n_f = int(keep.sum())
-    cond = A._SetFlow.pack(x[..., keep], torch.ones(x.shape[:2], dtype=torch.bool))
+    cond = F.SetFlow.pack(x[..., keep], torch.ones(x.shape[:2], dtype=torch.bool))
 
     def standardised(self, condition):
         sets, _ = self._unpack(condition)
@@ -60,11 +61,11 @@ def main() -> None:
                      lambda self, xs: [self.phi(xs).mean(1), torch.ones(xs.shape[0], 1)]),
         "linear-mean": (nn.Linear(n_f, 64), lambda self, xs: [xs.mean(1)]),
         "pooled": (nn.Linear(3 * n_f, 64), lambda self, xs: [xs.mean(1), xs.amax(1), xs.amin(1)]),
-        "pooled+mlp": (None, None),  # the shipped _SetFlow.embed
+        "pooled+mlp": (None, None),  # the shipped SetFlow.embed
     }
     print(f"{args.model}: {args.sets} sets x 10 reaches, {n_f} features per reach, {args.flow}, {args.epochs} epochs")
     for name, (rho, parts) in variants.items():
-        flow = A._new_flow(cfg, z.shape[1], n_f, 1)
+        flow = F.new_flow(cfg, z.shape[1], n_f, 1)
         flow.set_statistics(z, reaches[:, keep].float())
         flow.train = types.MethodType(lambda self, mode=True: nn.Module.train(self, False), flow)  # complete sets
         if rho is not None:

@@ -32,9 +32,10 @@ import numpy as np
 _COLD = {
     "now": "from camo_sbi.inference.amortized import load_estimator; load_estimator(PATH)",
     "before": ("import json; from camo_sbi.inference import amortized as A; "
+               "from camo_sbi.inference import amortized_flows as F; "
                "b = torch.load(PATH, weights_only=True); m = json.loads(b['metadata']); "
                "s = A.TrainConfig.from_json(m['settings']); n = sum(h > l for l, h in zip(m['prior']['low'], "
-               "m['prior']['high'])); [A._new_flow(s, n, m['features'][sp]['n_kept'], 0).load_state_dict("
+               "m['prior']['high'])); [F.new_flow(s, n, m['features'][sp]['n_kept'], 0).load_state_dict("
                "{k[len(sp) + 1:]: v for k, v in b['state_dict'].items() if k.startswith(sp + '.')}) "
                "for sp in s.spaces]"),
 }
@@ -64,12 +65,13 @@ def _reader_vs_sbi(est, tasks, draws: int) -> None:
     import torch
 
     from camo_sbi.inference import amortized as A
+    from camo_sbi.inference import amortized_flows as F
 
     blob = torch.load(est.path, weights_only=True)
     meta = json.loads(blob["metadata"])
     sbi_flows = {}
     for sp in est.spaces:
-        f = A._new_flow(est.settings, int(est.free_mask.sum()), meta["features"][sp]["n_kept"], 0)
+        f = F.new_flow(est.settings, int(est.free_mask.sum()), meta["features"][sp]["n_kept"], 0)
         f.load_state_dict({k[len(sp) + 1:]: v for k, v in blob["state_dict"].items() if k.startswith(sp + ".")})
         sbi_flows[sp] = f.eval()
     other = A.AmortizedEstimator(meta, sbi_flows)

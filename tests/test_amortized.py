@@ -10,8 +10,16 @@ import pytest
 import torch
 
 from camo_sbi.budget import CountingSimulator
-from camo_sbi.inference import amortized, npe, sbi_adapter
+from camo_sbi.inference import (
+    amortized,
+    amortized_data,
+    amortized_estimator,
+    amortized_flows,
+    flow_space,
+    sbi_adapter,
+)
 from camo_sbi.inference.amortized import AmortizedConfig, TrainConfig, load_estimator, train
+from camo_sbi.inference.npe_posterior import NpePosterior
 from camo_sbi.inference.registry import capabilities, run_method
 from camo_sbi.priors import BoxPrior
 from camo_sbi.scenarios.reaching import make_reaching_task, observe
@@ -81,7 +89,7 @@ def test_save_load_round_trip_gives_identical_samples(form, paths, task, tmp_pat
     assert set(blob) == {"format", "metadata", "state_dict"} and isinstance(blob["metadata"], str)
     copy = tmp_path / "copy.pt"
     copy.write_bytes(est.to_bytes())
-    again = amortized.from_bytes(copy.read_bytes())
+    again = amortized_estimator.from_bytes(copy.read_bytes())
     for space in est.spaces:
         for (k, v), (k2, v2) in zip(est.flows[space].state_dict().items(),
                                     again.flows[space].state_dict().items(), strict=True):
@@ -90,7 +98,7 @@ def test_save_load_round_trip_gives_identical_samples(form, paths, task, tmp_pat
         a = _run(task, est_path, space=space)
         b = _run(task, copy, space=space)
         np.testing.assert_array_equal(a.samples, b.samples)
-        np.testing.assert_array_equal(a.weights, b.weights)
+        torch.testing.assert_close(a.weights, b.weights, rtol=0, atol=0)
         np.testing.assert_array_equal(a.estimate, b.estimate)
     assert not np.array_equal(_run(task, est_path).samples,
                               run_method("npe-amortized", task, budget=1, seed=6,
@@ -170,14 +178,14 @@ def test_a_set_file_of_another_set_embedding_is_refused(paths, tmp_path):
 
     blob = torch.load(paths["set"], weights_only=True)
     meta = json.loads(blob["metadata"])
-    assert meta["set_embedding"] == amortized._SET_EMBEDDING
+    assert meta["set_embedding"] == amortized_flows.SET_EMBEDDING
     for value in (None, "deepset-mean/0"):
         m = {k: v for k, v in meta.items() if k != "set_embedding"} | ({} if value is None else {"set_embedding": value})
         m["sha256"] = amortized.payload_sha256(m, blob["state_dict"])  # a consistent file of that embedding
         buf = io.BytesIO()
         torch.save(blob | {"metadata": json.dumps(m)}, buf)
         with pytest.raises(ValueError, match="^estimator: .*set embedding .*retrain"):
-            amortized.from_bytes(buf.getvalue())
+            amortized_estimator.from_bytes(buf.getvalue())
 
 
 def test_a_loaded_nsf_is_the_sbi_flow_draw_for_draw_without_importing_sbi(paths):
@@ -195,7 +203,7 @@ def test_a_loaded_nsf_is_the_sbi_flow_draw_for_draw_without_importing_sbi(paths)
         for k, space in enumerate(est.spaces):
             fast = est.flows[space]
             assert isinstance(fast.net, sbi_adapter.NsfReader)
-            ref = amortized._new_flow(est.settings, int(est.free_mask.sum()), meta["features"][space]["n_kept"], 0)
+            ref = amortized_flows.new_flow(est.settings, int(est.free_mask.sum()), meta["features"][space]["n_kept"], 0)
             ref.load_state_dict({key[len(space) + 1:]: v for key, v in blob["state_dict"].items()
                                  if key.startswith(space + ".")})
             ref.eval()
@@ -306,7 +314,7 @@ def test_set_training_data_are_sets_of_one_limit_vector():
     goals = data["x"]["joint"][:, :, :2]
     assert bool((goals[:, 0] != goals[:, 1]).any(dim=-1).all())
     ref = sim.simulate(data["theta"][:1].expand(4, -1), torch.cat([goals[0], torch.zeros(4, 1, dtype=goals.dtype)], 1))
-    from camo_sbi.inference.npe import summarize
+    from camo_sbi.inference.flow_space import summarize
 
     np.testing.assert_allclose(data["x"]["joint"][0, :, 3:].numpy(),
                                summarize(ref.q, ref.length, n_points=cfg.n_points).numpy(), atol=1e-5)
@@ -337,9 +345,9 @@ def test_config_and_train_arguments_are_checked():
 
 def test_degenerate_importance_weights_set_a_fallback_status(paths, task):
     """combine="is": a too-small ESS is a fallback, warned; the weights are returned."""
-    with pytest.warns(RuntimeWarning, match="fallback: degenerate importance weights"):
+    with pytest.warns(RuntimeWarning, match="fallback: combining 3 reaches: low effective sample size"):
         res = _run(task, paths["per-reach"], combine="is", min_ess=1e9)
-    assert res.status.startswith("fallback: degenerate importance weights")
+    assert res.status.startswith("fallback: combining 3 reaches: low effective sample size")
     assert res.weights is not None and res.extras["sampler"] == "is" and res.extras["ess"] > 0
 
 
@@ -348,18 +356,18 @@ def test_smc_on_request_and_an_unfinished_tempering_is_a_fallback(paths, task):
     assert res.extras["sampler"] == "smc" and res.status == "ok" and res.extras["stages"] >= 1
     assert res.weights is not None and res.weights.shape == (AmortizedConfig().smc_particles,)
     assert res.extras["ess"] >= AmortizedConfig().smc_target_ess * AmortizedConfig().smc_particles
-    with pytest.warns(RuntimeWarning, match="fallback: SMC combining 3 reaches did not reach the posterior"):
+    with pytest.warns(RuntimeWarning, match="fallback: combining 3 reaches: SMC did not reach the target"):
         cut = _run(task, paths["per-reach"], combine="smc", smc_max_stages=1, smc_target_ess=0.99)
-    assert cut.status.startswith("fallback: SMC") and cut.extras["stages"] == 1
+    assert cut.status.startswith("fallback: combining 3 reaches: SMC") and cut.extras["stages"] == 1
 
 
 def test_mcmc_is_the_default_and_a_stuck_sampler_is_a_fallback(paths, task):
     res = _run(task, paths["per-reach"])
     assert res.weights is None and res.extras["sampler"] == "mcmc" and res.status == "ok"
     assert 0.01 <= res.extras["acceptance"] <= 1 and res.extras["steps"] == AmortizedConfig().mcmc_steps
-    with pytest.warns(RuntimeWarning, match="fallback: MCMC combining 3 reaches barely moved"):
+    with pytest.warns(RuntimeWarning, match="fallback: combining 3 reaches: MCMC barely moved"):
         stuck = _run(task, paths["per-reach"], combine="mcmc", min_acceptance=1.0)
-    assert stuck.status.startswith("fallback: MCMC")
+    assert stuck.status.startswith("fallback: combining 3 reaches: MCMC")
 
 
 def test_combine_is_checked(paths, task):
@@ -403,7 +411,7 @@ def _gaussian_product(seed_means: int = 0, transform: str = "logit"):
     sd = torch.tensor([0.3, 0.5, 0.2], dtype=torch.float64)
     means = torch.tensor([[0.2, -0.4, 1.0], [0.4, -0.1, 0.9], [0.0, -0.3, 1.2]], dtype=torch.float64)
     flow = _GaussianFlow(sd)
-    post = npe.NpePosterior([flow] * 3, list(means), torch.full((3,), -1.0), torch.full((3,), 1.0),
+    post = NpePosterior([flow] * 3, list(means), torch.full((3,), -1.0), torch.full((3,), 1.0),
                             theta_transform=transform)
     return post, means, sd
 
@@ -421,12 +429,12 @@ def test_samplers_recover_a_known_product_posterior(sampler, transform):
     post, means, sd = _gaussian_product(transform=transform)
     if sampler == "mcmc":
         draws = post.sample_mcmc(20000, 3, chains=128, steps=400, burn_in=100)
-        assert draws.weights.shape == (draws.theta.shape[0],) and 0.1 < draws.acceptance < 0.9
+        assert draws.weights.shape == (draws.samples.shape[0],) and 0.1 < draws.diagnostics["acceptance"] < 0.9
     else:
         draws = post.sample_smc(3, particles=4096)
-        assert draws.reached and draws.ess >= 0.5 * 4096 and len(draws.betas) > 2  # it had to temper
-    z = post.to_unconstrained(torch.from_numpy(draws.theta))
-    w_draws = torch.from_numpy(draws.weights)
+        assert draws.diagnostics["reached"] and draws.ess >= 0.5 * 4096 and len(draws.diagnostics["betas"]) > 2  # it had to temper
+    z = post.to_unconstrained(draws.samples)
+    w_draws = draws.weights
     grid = torch.linspace(-6, 6, 24001, dtype=torch.float64)[:, None]
     for j in range(3):
         lq = sum(torch.distributions.Normal(means[i, j], sd[j]).log_prob(grid[:, 0]) for i in range(3))
@@ -448,10 +456,10 @@ def test_smc_is_deterministic_and_checks_its_arguments():
     a = post.sample_smc(1, particles=64)
     assert torch.equal(torch.random.get_rng_state(), before)
     b = post.sample_smc(1, particles=64)
-    np.testing.assert_array_equal(a.theta, b.theta)
-    np.testing.assert_array_equal(a.weights, b.weights)
-    assert not np.array_equal(a.theta, post.sample_smc(2, particles=64).theta)
-    assert a.theta.shape == (64, 3) and abs(a.weights.sum() - 1) < 1e-9
+    torch.testing.assert_close(a.samples, b.samples, rtol=0, atol=0)
+    torch.testing.assert_close(a.weights, b.weights, rtol=0, atol=0)
+    assert not torch.equal(a.samples, post.sample_smc(2, particles=64).samples)
+    assert a.samples.shape == (64, 3) and abs(float(a.weights.sum()) - 1) < 1e-9
     for kwargs, needle in [({"particles": 4}, "particles"), ({"target_ess": 1.0}, "target_ess"),
                            ({"base": "prior"}, "base"), ({"independent_fraction": 2.0}, "independent_fraction")]:
         with pytest.raises(ValueError, match=f"^{needle}:"):
@@ -462,8 +470,8 @@ def test_logit_coordinates_round_trip_with_the_jacobian_of_the_prior():
     """z = logit(u): the uniform box prior is a standard logistic in z, and the Jacobian is exact."""
     lo, w = torch.tensor([-1.0, 0.5]), torch.tensor([2.0, 1.5])
     theta = lo + w * torch.rand(1000, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    z = npe.to_unconstrained(theta, lo, w, "logit")
-    back, logdet = npe.from_unconstrained(z, lo, w, "logit")
+    z = flow_space.to_unconstrained(theta, lo, w, "logit")
+    back, logdet = flow_space.from_unconstrained(z, lo, w, "logit")
     torch.testing.assert_close(back, theta.double(), rtol=0, atol=1e-9)
     prior_z = (torch.nn.functional.logsigmoid(z) + torch.nn.functional.logsigmoid(-z)).sum(-1)
     # uniform density 1/prod(w) in theta = logistic(z) / |d theta / d z|
@@ -478,9 +486,9 @@ def test_mcmc_is_deterministic_given_its_seed_and_leaves_the_global_rng_alone():
     assert torch.equal(torch.random.get_rng_state(), before)
     b = post.sample_mcmc(500, 1, chains=16, steps=20, burn_in=10)
     c = post.sample_mcmc(500, 2, chains=16, steps=20, burn_in=10)
-    np.testing.assert_array_equal(a.theta, b.theta)
-    assert not np.array_equal(a.theta, c.theta)
-    assert a.theta.shape == (16 * 10, 3)
+    torch.testing.assert_close(a.samples, b.samples, rtol=0, atol=0)
+    assert not torch.equal(a.samples, c.samples)
+    assert a.samples.shape == (16 * 10, 3)
 
 
 def test_goal_design_is_independent_of_the_training_limits():
@@ -490,7 +498,7 @@ def test_goal_design_is_independent_of_the_training_limits():
                                            0, n=4000)
     theta, goal = data["theta"], data["x"]["joint"][:, :2]
     # the goals are the design's (FK of configurations inside independent prior draws) ...
-    np.testing.assert_array_equal(goal.numpy(), amortized.design_goals(sim, prior, 4000, 0)[:, :2].numpy())
+    np.testing.assert_array_equal(goal.numpy(), amortized_data.design_goals(sim, prior, 4000, 0)[:, :2].numpy())
     # ... uncorrelated with the limits they are simulated with (|r| ~ 1/sqrt(4000) ~ 0.016)
     r = np.corrcoef(np.c_[theta.numpy(), goal.numpy()].T)[:4, 4:]
     assert np.abs(r).max() < 0.06
@@ -738,18 +746,18 @@ def test_a_file_from_before_a_controller_setting_existed_counts_it_at_its_defaul
     """Estimators written before ``derivative_gain``/``early_stop`` existed name neither; the
     controller then behaved as those defaults do, so the file still matches a default model
     and is refused for a model that uses the new setting."""
-    from camo_sbi.inference.amortized import _fingerprint_differences, model_fingerprint
+    from camo_sbi.inference.amortized_data import fingerprint_differences, model_fingerprint
     from camo_sbi.simulators import panda
 
     sim = panda()
     now = model_fingerprint(sim)
     old = {**now, "controller": {k: v for k, v in now["controller"].items()
                                  if k not in ("derivative_gain", "early_stop")}}
-    assert _fingerprint_differences(old, now) == []
+    assert fingerprint_differences(old, now) == []
     other = model_fingerprint(sim.with_config(derivative_gain=0.5))
-    assert _fingerprint_differences(old, other) == ["controller"]
+    assert fingerprint_differences(old, other) == ["controller"]
     other = model_fingerprint(sim.with_config(early_stop=False))
-    assert _fingerprint_differences(old, other) == ["controller"]
+    assert fingerprint_differences(old, other) == ["controller"]
 
 
 def _balance_gap(flow, z, x, prior):
@@ -778,7 +786,7 @@ def test_balanced_training_shrinks_the_balance_gap():
     for lam in (0.0, 100.0):
         flow = sbi_adapter.build_flow("maf", 2, 2, hidden_features=32, num_transforms=2, seed=3)
         # one torch thread, as train() does: small batches on two threads timed out (900 s) at load 25
-        with npe.torch_threads(1):
+        with flow_space.torch_threads(1):
             sbi_adapter.fit_density_estimator(flow, z, x, seed=4, batch_size=64, max_epochs=25,
                                               stop_after_epochs=25, balance=lam, prior_log_prob=prior)
             gaps[lam] = _balance_gap(flow, zt, xt, prior)
@@ -798,9 +806,9 @@ class _NanFlow(_GaussianFlow):
 def test_smc_with_no_finite_density_reports_it_instead_of_nan_weights():
     """A flow with NaN density everywhere: no NaN leaves the sampler; it says it did not reach the posterior."""
     flow = _NanFlow(torch.tensor([0.3, 0.5, 0.2]))
-    post = npe.NpePosterior([flow] * 2, [torch.zeros(3), torch.ones(3)], torch.full((3,), -1.0),
+    post = NpePosterior([flow] * 2, [torch.zeros(3), torch.ones(3)], torch.full((3,), -1.0),
                             torch.full((3,), 1.0))
     draws = post.sample_smc(0, particles=32, max_stages=3)
-    assert not draws.reached and draws.ess == 0.0
-    assert np.isfinite(draws.weights).all() and abs(draws.weights.sum() - 1) < 1e-12
-    assert np.isfinite(draws.theta).all()
+    assert not draws.diagnostics["reached"] and draws.ess == 0.0
+    assert torch.isfinite(draws.weights).all() and abs(float(draws.weights.sum()) - 1) < 1e-12
+    assert torch.isfinite(draws.samples).all()

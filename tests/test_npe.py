@@ -7,8 +7,10 @@ import pytest
 import torch
 from torch import nn
 
-from camo_sbi.inference import npe
-from camo_sbi.inference.npe import NpeConfig, NpePosterior, load_posterior, summarize
+from camo_sbi.inference import npe, samplers
+from camo_sbi.inference.flow_space import summarize
+from camo_sbi.inference.npe import NpeConfig
+from camo_sbi.inference.npe_posterior import NpePosterior, load_posterior
 from camo_sbi.inference.registry import make_config, run_method, run_method_sequence
 from camo_sbi.priors import BoxPrior
 from tests.test_abc_smc import TRUE, toy_task
@@ -89,8 +91,9 @@ def test_product_of_gaussians_recovered_by_importance_sampling():
                for m, s in zip(mus, sds, strict=True)) / prec
     draws = post.sample_is(20000, seed=0, is_rounds=2)
     assert draws.ess > 2000
-    m = draws.weights @ draws.theta
-    v = draws.weights @ (draws.theta - m) ** 2
+    w, th = draws.weights.numpy(), draws.samples.numpy()
+    m = w @ th
+    v = w @ (th - m) ** 2
     np.testing.assert_allclose(m, mean.numpy(), atol=0.03)
     np.testing.assert_allclose(v, (1 / prec).numpy(), rtol=0.1)
     # log_prob: sum of the Gaussians' log densities minus (k - 1) log(uniform density)
@@ -105,7 +108,8 @@ def test_single_task_logit_weights_are_uniform():
     post = NpePosterior([_Gauss([0.3, -0.2], [1.0, 0.8])], [torch.zeros(1)], low, high)
     draws = post.sample_is(1000, seed=1, is_rounds=0)
     assert draws.ess == pytest.approx(1000)
-    assert np.all((draws.theta >= low.numpy()) & (draws.theta <= high.numpy()))
+    th = draws.samples.numpy()
+    assert np.all((th >= low.numpy()) & (th <= high.numpy()))
 
 
 def test_sbi_style_sample_resamples_the_importance_draws():
@@ -189,12 +193,12 @@ def test_save_load_round_trip(toy, tmp_path):
     torch.testing.assert_close(again.log_prob(theta), lp, rtol=0, atol=0)
     a = post.sample_is(200, seed=3)
     b = again.sample_is(200, seed=3)
-    np.testing.assert_array_equal(a.theta, b.theta)
+    np.testing.assert_array_equal(a.samples.numpy(), b.samples.numpy())
     np.testing.assert_array_equal(a.weights, b.weights)
     # the reloaded posterior reproduces the run's own samples (same sampling seed)
     fresh = load_posterior(path).sample_is(TINY["n_posterior_samples"], npe._seed_int(0, 2) % 2**32,
                                         is_rounds=TINY["is_rounds"])
-    np.testing.assert_array_equal(fresh.theta, res.samples)
+    np.testing.assert_array_equal(fresh.samples.numpy(), res.samples)
     with pytest.raises(ValueError, match="^path"):
         load_posterior(tmp_path / "missing.pt")
     torch.save({"format": "other"}, tmp_path / "other.pt")
@@ -208,7 +212,7 @@ def test_fixed_coordinates_not_trained(toy):
     task = toy_task(prior)
     post, info = npe.fit(task, task.observations[:1], budget=300, seed=0, config=NpeConfig(**TINY))
     assert post.n_free == 2
-    assert post.sample_is(100, seed=0).theta.shape == (100, 4)
+    assert post.sample_is(100, seed=0).samples.shape == (100, 4)
     res = run_method("npe", task, task.observations[:1], budget=300, seed=0, config=TINY)
     assert np.all(res.samples[:, 2] == -0.4) and np.all(res.samples[:, 3] == 0.7)
     assert res.estimate[2] == -0.4 and res.estimate[3] == 0.7
@@ -303,7 +307,9 @@ class _StubPosterior:
     def sample_is(self, n, seed, *, is_rounds, defensive_fraction):  # noqa: ARG002
         w = self.weights / self.weights.sum()
         theta = np.tile((TRUE.numpy() + 0.0)[None, :], (len(w), 1))
-        return npe.ImportanceSample(theta, w, np.zeros(len(w)), float(1 / np.sum(w**2)), [float(1 / np.sum(w**2))])
+        ess = float(1 / np.sum(w**2))
+        return samplers.WeightedDraws(torch.from_numpy(theta), torch.from_numpy(w), torch.zeros(len(w)), ess, "is",
+                                      diagnostics={"ess_rounds": [ess]})
 
 
 @pytest.mark.parametrize(
@@ -319,7 +325,7 @@ class _StubPosterior:
     ],
 )
 def test_result_status_from_the_effective_sample_size(weights, status):
-    """A combined importance sample below min(NPE_MIN_ESS = 20, N / 2) effective draws is a
+    """A combined importance sample below min(min_ess = 20, N / 2) effective draws is a
     recorded fallback (measured: degenerate human runs ESS 4.5-9.2 of 10000, usable ones >= 50)."""
     task = toy_task()
     cfg = NpeConfig(n_posterior_samples=len(weights))

@@ -239,7 +239,7 @@ def test_npe_posterior_is_tensors_plus_json_and_reloads_exactly(npe_file):
 
     import torch
 
-    from camo_sbi.inference.npe import load_posterior
+    from camo_sbi.inference.npe_posterior import load_posterior
 
     path, res = npe_file
     meta = json.loads(path.with_name(path.name + ".json").read_text())
@@ -269,7 +269,7 @@ def test_npe_posterior_with_a_pickle_payload_runs_nothing(npe_file, tmp_path, ma
 
     import torch
 
-    from camo_sbi.inference.npe import load_posterior
+    from camo_sbi.inference.npe_posterior import load_posterior
 
     path = _copy_npe(npe_file, tmp_path / "run")
     marker = tmp_path / "PWNED"
@@ -286,7 +286,7 @@ def test_npe_posterior_with_a_pickle_payload_runs_nothing(npe_file, tmp_path, ma
 
 
 def test_damaged_npe_posterior_is_refused_naming_the_file(npe_file, tmp_path):
-    from camo_sbi.inference.npe import load_posterior
+    from camo_sbi.inference.npe_posterior import load_posterior
 
     path = _copy_npe(npe_file, tmp_path / "run")
     data = bytearray(path.read_bytes())
