@@ -122,7 +122,7 @@ def main() -> None:
                                 n_test=1, seed=i) for i in range(args.repeats)]
     rows = {}
     runs = [(f"npe-amortized ({c})", "npe-amortized", 1,
-             {"estimator": args.estimator, "n_posterior_samples": args.draws}
+             {"estimator_path": args.estimator, "n_posterior_samples": args.draws}
              | ({} if c == "set flow" else {"combine": c})) for c in samplers]
     if est.form == "set":
         _reader_vs_sbi(est, tasks, args.draws)

@@ -67,7 +67,7 @@ def main() -> None:
     subject = informative_names(args.model)[0]
     method, cfg, budget = args.method, None, 500
     if args.estimator:
-        method, cfg, budget = "npe-amortized", {"estimator": args.estimator}, 1
+        method, cfg, budget = "npe-amortized", {"estimator_path": args.estimator}, 1
     rows = {"posterior": [], "rank_goals": [], "reference": []}
     for i in range(args.repeats):
         task = make_reaching_task(sim, subject_theta(sim, args.model, subject), n_train=args.reaches, n_test=1,

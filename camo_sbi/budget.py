@@ -21,13 +21,20 @@ class CountingSimulator:
     """Wraps a simulator; one simulated trajectory (one theta for one goal) costs one unit.
 
     Every attribute other than ``simulate`` is delegated to the wrapped simulator, so the
-    wrapper satisfies the `Simulator` protocol. A call that would exceed ``budget``
-    raises `BudgetExceededError` before simulating anything.
+    wrapper satisfies the `Simulator` protocol. A call that would exceed ``max_simulations``
+    (a total cap: a run's per-task ``budget`` times its tasks; None: no cap) raises
+    `BudgetExceededError` before simulating anything. Its message names ``budget``, the
+    argument a user sets. (The cap's old name, ``budget``, is refused naming the new one.)
     """
 
-    def __init__(self, simulator, budget: int | None):
+    def __init__(self, simulator, max_simulations: int | None = None, **renamed):
+        if "budget" in renamed:
+            raise TypeError("budget: renamed 'max_simulations' (a total cap; budget is per task); use max_simulations=")
+        if renamed:
+            raise TypeError(f"unexpected argument(s) {sorted(renamed)}")
         self._sim = simulator
-        self.budget = None if budget is None else check_positive_int(budget, "budget")
+        self.max_simulations = (None if max_simulations is None
+                                else check_positive_int(max_simulations, "max_simulations"))
         self.n_simulations = 0
 
     @property
@@ -36,14 +43,14 @@ class CountingSimulator:
 
     @property
     def remaining(self) -> int | None:
-        return None if self.budget is None else self.budget - self.n_simulations
+        return None if self.max_simulations is None else self.max_simulations - self.n_simulations
 
     def simulate(self, theta, goal, start=None) -> Trajectories:
         b = _batch_size(theta, goal, start)
-        if self.budget is not None and self.n_simulations + b > self.budget:
+        if self.max_simulations is not None and self.n_simulations + b > self.max_simulations:
             raise BudgetExceededError(
                 f"budget: {self.n_simulations} simulations used, {b} more requested, "
-                f"budget is {self.budget}"
+                f"budget is {self.max_simulations}"
             )
         out = self._sim.simulate(theta, goal, start)
         self.n_simulations += b
@@ -89,7 +96,7 @@ def charge(simulator, n: int) -> None:
         wrappers.append(simulator)
         simulator = simulator.wrapped
     for w in wrappers:
-        budget = getattr(w, "budget", None)
+        budget = getattr(w, "max_simulations", None)
         if budget is not None and w.n_simulations + n > budget:
             raise BudgetExceededError(
                 f"budget: {w.n_simulations} simulations used, {n} more requested, budget is {budget}"

@@ -54,7 +54,7 @@ def task():
 
 
 def _run(task, path, **cfg):
-    return run_method("npe-amortized", task, budget=1, seed=5, config={**RUN, "estimator": str(path), **cfg})
+    return run_method("npe-amortized", task, budget=1, seed=5, config={**RUN, "estimator_path": str(path), **cfg})
 
 
 def test_registered_as_amortized_and_simulation_free():
@@ -102,7 +102,7 @@ def test_save_load_round_trip_gives_identical_samples(form, paths, task, tmp_pat
         np.testing.assert_array_equal(a.estimate, b.estimate)
     assert not np.array_equal(_run(task, est_path).samples,
                               run_method("npe-amortized", task, budget=1, seed=6,
-                                         config={**RUN, "estimator": str(est_path)}).samples)
+                                         config={**RUN, "estimator_path": str(est_path)}).samples)
 
 
 class _NoSimulation:
@@ -132,7 +132,7 @@ def test_inference_simulates_nothing(form, paths, task):
 
 
 def test_refuses_what_it_was_not_trained_for(est_path, task, tmp_path):
-    with pytest.raises(ValueError, match="^estimator: npe-amortized needs"):
+    with pytest.raises(ValueError, match="^estimator_path: npe-amortized needs"):
         run_method("npe-amortized", task, budget=1, seed=0, config=RUN)
     with pytest.raises(ValueError, match="^estimator: no such file"):
         _run(task, tmp_path / "missing.pt")
@@ -300,7 +300,7 @@ def test_set_form_refuses_more_reaches_than_it_was_trained_on(paths):
     with pytest.raises(ValueError, match="^observations: .*at most max_set"):
         _run(many, est_path)
     ok = run_method("npe-amortized", many, many.observations[: TINY.max_set], budget=1, seed=0,
-                    config={**RUN, "estimator": str(est_path)})
+                    config={**RUN, "estimator_path": str(est_path)})
     assert ok.n_tasks == TINY.max_set and ok.weights is None
 
 
@@ -321,10 +321,16 @@ def test_set_training_data_are_sets_of_one_limit_vector():
 
 
 def test_config_and_train_arguments_are_checked():
-    with pytest.raises(TypeError, match="^estimator:"):
-        AmortizedConfig(estimator=3)
+    with pytest.raises(TypeError, match="^estimator_path:"):
+        AmortizedConfig(estimator_path=3)
+    with pytest.raises(TypeError, match="^estimator: renamed 'estimator_path'"):
+        AmortizedConfig(estimator="panda.pt")
     with pytest.raises(ValueError, match="^point_estimate:"):
-        AmortizedConfig(point_estimate="mode")
+        AmortizedConfig(point_estimate="argmin")
+    with pytest.raises(ValueError, match="^point_estimate: 'map' is now called 'mode'"):
+        AmortizedConfig(point_estimate="map")
+    with pytest.raises(TypeError, match="^simulation_batch_size: renamed 'chunk_size'"):
+        TrainConfig(simulation_batch_size=64)
     with pytest.raises(ValueError, match="^spaces:"):
         TrainConfig(spaces=("joint", "joint"))
     with pytest.raises(ValueError, match="^spaces:"):
@@ -553,7 +559,7 @@ def _check_toy(sims: int, epochs: int, tmp_path, mean_tol_sd: float, sd_ratio: t
     cfg = TrainConfig(simulations=sims, form=form, noise=noise, max_epochs=epochs, hidden_features=32, num_transforms=3,
                       training_batch_size=256, stop_after_epochs=patience, density_estimator=flow)
     path = train(sim, model="toy1", config=cfg, seed=0).save(tmp_path / "toy1.pt")
-    res = run_method("npe-amortized", task, budget=1, seed=0, config={"estimator": str(path)})
+    res = run_method("npe-amortized", task, budget=1, seed=0, config={"estimator_path": str(path)})
     assert res.status == "ok" and res.n_simulations == 0
     w = res.normalized_weights()
     mean = w @ res.samples

@@ -55,7 +55,7 @@ GOAL = torch.tensor([0.5, 0.5, 0.0], dtype=torch.float64)
 
 def test_counter_counts_batch_size_per_call():
     spy = SpySimulator()
-    c = CountingSimulator(spy, budget=None)
+    c = CountingSimulator(spy, max_simulations=None)
     assert c.n_simulations == 0 and c.remaining is None
     c.simulate(_thetas(5), GOAL)
     c.simulate(_thetas(1)[0], GOAL)  # a single (2n,) theta costs one
@@ -66,7 +66,7 @@ def test_counter_counts_batch_size_per_call():
 
 def test_counter_returns_the_wrapped_result_unchanged():
     spy = ToySimulator()
-    c = CountingSimulator(spy, budget=100)
+    c = CountingSimulator(spy, max_simulations=100)
     th = _thetas(4)
     a, b = c.simulate(th, GOAL), spy.simulate(th, GOAL)
     for f in ("q", "ee", "length", "reached"):
@@ -75,7 +75,7 @@ def test_counter_returns_the_wrapped_result_unchanged():
 
 def test_counter_delegates_attributes():
     spy = SpySimulator(n=3, max_steps=12)
-    c = CountingSimulator(spy, budget=10)
+    c = CountingSimulator(spy, max_simulations=10)
     assert c.wrapped is spy
     assert c.n_joints == 3 and c.joint_names == ["x0", "x1", "x2"] and c.max_steps == 12
     assert torch.equal(c.bounds, spy.bounds) and torch.equal(c.start, spy.start)
@@ -89,7 +89,7 @@ def test_counter_delegates_attributes():
 
 def test_counter_raises_before_simulating_and_leaves_state_unchanged():
     spy = SpySimulator()
-    c = CountingSimulator(spy, budget=10)
+    c = CountingSimulator(spy, max_simulations=10)
     c.simulate(_thetas(6), GOAL)
     assert c.remaining == 4
     with pytest.raises(BudgetExceededError, match="budget"):
@@ -105,15 +105,15 @@ def test_counter_raises_before_simulating_and_leaves_state_unchanged():
 
 
 def test_budget_exceeded_is_a_runtime_error_with_the_numbers():
-    c = CountingSimulator(ToySimulator(), budget=3)
+    c = CountingSimulator(ToySimulator(), max_simulations=3)
     with pytest.raises(RuntimeError, match=r"0 simulations used, 7 more requested, budget is 3"):
         c.simulate(_thetas(7), GOAL)
 
 
-@pytest.mark.parametrize("budget, exc", [(0, ValueError), (-5, ValueError), (2.5, TypeError), (True, TypeError)])
-def test_counter_rejects_bad_budget(budget, exc):
-    with pytest.raises(exc, match="budget"):
-        CountingSimulator(ToySimulator(), budget=budget)
+@pytest.mark.parametrize("cap, exc", [(0, ValueError), (-5, ValueError), (2.5, TypeError), (True, TypeError)])
+def test_counter_rejects_bad_cap(cap, exc):
+    with pytest.raises(exc, match="^max_simulations"):
+        CountingSimulator(ToySimulator(), max_simulations=cap)
 
 
 def test_counter_counts_trajectories_produced_by_broadcasting(panda_sim):
@@ -124,7 +124,7 @@ def test_counter_counts_trajectories_produced_by_broadcasting(panda_sim):
     """
     theta = torch.cat([panda_sim.bounds[:, 0:1], panda_sim.bounds[:, 1:2]], dim=1).reshape(-1)
     goals = panda_sim.forward_kinematics(panda_sim.start).expand(5, 3).clone() + 0.01
-    c = CountingSimulator(panda_sim, budget=3)
+    c = CountingSimulator(panda_sim, max_simulations=3)
     try:
         traj = c.simulate(theta, goals)
     except BudgetExceededError:
@@ -150,7 +150,7 @@ FAKE_LOG: list = []
 
 def _fake_run(task, observations, *, budget, seed, config):
     sim = task.simulator
-    FAKE_LOG.append({"simulator": sim, "budget": budget, "seed": seed, "cap": getattr(sim, "budget", None),
+    FAKE_LOG.append({"simulator": sim, "budget": budget, "seed": seed, "cap": getattr(sim, "max_simulations", None),
                      "n_obs": len(observations)})
     rng = np.random.default_rng(seed)
     done = 0
@@ -210,7 +210,7 @@ def test_run_method_stops_an_overspending_method(fake_method, toy_task):
         run_method("fake", toy_task, budget=4, seed=1, config={"per_call": 5, "calls": 3})
     # 2 calls of 5 fitted; the third was refused before simulating
     counter = FAKE_LOG[-1]["simulator"]
-    assert counter.n_simulations == 10 and counter.budget == 12
+    assert counter.n_simulations == 10 and counter.max_simulations == 12
     assert type(toy_task.simulator) is ToySimulator  # the caller's task is not rewired
 
 
@@ -455,3 +455,11 @@ def test_cell_key_is_filesystem_safe(params, tmp_path):
     st.put(key, [{"v": 1}])
     assert st.done(key) and st.finished_keys() == {key}
     assert [p.parent for p in (tmp_path / "cells").iterdir()] == [tmp_path / "cells"]
+
+
+def test_the_cap_s_old_name_is_refused_naming_the_new_one():
+    """issue 26's vocabulary: ``budget`` is per task; the counter's total cap is ``max_simulations``."""
+    with pytest.raises(TypeError, match=r"^budget: renamed 'max_simulations'"):
+        CountingSimulator(ToySimulator(), budget=3)
+    with pytest.raises(ValueError, match="^max_simulations:"):
+        CountingSimulator(ToySimulator(), max_simulations=0)

@@ -49,7 +49,7 @@ def trained_estimators(tmp_path_factory):
     amortized.train(ToySimulator(), model="toy", config=amortized.TrainConfig(**TINY_AMORTIZED), seed=0).save(path)
     for name in METHODS:
         if capabilities(name).amortized:
-            FAST[name] = {**FAST.get(name, {}), "estimator": str(path)}
+            FAST[name] = {**FAST.get(name, {}), "estimator_path": str(path)}
     return path
 
 

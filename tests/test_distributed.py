@@ -172,7 +172,7 @@ def test_npe_same_training_data_with_and_without_dask(address):
 
     task = _toy_task()
     cfg = {"hidden_features": 16, "num_transforms": 2, "max_epochs": 4, "stop_after_epochs": 2,
-           "n_posterior_samples": 300, "is_rounds": 1, "n_points": 8, "simulation_batch_size": 64}
+           "n_posterior_samples": 300, "is_rounds": 1, "n_points": 8, "chunk_size": 64}
     a = run_method("npe", task, task.observations[:2], budget=200, seed=3, config=cfg)
     with dask_client(address):
         b = run_method("npe", task, task.observations[:2], budget=200, seed=3,

@@ -231,7 +231,10 @@ def test_fixed_coordinates_not_trained(toy):
         ({"validation_fraction": 0.7}, ValueError, "validation_fraction"),
         ({"defensive_fraction": 1.0}, ValueError, "defensive_fraction"),
         ({"is_rounds": -1}, ValueError, "is_rounds"),
-        ({"estimator": "mode"}, ValueError, "estimator"),
+        ({"point_estimate": "argmin"}, ValueError, "point_estimate"),
+        ({"point_estimate": "map"}, ValueError, "point_estimate"),  # the mode's old name
+        ({"estimator": "mean"}, ValueError, "config"),  # point_estimate's old name
+        ({"simulation_batch_size": 64}, ValueError, "config"),  # chunk_size's old name
         ({"device": "gpu0"}, ValueError, "device"),
         ({"n_threads": 0}, ValueError, "n_threads"),
         ({"epochs": 3}, ValueError, "config"),

@@ -5,7 +5,7 @@
 
 The file (state dict + JSON metadata, loaded with ``weights_only=True``) is then used by
 ``compare --methods npe-amortized --amortized FILE`` and by
-``run_method("npe-amortized", task, ..., config={"estimator": FILE})``; inferring a person's
+``run_method("npe-amortized", task, ..., config={"estimator_path": FILE})``; inferring a person's
 limits from it simulates nothing. `ensure_estimator` is what compare and calibrate call when
 no file is given: it trains one under the run directory once and reuses it.
 """

@@ -145,7 +145,7 @@ def cell_specs(args) -> list[dict]:
             if getattr(args, "amortized", None) is None:
                 raise ValueError("--amortized: npe-amortized needs an estimator file (main() trains one when none "
                                  "is given)")
-            configs[m] = {**configs[m], "estimator": str(args.amortized)}
+            configs[m] = {**configs[m], "estimator_path": str(args.amortized)}
     from camo_sbi.inference.registry import check_budget
 
     for m, cfg in configs.items():

@@ -115,7 +115,7 @@ def cell_specs(args, *, build: bool = True) -> list[dict]:
 def method_config(method: str, space: str, workdir: Path, estimator: str | None = None) -> dict:
     """The config a cell gives ``method``, from its capabilities: ``space`` for methods that
     choose their observation space (a variant that fixes it keeps its own), ``workdir`` for
-    methods that write artefacts, ``estimator`` (the trained file) for amortized methods."""
+    methods that write artefacts, ``estimator_path`` (the trained file) for amortized methods."""
     from camo_sbi.inference.registry import get_method
 
     spec = get_method(method)
@@ -125,7 +125,7 @@ def method_config(method: str, space: str, workdir: Path, estimator: str | None 
     if spec.capabilities.workdir:
         cfg["workdir"] = str(workdir)
     if spec.capabilities.amortized:
-        cfg["estimator"] = estimator
+        cfg["estimator_path"] = estimator
     return cfg
 
 

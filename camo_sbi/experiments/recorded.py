@@ -339,12 +339,12 @@ def _check_amortized(plan: list, notes: list[str], task, obs, overrides: dict, p
             continue
         cfg = overrides.get(name) or {}
         if path is not None:
-            cfg = overrides[name] = {**cfg, "estimator": str(path)}
-        if cfg.get("estimator") is None:
+            cfg = overrides[name] = {**cfg, "estimator_path": str(path)}
+        if cfg.get("estimator_path") is None:
             raise ValueError(f"--amortized: {name} needs a trained estimator file (train one with "
                              f"`camo-sbi amortize --model M --out FILE`)")
         try:  # a file given by --config keeps load_estimator's own message
-            est = (load_cli_estimator if path is not None else load_estimator)(cfg["estimator"])
+            est = (load_cli_estimator if path is not None else load_estimator)(cfg["estimator_path"])
             est.check_task(task, obs, space or cfg.get("space", "joint"))
         except ValueError as exc:
             if only:

@@ -11,7 +11,7 @@ Two forms (`TrainConfig.form`):
 
     est = train(simulator, model="panda", config=TrainConfig(simulations=200_000), seed=0)
     est.save("panda.pt");  est = load_estimator("panda.pt")
-    run_method("npe-amortized", task, budget=1, seed=0, config={"estimator": "panda.pt"})
+    run_method("npe-amortized", task, budget=1, seed=0, config={"estimator_path": "panda.pt"})
 
 **Training** (once per body model, `train`): ``simulations`` independent triples
 
@@ -82,7 +82,13 @@ from dataclasses import dataclass
 
 import torch
 
-from camo_sbi._validation import check_choice, check_positive_float, check_positive_int
+from camo_sbi._validation import (
+    check_choice,
+    check_point_estimate,
+    check_positive_float,
+    check_positive_int,
+    renamed_fields,
+)
 from camo_sbi.budget import unwrap_simulator
 from camo_sbi.inference import npe, samplers, sbi_adapter
 from camo_sbi.inference.amortized_data import (
@@ -126,12 +132,13 @@ __all__ = [
 COMBINE = ("mcmc", "is", "smc")  # samplers of the per-reach form's product posterior
 
 
+@renamed_fields(estimator="estimator_path")
 @dataclass(frozen=True)
 class AmortizedConfig:
     """npe-amortized settings at inference.
 
     Attributes:
-        estimator: path of a trained estimator file (`train` + `AmortizedEstimator.save`, or
+        estimator_path: path of a trained estimator file (`train` + `AmortizedEstimator.save`, or
             ``camo-sbi amortize``). Required.
         space: the observation space read ("joint" or "cartesian"); the file must hold a flow
             for it.
@@ -141,35 +148,33 @@ class AmortizedConfig:
             combined there). "mcmc" (population MCMC, `samplers.mcmc`, equally weighted draws),
             "smc" (tempered SMC, `samplers.smc`, ``smc_particles`` weighted draws) or "is"
             (importance sampling, `samplers.importance`, weighted draws). None of
-            them converges on the Panda's 5-reach target within seconds; see the module
-            docstring for what was measured and why MCMC stays the default.
+            them converges on the Panda's 5-reach target within seconds; what was measured,
+            and why MCMC stays the default: docs/studies/amortized_measurements.md.
         n_posterior_samples: draws returned by the set form's flow, MCMC (at most this many,
             mcmc_chains per kept sweep) and IS; SMC returns ``smc_particles``.
         is_rounds, defensive_fraction: the importance sampler (combine="is").
         mcmc_chains, mcmc_steps, mcmc_burn_in, mcmc_de_fraction: the population MCMC
             (combine="mcmc"): chains, sweeps, discarded adaptation sweeps, share of
-            differential-evolution moves. Measured (Panda, `camo-sbi calibrate --subjects 50
-            --tasks 5`, 2 loaded cores): 300 / 150 sweeps: mean |coverage - alpha| 0.047
-            (under-confident), 5.5 s per subject; 100 / 50 sweeps: 0.079 (under-confident),
-            2.0 s. The chains have not reached the target's typical set at 300 sweeps (see the
-            module docstring): the draws are wide because they are unconverged.
+            differential-evolution moves. The chains do not reach the target's typical set at
+            the default sweeps: the draws are wide because they are unconverged
+            (docs/studies/amortized_measurements.md).
         smc_particles, smc_moves, smc_target_ess, smc_inflate, smc_base,
             smc_independent_fraction, smc_max_stages: the tempered SMC (combine="smc"):
             particles; Metropolis moves per stage; the ESS share kept per stage; covariance
             inflation of the Gaussian proposals; base "mixture" (the N flows) or "gaussian"
             (the Gaussian product); share of independent Gaussian proposals among the moves;
-            stages before the fallback. Measured (same setting): 2 moves 0.285
-            (over-confident), ~0.6 s per person; 3 moves 0.266; 40 moves 0.229, ~15 s.
+            stages before the fallback (moves against calibration and time:
+            docs/studies/amortized_measurements.md).
         min_acceptance: an MCMC acceptance rate below it (or more than half of the chains never
             moving after burn-in) sets ``status = "fallback: ..."``.
-        point_estimate: "mean", "median" or "map" (`npe.point_estimate`).
+        point_estimate: "mean", "median" or "mode" (`npe.point_estimate`; old name of the mode: "map").
         min_ess: the samplers' one fallback rule (`samplers.WeightedDraws.status`): weighted
             draws (combine="is" or "smc") with an effective sample size below min(min_ess,
             N / 2) are reported as ``status = "fallback: ..."``.
         n_threads: torch intra-op threads while sampling (None: unchanged).
     """
 
-    estimator: str | os.PathLike | None = None
+    estimator_path: str | os.PathLike | None = None
     space: str = "joint"
     combine: str | None = None
     n_posterior_samples: int = 10_000
@@ -192,8 +197,8 @@ class AmortizedConfig:
     n_threads: int | None = 1
 
     def __post_init__(self):
-        if self.estimator is not None and not isinstance(self.estimator, (str, os.PathLike)):
-            raise TypeError(f"estimator: expected a path, got {type(self.estimator).__name__}")
+        if self.estimator_path is not None and not isinstance(self.estimator_path, (str, os.PathLike)):
+            raise TypeError(f"estimator_path: expected a path, got {type(self.estimator_path).__name__}")
         check_choice(self.space, SPACES, "space")
         if self.combine is not None:
             check_choice(self.combine, COMBINE, "combine")
@@ -222,7 +227,7 @@ class AmortizedConfig:
         check_positive_float(self.defensive_fraction, "defensive_fraction")
         if self.defensive_fraction >= 1:
             raise ValueError(f"defensive_fraction: must be in (0, 1), got {self.defensive_fraction}")
-        check_choice(self.point_estimate, ("mean", "median", "map"), "point_estimate")
+        check_point_estimate(self.point_estimate, ("mean", "median", "mode"))
         check_positive_float(self.min_ess, "min_ess", allow_zero=True)
         if self.n_threads is not None:
             check_positive_int(self.n_threads, "n_threads")
@@ -320,10 +325,10 @@ def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig |
     config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
                                                                AmortizedConfig)
     t0 = time.perf_counter()
-    if config.estimator is None:
-        raise ValueError("estimator: npe-amortized needs a trained estimator file, config={'estimator': FILE}; "
+    if config.estimator_path is None:
+        raise ValueError("estimator_path: npe-amortized needs a trained estimator file, config={'estimator_path': FILE}; "
                          "train one with `camo-sbi amortize --model M --out FILE`")
-    est = load_estimator(config.estimator)
+    est = load_estimator(config.estimator_path)
     t_load = time.perf_counter() - t0
     est.check_task(task, observations, config.space)
     if est.form == "set" and config.combine is not None:

@@ -123,7 +123,7 @@ def simulate_training_set(simulator, prior: BoxPrior, settings, seed: int, *,
     noise_gen = torch.Generator().manual_seed(seed_int(seed, 2))
     dtype = _DTYPES[settings.sim_dtype]
     parts = {s: [] for s in settings.spaces}
-    b = settings.simulation_batch_size
+    b = settings.chunk_size
     for s in tqdm(range(0, n, b), desc="simulating", unit="batch", disable=not progress, leave=False):
         out = sim.simulate(theta[s : s + b].to(dtype), goals[s : s + b].to(dtype), start.to(dtype))
         for space in settings.spaces:

@@ -23,7 +23,13 @@ from pathlib import Path
 import torch
 
 from camo_sbi._io import atomic_write_bytes
-from camo_sbi._validation import check_bool, check_choice, check_positive_float, check_positive_int
+from camo_sbi._validation import (
+    check_bool,
+    check_choice,
+    check_positive_float,
+    check_positive_int,
+    renamed_fields,
+)
 from camo_sbi.inference import sbi_adapter
 from camo_sbi.inference.amortized_data import (
     conditions,
@@ -60,6 +66,7 @@ _OPTIMISER_DEFAULTS = {
 FAST_SET_TRAINING = {"training_batch_size": 2048, "learning_rate": 3e-3, "lr_schedule": "cosine", "max_epochs": 30}
 
 
+@renamed_fields(simulation_batch_size="chunk_size")
 @dataclass(frozen=True)
 class TrainConfig:
     """How an amortized estimator is trained (all of it is stored in the file's metadata).
@@ -70,10 +77,9 @@ class TrainConfig:
             permutation-invariant set embedding, `SetFlow`; the simulations are max_set
             reaches of each of simulations // max_set limit vectors; inference is one flow
             sample) or "per-reach" (one flow q(theta | one reach), combined over a person's
-            reaches by the i.i.d. rule and sampled by `AmortizedConfig.combine`). Measured on
-            the Panda and the human at 200k simulations (README, "Amortized inference"): the
-            set form is calibrated (mean |coverage - alpha| 0.016 and 0.017), the per-reach
-            product is not (0.047 too wide from unconverged MCMC, 0.285 over-confident from SMC).
+            reaches by the i.i.d. rule and sampled by `AmortizedConfig.combine`). The set form
+            is the default because it calibrates and the per-reach product does not (README,
+            "Amortized inference"; docs/studies/amortized_measurements.md).
         max_set: the largest set of reaches the "set" form is trained on (and accepts).
         spaces: observation spaces to train a flow for ("joint", "cartesian" or both; the
             same simulations serve every space).
@@ -81,7 +87,7 @@ class TrainConfig:
         n_points, include_length: the trajectory summary (`summarize`).
         density_estimator: "nsf" (default; sbi's neural spline flow, coupling layers: one pass
             per transform to sample) or "maf" (sbi's masked autoregressive flow: sampling takes
-            one pass per coordinate and transform, ~4x slower here; and in nflows' MADE the
+            one pass per coordinate and transform, slower; and in nflows' MADE the
             first coordinate of each transform does not see the condition: on the 2-limit toy
             of the tests, with its seed and 3 transforms, one limit came out the same for every
             set of reaches, at its prior). The per-reach measurements were made with "maf".
@@ -94,15 +100,15 @@ class TrainConfig:
             ``lr_schedule`` "cosine" lowers the rate along a half cosine over ``max_epochs``,
             "constant" keeps it). Left None, training_batch_size, learning_rate, lr_schedule
             and max_epochs take the form's defaults (`_OPTIMISER_DEFAULTS`: 512 reaches, 1e-3,
-            constant, 40 epochs for both forms; 200 000 Panda simulations took 14.7 min, set
-            form, NSF, fresh clone). ``FAST_SET_TRAINING`` (2048, 3e-3, cosine, 30 epochs)
+            constant, 40 epochs for both forms; training times: README "Amortized inference").
+            ``FAST_SET_TRAINING`` (2048, 3e-3, cosine, 30 epochs)
             reaches the same validation loss sooner but calibrates worse
             (`benchmarks/bench_amortized_train.py`, README "Measured performance"), so it is
             an option (`amortize --fast`), not the default.
             `dataclasses.replace` keeps resolved values: replace ``form`` on a config built
             with the other form's defaults and they stay.
         max_train_seconds: per space, stop after the epoch that crosses it (None: no limit).
-        simulation_batch_size: trajectories per ``simulate`` call.
+        chunk_size: trajectories per ``simulate`` call (old name: ``simulation_batch_size``).
         sim_dtype: "float32" or "float64" for the simulations.
         n_threads: torch intra-op threads while training (None: unchanged).
         balance: > 0 adds balanced NPE's penalty (Delaunoy et al. 2023) with this weight to
@@ -128,7 +134,7 @@ class TrainConfig:
     stop_after_epochs: int = 8
     max_epochs: int | None = None
     max_train_seconds: float | None = None
-    simulation_batch_size: int = 10_000
+    chunk_size: int = 10_000
     sim_dtype: str = "float32"
     n_threads: int | None = 1
     balance: float = 0.0
@@ -165,7 +171,7 @@ class TrainConfig:
         check_training_settings(self)
         if self.max_train_seconds is not None:
             check_positive_float(self.max_train_seconds, "max_train_seconds")
-        check_positive_int(self.simulation_batch_size, "simulation_batch_size")
+        check_positive_int(self.chunk_size, "chunk_size")
         check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
         if self.n_threads is not None:
             check_positive_int(self.n_threads, "n_threads")
@@ -187,6 +193,8 @@ class TrainConfig:
         d["spaces"] = tuple(d["spaces"])
         d.setdefault("balance", 0.0)  # files written before the setting existed
         d.setdefault("lr_schedule", "constant")
+        if "simulation_batch_size" in d:  # files written before the vocabulary was unified
+            d["chunk_size"] = d.pop("simulation_batch_size")
         return cls(**d)
 
 

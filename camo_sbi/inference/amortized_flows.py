@@ -61,9 +61,7 @@ class SetFlow(nn.Module):
     Linear([mean x', max x', min x', mean phi(x'), k / K]), with phi a per-reach MLP. The
     raw pooled features come first because a limit shows in the extreme postures over the
     reaches; a DeepSet of the MLP features alone (mean-pooled, the first design) learned
-    nothing in 8 epochs at 200k Panda simulations (loss 28.3 nats, the prior's 28.0) and, on
-    3000 sets, reached 27.9 where these pooled features reach 20.3
-    (``benchmarks/ablate_set_embedding.py``).
+    far less (``benchmarks/ablate_set_embedding.py``; docs/studies/amortized_measurements.md).
 
     Conditions are packed as (B, K * (F + 1)): K = max_set reaches of F raw features, each
     followed by a validity flag (1: a reach of the set, 0: padding). In training mode ``loss``

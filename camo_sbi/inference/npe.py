@@ -48,7 +48,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from camo_sbi._validation import check_bool, check_choice, check_positive_float, check_positive_int
+from camo_sbi._validation import (
+    check_bool,
+    check_choice,
+    check_point_estimate,
+    check_positive_float,
+    check_positive_int,
+    renamed_fields,
+)
 from camo_sbi.distributed import parse_scheduler, run_chunks
 from camo_sbi.inference import samplers, sbi_adapter
 from camo_sbi.inference.contract import check_run_args
@@ -62,9 +69,10 @@ __all__ = ["NpeConfig", "check_training_settings", "fit", "point_estimate", "run
 
 _MODELS = ("maf", "nsf")
 _EMBEDDINGS = ("none", "mlp")
-_ESTIMATORS = ("mean", "median", "map")
+_POINT_ESTIMATES = ("mean", "median", "mode")
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
+@renamed_fields(estimator="point_estimate", simulation_batch_size="chunk_size")
 @dataclass(frozen=True)
 class NpeConfig:
     """NPE settings.
@@ -85,11 +93,12 @@ class NpeConfig:
         n_posterior_samples: importance samples returned (per IS round).
         is_rounds: adaptive importance-sampling rounds after the flow-mixture round (0: none).
         defensive_fraction: share of each adaptive round drawn from the flow mixture.
-        estimator: point estimate: "mean" (weighted), "median" (coordinate-wise weighted) or
-            "map" (sample with the highest combined density).
+        point_estimate: "mean" (weighted), "median" (coordinate-wise weighted) or "mode"
+            (the draw with the highest combined density). (Old names: ``estimator``, "map".)
         min_ess: the combined importance sample is a fallback (``status = "fallback: ..."``)
-            below min(min_ess, N / 2) effective draws (`samplers.WeightedDraws.status`).
-        simulation_batch_size: prior draws per ``simulate`` call: the chunks that
+            below min(min_ess, N / 2) effective draws (`samplers.WeightedDraws.status`); a
+            count, not a share of the draws (why: docs/studies/design_measurements.md).
+        chunk_size: prior draws per ``simulate`` call (old name: ``simulation_batch_size``): the chunks that
             ``scheduler`` distributes (the draws themselves are made up front, so the training
             data never depend on where the chunks run).
         sim_dtype: "float32" or "float64" for the simulations.
@@ -98,8 +107,8 @@ class NpeConfig:
             `npe_posterior.load_posterior`).
         device: torch device for training ("cpu").
         n_threads: torch intra-op threads while training and sampling (restored afterwards);
-            None keeps the current setting. Small flows train fastest on one thread: with
-            OpenMP's busy-waiting, 2 threads were ~10x slower per batch on a loaded 2-core box.
+            None keeps the current setting. Small flows train fastest on one thread (OpenMP's
+            busy-waiting on a loaded machine: docs/studies/design_measurements.md).
         scheduler: None (in-process), "local:N" or a Dask scheduler address: where the
             training-data simulation chunks run (see `camo_sbi.distributed`).
     """
@@ -121,14 +130,9 @@ class NpeConfig:
     n_posterior_samples: int = 10000
     is_rounds: int = 3
     defensive_fraction: float = 0.2
-    estimator: str = "mean"
-    # Measured for the default 20: human, budget 500, seeds 0-1, after 1-5 tasks: ESS 10000,
-    # 1958 / 1393, 517 / 910, 4.5 / 768, 9.2 / 7.9 of 10000 (the degenerate runs are a handful of
-    # draws, the others hundreds); Panda, budget 2000, 5 tasks: 50-230 of 10000 (a usable
-    # posterior: tests/test_npe.py::test_panda_slow). A share of the draws (e.g. 1 %) would flag
-    # those Panda runs: the count is what matters.
+    point_estimate: str = "mean"
     min_ess: float = 20.0
-    simulation_batch_size: int = 10000
+    chunk_size: int = 10000
     sim_dtype: str = "float32"
     workdir: str | os.PathLike | None = None
     device: str = "cpu"
@@ -151,9 +155,9 @@ class NpeConfig:
         check_positive_float(self.defensive_fraction, "defensive_fraction")
         if self.defensive_fraction >= 1:
             raise ValueError(f"defensive_fraction: must be in (0, 1), got {self.defensive_fraction}")
-        check_choice(self.estimator, _ESTIMATORS, "estimator")
+        check_point_estimate(self.point_estimate, _POINT_ESTIMATES)
         check_positive_float(self.min_ess, "min_ess", allow_zero=True)
-        check_positive_int(self.simulation_batch_size, "simulation_batch_size")
+        check_positive_int(self.chunk_size, "chunk_size")
         check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
         if self.workdir is not None and not isinstance(self.workdir, (str, os.PathLike)):
             raise TypeError(f"workdir: expected a path or None, got {type(self.workdir).__name__}")
@@ -248,8 +252,8 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0, i)))
         theta = prior.sample(budget, rng)
         t0 = time.perf_counter()
-        chunks = [(theta[s : s + config.simulation_batch_size], (seed, 3, i, c))
-                  for c, s in enumerate(range(0, budget, config.simulation_batch_size))]
+        chunks = [(theta[s : s + config.chunk_size], (seed, 3, i, c))
+                  for c, s in enumerate(range(0, budget, config.chunk_size))]
         feats = run_chunks(_simulate_summaries, chunks, simulator=sim, n_simulations=budget,
                            scheduler=config.scheduler, start=start, goal=goal, dtype=dtype, config=config,
                            noise=task.noise)
@@ -294,8 +298,8 @@ def fit(task, observations, *, budget: int, seed: int, config: NpeConfig | None 
 
 def point_estimate(draws: samplers.WeightedDraws, kind: str, prior: BoxPrior) -> np.ndarray:
     """(2n,) point estimate of weighted draws in theta coordinates: "mean", "median"
-    (coordinate-wise) or "map" (the draw with the highest density); known coordinates set exactly."""
-    check_choice(kind, _ESTIMATORS, "estimator")
+    (coordinate-wise) or "mode" (the draw with the highest density); known coordinates set exactly."""
+    check_point_estimate(kind, _POINT_ESTIMATES)
     theta, w = draws.samples.numpy(), draws.weights.numpy()
     if kind == "mean":
         estimate = w @ theta
@@ -316,7 +320,7 @@ def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed:
     draws = posterior.sample_is(config.n_posterior_samples, _seed_int(seed, 2) % (2**32),
                              is_rounds=config.is_rounds, defensive_fraction=config.defensive_fraction)
     t_sample = time.perf_counter() - t0
-    estimate = point_estimate(draws, config.estimator, task.prior)
+    estimate = point_estimate(draws, config.point_estimate, task.prior)
     path = None
     if config.workdir is not None:
         path = posterior.save(Path(config.workdir) / f"npe_posterior_k{posterior.n_tasks}_seed{seed}.pt")

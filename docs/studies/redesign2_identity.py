@@ -39,6 +39,9 @@ from camo_sbi.inference.registry import run_method  # noqa: E402
 from camo_sbi.scenarios.reaching import make_reaching_task  # noqa: E402
 from camo_sbi.simulators import panda  # noqa: E402
 
+# the config field naming the estimator file: "estimator" before the unified vocabulary, then "estimator_path"
+EST = "estimator_path" if "estimator_path" in amortized.AmortizedConfig.__dataclass_fields__ else "estimator"
+
 
 def digest(*arrays) -> str:
     h = hashlib.sha256()
@@ -92,12 +95,12 @@ for seed in (0, 1):
     for base in ("mixture", "gaussian"):
         out[f"npe-posterior-smc-{base}/{seed}"] = draws_entry(post.sample_smc(seed, particles=256, base=base))
     for combine in ("mcmc", "is", "smc"):
-        cfg = {"estimator": str(est_paths["per-reach"]), "combine": combine, "n_posterior_samples": 2000,
+        cfg = {EST: str(est_paths["per-reach"]), "combine": combine, "n_posterior_samples": 2000,
                "mcmc_steps": 60, "mcmc_burn_in": 30, "smc_particles": 256}
         out[f"npe-amortized-{combine}/{seed}"] = result_entry(run_method("npe-amortized", task, budget=1, seed=seed,
                                                                           config=cfg))
     out[f"npe-amortized-set/{seed}"] = result_entry(run_method(
-        "npe-amortized", task, budget=1, seed=seed, config={"estimator": str(est_paths["set"]),
+        "npe-amortized", task, budget=1, seed=seed, config={EST: str(est_paths["set"]),
                                                              "n_posterior_samples": 2000}))
     print("posterior + amortized", seed, flush=True)
 Path(sys.argv[1]).write_text(json.dumps(out, indent=1, sort_keys=True))
