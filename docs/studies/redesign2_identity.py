@@ -22,6 +22,17 @@ are byte-identical (``cmp``: identical; 40 entries): every estimate, status and 
 samples + weights (+ log densities for the posterior samplers) agrees bit for bit, for both
 seeds. A second run of the base gave the same file, so the comparison is not luck of the
 moment. (The flows are tiny and briefly trained: the point is identity, not accuracy.)
+
+Measured again 2026-12-05 on main after the whole of issue 26's second step (samplers, the
+body-model registry, the metric catalog, named seed streams, declared budget rules and the
+unified vocabulary: ``point_estimate``/"mode", ``chunk_size``, ``estimator_path``,
+``max_simulations``), the script run from main's tree against d128a24:
+
+    cd /tmp/i26a_base && OMP_NUM_THREADS=1 PYTHONPATH=/tmp/i26a_base \
+        /work/main/.venv/bin/python /work/main/docs/studies/redesign2_identity.py /tmp/id2_base_now.json
+    cd /work/main && OMP_NUM_THREADS=1 PYTHONPATH=/work/main \
+        .venv/bin/python docs/studies/redesign2_identity.py /tmp/id2_main_now.json
+    cmp /tmp/id2_base_now.json /tmp/id2_main_now.json   # identical, 40 entries
 """
 import hashlib
 import json
