@@ -1,6 +1,6 @@
 """One self-contained HTML report for a run directory (opens offline, no external assets).
 
-Why one module of ~780 lines: one report, section by section (each section a function of the
+Why one module of ~1000 lines: one report, section by section (each section a function of the
 run directory); the figures themselves live in `figures` and `style`.
 
 Reads, from ``run_dir`` (every input optional)::
@@ -21,11 +21,16 @@ of `camo_sbi.diagnostics.style` and embedded as base64 PNG ``data:`` URIs; with
 Angles are shown in degrees (the files keep radians); cells and captions follow the small-n
 rule of `camo_sbi.diagnostics.style.cell_text`.
 
+The HTML comes from the jinja2 templates of `camo_sbi.diagnostics.pages` (the layout and
+the macros for a section, a table, a figure, a note): every string a section passes them (method,
+subject, joint and file names, captions, error messages, table cells) is escaped by autoescaping;
+a section body is the `Markup` those macros return.
+
 Cached per input digest: the page records (``<meta name="camo-sbi-report-inputs">``) the sha256
 of everything it was built from (the files above, the title, ``max_posteriors``, the corner and
-figure-format options, the package version and the source of the diagnostics modules that draw
-it); `write_report` on the same inputs returns the existing page without rebuilding it
-(``force=True`` rebuilds). With ``progress=True`` a tqdm bar on stderr names each section.
+figure-format options, the package version, the source of the diagnostics modules that draw
+it and the bytes of its templates); `write_report` on the same inputs returns the existing page
+without rebuilding it (``force=True`` rebuilds). With ``progress=True`` a tqdm bar on stderr names each section.
 """
 
 from __future__ import annotations
