@@ -45,6 +45,8 @@ if TYPE_CHECKING:
     import numpy as np
     import torch
 
+    from camo_sbi.diagnostics.pages import Markup
+
 __all__ = ["CALIBRATION_VERDICTS", "add_infer_arguments", "add_recording_arguments", "add_simulate_arguments",
            "calibration_verdict", "infer_main", "limits_table", "load_from_args", "simulate_main",
            "simulate_recordings", "wide_limits", "write_starts"]
@@ -368,7 +370,7 @@ def _method_config(name: str, space: str | None, budget: int, workdir: Path, ove
     return cfg
 
 
-def _limits_html(table, sim) -> str:
+def _limits_html(table, sim) -> Markup:
     """The limits figure (model range, estimates, 90% intervals, "not exercised") and the wide table."""
     import numpy as np
 
