@@ -161,3 +161,34 @@ def test_the_graph_is_not_vacuous():
     assert "camo_sbi.task" in GRAPH["camo_sbi.inference.camo"]
     assert "camo_sbi.inference.camo" in GRAPH["camo_sbi.inference.registry"]  # a lazy loader counts
     assert "camo_sbi.simulators.controller" in GRAPH["camo_sbi.simulators.simulator"]
+
+
+#: third-party libraries reached through one adapter module each (README, Architecture)
+ADAPTERS = {
+    "arviz": {"camo_sbi.diagnostics.arviz_io"},
+    "pyabc": {"camo_sbi.inference.abc_smc"},
+    "sbi": {"camo_sbi.inference.sbi_adapter"},
+    "ezc3d": {"camo_sbi.io.c3d"},
+    "bvhio": {"camo_sbi.io.bvh"},
+    "pytorch_kinematics": {"camo_sbi.simulators.chain"},
+    "pybullet": {"camo_sbi.scenarios.block_stacking"},
+    "jinja2": {"camo_sbi.diagnostics.pages"},
+    "markupsafe": {"camo_sbi.diagnostics.pages"},
+}
+
+
+def _third_party(name: str) -> set[str]:
+    """The top-level names of the absolute imports outside camo_sbi in module ``name``."""
+    out = set()
+    for node in ast.walk(ast.parse(MODULES[name].read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            out.add(node.module.split(".")[0])
+    return out - {"camo_sbi"}
+
+
+@pytest.mark.parametrize("library", sorted(ADAPTERS))
+def test_each_adapted_library_is_imported_by_its_adapter_only(library):
+    importers = {name for name in MODULES if library in _third_party(name)}
+    assert importers == ADAPTERS[library], f"{library} is imported by {sorted(importers)}"

@@ -1,6 +1,6 @@
 """One self-contained HTML report for a run directory (opens offline, no external assets).
 
-Why one module of ~780 lines: one report, section by section (each section a function of the
+Why one module of ~1000 lines: one report, section by section (each section a function of the
 run directory); the figures themselves live in `figures` and `style`.
 
 Reads, from ``run_dir`` (every input optional)::
@@ -21,11 +21,16 @@ of `camo_sbi.diagnostics.style` and embedded as base64 PNG ``data:`` URIs; with
 Angles are shown in degrees (the files keep radians); cells and captions follow the small-n
 rule of `camo_sbi.diagnostics.style.cell_text`.
 
+The HTML comes from the jinja2 templates of `camo_sbi.diagnostics.pages` (the layout and
+the macros for a section, a table, a figure, a note): every string a section passes them (method,
+subject, joint and file names, captions, error messages, table cells) is escaped by autoescaping;
+a section body is the `Markup` those macros return.
+
 Cached per input digest: the page records (``<meta name="camo-sbi-report-inputs">``) the sha256
 of everything it was built from (the files above, the title, ``max_posteriors``, the corner and
-figure-format options, the package version and the source of the diagnostics modules that draw
-it); `write_report` on the same inputs returns the existing page without rebuilding it
-(``force=True`` rebuilds). With ``progress=True`` a tqdm bar on stderr names each section.
+figure-format options, the package version, the source of the diagnostics modules that draw
+it and the bytes of its templates); `write_report` on the same inputs returns the existing page
+without rebuilding it (``force=True`` rebuilds). With ``progress=True`` a tqdm bar on stderr names each section.
 """
 
 from __future__ import annotations
@@ -35,7 +40,6 @@ import contextlib
 import contextvars
 import datetime as _dt
 import hashlib
-import html
 import io
 import json
 import os
@@ -49,6 +53,7 @@ import numpy as np
 import pandas as pd
 
 from camo_sbi._io import atomic_write_text
+from camo_sbi.diagnostics.pages import Markup, join, page, part, table_parts, template_bytes
 
 if TYPE_CHECKING:  # matplotlib is imported by the sections that draw: checking a cached report needs none
     from matplotlib.figure import Figure
@@ -56,7 +61,7 @@ if TYPE_CHECKING:  # matplotlib is imported by the sections that draw: checking 
 __all__ = ["SECTIONS", "RESULTS_COLUMNS", "figure_files", "figure_html", "report_digest", "report_is_current",
            "table_html", "write_page", "write_report"]
 _DIGEST_META = "camo-sbi-report-inputs"
-_DRAWING_MODULES = ("report", "figures", "style", "arviz_io", "calibration")
+_DRAWING_MODULES = ("report", "pages", "figures", "style", "arviz_io", "calibration")
 
 SECTIONS: tuple[tuple[str, str], ...] = (
     ("settings", "Settings"),
@@ -84,56 +89,30 @@ _FIGURE_SINK: contextvars.ContextVar[tuple[Path, tuple[str, ...], set] | None] =
 _CORNER_CHOICE: contextvars.ContextVar[list[str] | None] = contextvars.ContextVar(
     "camo_sbi_report_corner", default=None)
 
-_CSS = """
-body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:0 auto;max-width:1200px;
-padding:1em 2em;color:#222;background:#fff;overflow-wrap:anywhere}
-h1{border-bottom:2px solid #446;padding-bottom:.2em}
-h2{border-bottom:1px solid #ccd;margin-top:2em}
-h3{margin:1.2em 0 .4em}
-nav ul{columns:3;list-style:none;padding-left:0}
-table{border-collapse:collapse;font-size:12px;margin:.3em 0 .6em}
-th,td{border:1px solid #ccd;padding:2px 6px;text-align:right;overflow-wrap:normal}
-th{white-space:nowrap}
-th{background:#eef}
-td:first-child,th:first-child{text-align:left}
-caption{caption-side:top;text-align:left;font-weight:600;font-size:12px;padding:.2em 0}
-.tables{display:flex;flex-wrap:wrap;gap:.4em 1.6em;align-items:flex-start}
-.wide{max-width:100%;overflow-x:auto}
-.note{background:#fff6e0;border-left:4px solid #e0a000;padding:.4em .8em}
-.error{background:#fde8e8;border-left:4px solid #c00000;padding:.4em .8em}
-.meta{color:#555;font-size:12px}
-figure{margin:.5em 0 1.5em}
-figcaption{font-size:12px;color:#555}
-img{max-width:100%;height:auto;border:1px solid #eee}
-details{margin:.4em 0}
-summary{cursor:pointer;font-weight:600}
-"""
-
-
 # --------------------------------------------------------------------------- small html helpers
 
 
-def _esc(x) -> str:
-    return html.escape(str(x), quote=True)
+def _note(msg: str) -> Markup:
+    return part("note", msg)
 
 
-def _note(msg: str) -> str:
-    return f'<p class="note">not available: {_esc(msg)}</p>'
-
-
-def _error(msg: str) -> str:
+def _error(msg: str) -> Markup:
     """A problem the reader must act on (not a missing input): marked, and logged as a warning."""
     import logging
 
     logging.getLogger(__name__).warning("report: %s", msg)
-    return f'<p class="error"><strong>error:</strong> {_esc(msg)}</p>'
+    return part("error", msg)
+
+
+def _meta(text: str) -> Markup:
+    return part("meta", text)
 
 
 def _slug(text: str) -> str:
     return re.sub(r"[^a-z0-9]+", "_", text.lower()).strip("_")[:60] or "figure"
 
 
-def _fig_html(fig: Figure, caption: str, alt: str | None = None) -> str:
+def _fig_html(fig: Figure, caption: str, alt: str | None = None) -> Markup:
     buf = io.BytesIO()
     try:
         fig.savefig(buf, format="png", dpi=_DPI)
@@ -147,28 +126,23 @@ def _fig_html(fig: Figure, caption: str, alt: str | None = None) -> str:
             save_figures(fig, folder / f"{name}.png", formats)
     finally:
         fig.clear()
-    data = base64.b64encode(buf.getvalue()).decode("ascii")
-    return (f'<figure><img src="data:image/png;base64,{data}" alt="{_esc(alt or caption)}">'
-            f"<figcaption>{_esc(caption)}</figcaption></figure>")
+    # the toolkit's own PNG bytes as a data: URI (base64: autoescaping has nothing to change)
+    src = "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+    return part("figure", src, caption, alt or caption)
 
 
-def _table_html(df: pd.DataFrame, *, index: bool = True, float_format: str = "{:.4g}") -> str:
-    note = ""
-    if len(df) > _MAX_TABLE_ROWS:
-        note = f'<p class="meta">showing the first {_MAX_TABLE_ROWS} of {len(df)} rows</p>'
-        df = df.iloc[:_MAX_TABLE_ROWS]
-    return note + df.to_html(index=index, escape=True, border=0, na_rep="–",
-                             float_format=lambda v: float_format.format(v))
+def _table_html(df: pd.DataFrame, *, index: bool = True, float_format: str = "{:.4g}") -> Markup:
+    total = len(df)
+    shown = df.iloc[:_MAX_TABLE_ROWS]
+    return part("table", table_parts(shown, index=index, float_format=float_format), shown=len(shown), total=total)
 
 
-def _captioned(df: pd.DataFrame, caption: str) -> str:
+def _captioned(df: pd.DataFrame, caption: str) -> Markup:
     """``df`` as an HTML table (no index) with ``caption``."""
-    text = df.to_html(index=False, escape=True, border=0, na_rep="–")
-    end = text.index(">") + 1
-    return f"{text[:end]}<caption>{_esc(caption)}</caption>{text[end:]}"
+    return part("table", table_parts(df, index=False), caption=caption)
 
 
-def _guard(build: Callable[[], str]) -> str:
+def _guard(build: Callable[[], Markup]) -> Markup:
     """Run a section builder; an unexpected error becomes a note instead of a broken report."""
     try:
         return build()
@@ -235,7 +209,7 @@ def _load_posteriors(run_dir: Path, limit: int):
 # --------------------------------------------------------------------------- sections
 
 
-def _settings(run_dir: Path) -> str:
+def _settings(run_dir: Path) -> Markup:
     p = run_dir / "config.json"
     if not p.is_file():
         return _note("config.json not found in the run directory")
@@ -280,7 +254,7 @@ def _status_marks(sub: pd.DataFrame) -> dict[str, list[str]]:
     return {m: sorted(g["status"].astype(str).unique()) for m, g in bad.groupby("method")}
 
 
-def _metric_table(sub: pd.DataFrame, metric: str, marks: dict[str, list[str]]) -> str:
+def _metric_table(sub: pd.DataFrame, metric: str, marks: dict[str, list[str]]) -> Markup:
     from camo_sbi.diagnostics.style import display_metric, method_order, metric_label
 
     m = display_metric(sub[sub["metric"] == metric])
@@ -296,7 +270,7 @@ def _metric_table(sub: pd.DataFrame, metric: str, marks: dict[str, list[str]]) -
     return _captioned(pd.DataFrame(rows), metric_label(metric))
 
 
-def _joint_table(sub: pd.DataFrame, marks: dict[str, list[str]], metric) -> str:
+def _joint_table(sub: pd.DataFrame, marks: dict[str, list[str]], metric) -> Markup:
     """One table of a per-joint metric family (``metric``: its catalog entry): methods as
     rows, joints as columns, at the largest budget."""
     from camo_sbi.diagnostics.style import method_order
@@ -312,10 +286,10 @@ def _joint_table(sub: pd.DataFrame, marks: dict[str, list[str]], metric) -> str:
                      **{j: _ci_cell(g.loc[g["metric"] == metric.row(j), "value"].to_numpy())
                         for j in joints}})
     cap = f"{metric.display_label('each joint')}, budget {_budget_text(bmax)}"
-    return '<div class="wide">' + _captioned(pd.DataFrame(rows), cap) + "</div>"
+    return part("wide", _captioned(pd.DataFrame(rows), cap))
 
 
-def _comparison(res: pd.DataFrame | None, why: str) -> str:
+def _comparison(res: pd.DataFrame | None, why: str) -> Markup:
     from camo_sbi.diagnostics.style import cell_rule
     from camo_sbi.evaluation import catalog
 
@@ -331,30 +305,30 @@ def _comparison(res: pd.DataFrame | None, why: str) -> str:
         marks = _status_marks(sub)
         metrics = _table_metrics(sub["metric"].unique())
         if len(groups) > 1:
-            out.append(f"<h3>task {_esc(task)}, subject {_esc(subject)}</h3>")
-        out.append(f'<p class="meta">After {n_last:g} observed tasks. Each cell: {_esc(cell_rule(n, "seeds"))} '
-                   "(the same rule as the figures); methods as rows, simulation budgets per observed task "
-                   "as columns. Angles in degrees.</p>")
+            out.append(part("heading", f"task {task}, subject {subject}"))
+        out.append(_meta(f"After {n_last:g} observed tasks. Each cell: {cell_rule(n, 'seeds')} "
+                         "(the same rule as the figures); methods as rows, simulation budgets per observed task "
+                         "as columns. Angles in degrees."))
         out.append(_binding_note(sub))
-        out.append('<div class="tables">' + "".join(_metric_table(sub, m, marks) for m in metrics) + "</div>")
+        out.append(part("tables", join(_metric_table(sub, m, marks) for m in metrics)))
         for family in (m for m in catalog.METRICS if m.per_joint):
             if sub["metric"].map(family.matches).any():
                 out.append(_joint_table(sub, marks, family))
         if marks:
-            lines = "; ".join(f"{_esc(m)}: {_esc(', '.join(st))}" for m, st in marks.items())
-            out.append(f'<p class="meta">{_DAGGER} some runs of this method did not end with status "ok" '
-                       f"(their rows are still averaged): {lines}.</p>")
-    return "".join(out)
+            lines = "; ".join(f"{m}: {', '.join(st)}" for m, st in marks.items())
+            out.append(_meta(f'{_DAGGER} some runs of this method did not end with status "ok" '
+                             f"(their rows are still averaged): {lines}."))
+    return join(out)
 
 
-def _binding_note(sub: pd.DataFrame) -> str:
+def _binding_note(sub: pd.DataFrame) -> Markup:
     """How many held-out and observed reaches the restriction touches, beside the tables
     (`evaluation.claims.binding_line`); nothing for results that do not record it."""
     from camo_sbi.evaluation.claims import binding_line
 
     if not (sub["metric"] == "binding_test_reaches").any():
-        return ""
-    return f'<p class="meta">{_esc(binding_line(sub))}.</p>'
+        return Markup("")
+    return _meta(f"{binding_line(sub)}.")
 
 
 def _largest(df: pd.DataFrame, by: str) -> pd.DataFrame:
@@ -366,7 +340,7 @@ def _largest(df: pd.DataFrame, by: str) -> pd.DataFrame:
     return pd.concat(parts)
 
 
-def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: str) -> str:
+def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: str) -> Markup:
     from camo_sbi.diagnostics.style import display_metric, few_runs, paper_style, run_counts
     from camo_sbi.evaluation import catalog
 
@@ -396,7 +370,7 @@ def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: 
         if len(metrics) > len(shown):
             cap += f" Showing the {len(shown)} headline metrics of {len(metrics)} (all are in the tables)."
         parts.append(_fig_html(fig, cap, alt=f"{xlabel} figure for task {task}"))
-    return "".join(parts)
+    return join(parts)
 
 
 def _xy_panels(sub: pd.DataFrame, shown: list[str], x: str, xlabel: str) -> Figure:
@@ -490,7 +464,7 @@ def _group_words(task: str, subject: str) -> str:
     return ", ".join(x for x in (f"task {task}" if task else "", f"subject {subject}" if subject else "") if x)
 
 
-def _limits_figure(members, caption_extra: str = "") -> str:
+def _limits_figure(members, caption_extra: str = "") -> Markup:
     from camo_sbi.diagnostics import arviz_io
 
     fig = arviz_io.plot_forest([d for _, d, _ in members], [m for m, _, _ in members])
@@ -537,7 +511,7 @@ def _corner_selection(members, chosen: Sequence[str] | None = None) -> tuple[lis
             "marginal, relative to its width)")
 
 
-def _corner_figure(posterior, points) -> str:
+def _corner_figure(posterior, points) -> Markup:
     from camo_sbi.diagnostics import arviz_io
 
     sel, joints, why = _corner_selection(posterior, _CORNER_CHOICE.get())
@@ -554,12 +528,12 @@ def _corner_figure(posterior, points) -> str:
                           "point estimates. `--corner-limits a,b,c` chooses others.", alt="corner plot")
 
 
-def _posteriors(posts, why: str) -> str:
+def _posteriors(posts, why: str) -> Markup:
     if not posts:
         return _note(why)
     from camo_sbi.diagnostics import arviz_io
 
-    out = [f'<p class="meta">{_esc(why)}</p>'] if why else []
+    out = [_meta(why)] if why else []
     groups, errors = _cells(posts)
     out += errors
     for (task, subject), cells in groups.items():
@@ -568,7 +542,7 @@ def _posteriors(posts, why: str) -> str:
         label = _group_words(task, subject)
         posterior = [m for m in members if not _is_point(m[1])]
         points = [m for m in members if _is_point(m[1])]
-        out.append(f"<h3>{_esc(label + ': ' if label else '')}{_esc(_cell_words(chosen))}</h3>")
+        out.append(part("heading", f"{label + ': ' if label else ''}{_cell_words(chosen)}"))
         out.append(_guard(lambda members=members: _limits_figure(members)))
         if posterior:
             out.append(_guard(lambda p=posterior, q=points: _corner_figure(p, q)))
@@ -578,14 +552,13 @@ def _posteriors(posts, why: str) -> str:
                     truth = "; dashed black: the truth" if arviz_io.true_limits(idata) is not None else ""
                     return _fig_html(fig, f"{method}: marginal posterior of every limit with its 94% HDI "
                                           f"(arviz){truth}.")
-                out.append(f"<details><summary>Marginal posteriors: {_esc(_words(idata))}</summary>"
-                           f"{_guard(marginals)}</details>")
+                out.append(part("details", f"Marginal posteriors: {_words(idata)}", _guard(marginals)))
         others = [c for c in cells if c != chosen]
         for cell in sorted(others, key=lambda c: (str(c[0]), str(c[1]))):
             ms = sorted(cells[cell], key=lambda m: m[0])
-            out.append(f"<details><summary>Limits per method, {_esc(_cell_words(cell))}</summary>"
-                       f"{_guard(lambda ms=ms: _limits_figure(ms))}</details>")
-    return "".join(out)
+            out.append(part("details", f"Limits per method, {_cell_words(cell)}",
+                            _guard(lambda ms=ms: _limits_figure(ms))))
+    return join(out)
 
 
 def _simulator(task: str, idata):
@@ -660,7 +633,7 @@ def _predictive_paths(sim, draws: np.ndarray, obs: dict[str, np.ndarray], n_reac
     return [[traj.trimmed(s * n_reaches + i, "cartesian").numpy() for s in range(S)] for i in range(n_reaches)]
 
 
-def _predictive(posts, why: str) -> str:
+def _predictive(posts, why: str) -> Markup:
     if not posts:
         return _note(why)
     from camo_sbi.diagnostics import arviz_io
@@ -694,15 +667,15 @@ def _predictive(posts, why: str) -> str:
             paths = _predictive_paths(sim, pick, obs, n_reaches)
             fig = plot_predictive(observed, {method: paths}, goals=obs["observed_goal"],
                                   title=f"{method}: {_words(idata, method=False)}")
-            out.append(f"<h3>{_esc(_words(idata))}</h3>" + _fig_html(
+            out.append(part("heading", _words(idata)) + _fig_html(
                 fig, f"The observed reaches (black, the first {n_reaches}) against the end-effector paths "
                      f"simulated with {len(pick)} posterior draws for the same starts and goals (thin "
                      "lines): top view (x–y) and side view (x–z), metres. Draws that reproduce the "
                      "observation lie on the black path.", alt=f"posterior-predictive reaches of {method}"))
-    return "".join(out)
+    return join(out)
 
 
-def _calibration(run_dir: Path) -> str:
+def _calibration(run_dir: Path) -> Markup:
     p = run_dir / "coverage.csv"
     if not p.is_file():
         return _note("calibration was not computed (coverage.csv not found in the run directory)")
@@ -730,9 +703,8 @@ def _calibration(run_dir: Path) -> str:
     dev = sel.assign(dev=sel["coverage"] - sel["alpha"])
     tab = dev.groupby(keys)["dev"].agg(mean_deviation="mean",
                                        max_abs_deviation=lambda v: float(np.max(np.abs(v)))).reset_index()
-    out.append('<p class="meta">coverage − α over all levels (negative: over-confident).</p>'
-               + _table_html(tab, index=False))
-    return "".join(out)
+    out.append(_meta("coverage − α over all levels (negative: over-confident).") + _table_html(tab, index=False))
+    return join(out)
 
 
 def _posterior_comparison_table(posts) -> pd.DataFrame:
@@ -774,19 +746,19 @@ def _posterior_comparison_table(posts) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _posterior_comparison(posts, why: str) -> str:
+def _posterior_comparison(posts, why: str) -> Markup:
     if not posts:
         return _note(why)
     table = _posterior_comparison_table(posts)
     if table.empty:
         return _note("needs at least two sampled posteriors (not point estimates) for the same "
                      "subject, budget and seed")
-    return ('<p class="meta">Wasserstein-1 distance between the two methods\' marginals over the '
-            "free limits (degrees), and classifier two-sample test accuracy "
-            "(C2ST, sbi's random-forest metric on 500 draws per side: 0.5 = indistinguishable, 1 = "
-            f"disjoint; computed for the first {_MAX_C2ST_PAIRS} pairs). Point estimates are left out. "
-            "No method is a ground-truth reference here: compare with the calibration section to "
-            "see which posteriors are trustworthy.</p>"
+    return (_meta("Wasserstein-1 distance between the two methods' marginals over the "
+                  "free limits (degrees), and classifier two-sample test accuracy "
+                  "(C2ST, sbi's random-forest metric on 500 draws per side: 0.5 = indistinguishable, 1 = "
+                  f"disjoint; computed for the first {_MAX_C2ST_PAIRS} pairs). Point estimates are left out. "
+                  "No method is a ground-truth reference here: compare with the calibration section to "
+                  "see which posteriors are trustworthy.")
             + _table_html(table, index=False))
 
 
@@ -809,7 +781,7 @@ def _in_degrees(df: pd.DataFrame, idata, columns) -> pd.DataFrame:
     return out.rename(columns={c: f"{c} [deg]" for c in cols})
 
 
-def _diagnostics(posts, why: str) -> str:
+def _diagnostics(posts, why: str) -> Markup:
     if not posts:
         return _note(why)
     from camo_sbi.diagnostics import arviz_io
@@ -841,24 +813,23 @@ def _diagnostics(posts, why: str) -> str:
                     "ess_tail, r_hat) are left out: they would count the repeated draws.")
         else:
             head = "independent draws in one chain: ess as arviz computes it, no r_hat (needs several chains)."
-        body = [f'<p class="meta">arviz summary, in degrees (the file holds {_esc(_attr(idata, "units", "rad"))}); '
-                f"{_esc(head)}</p>", _table_html(_in_degrees(arviz_io.summary(idata), idata, _SUMMARY_ANGLES))]
+        body = [_meta(f"arviz summary, in degrees (the file holds {_attr(idata, 'units', 'rad')}); {head}"),
+                _table_html(_in_degrees(arviz_io.summary(idata), idata, _SUMMARY_ANGLES))]
         with contextlib.suppress(ValueError):
-            body.append('<p class="meta">Posterior 94% HDI width relative to the prior '
-                        "(1: uninformed by the observations, 0: pinned down).</p>"
+            body.append(_meta("Posterior 94% HDI width relative to the prior "
+                              "(1: uninformed by the observations, 0: pinned down).")
                         + _table_html(_in_degrees(arviz_io.posterior_width(idata), idata, _WIDTH_ANGLES)))
         with contextlib.suppress(ValueError):
-            body.append('<p class="meta">Position of the true limit in each marginal '
-                        "(posterior quantile; near 0 or 1: the truth is in a tail).</p>"
+            body.append(_meta("Position of the true limit in each marginal "
+                              "(posterior quantile; near 0 or 1: the truth is in a tail).")
                         + _table_html(_in_degrees(arviz_io.truth_position(idata), idata, ("truth",))))
-        body.insert(0, f'<p class="meta">file {_esc(path.parent.name)}/{_esc(path.name)}</p>')
-        out.append(f"<details><summary>{_esc(_words(idata))}</summary>{''.join(body)}</details>")
-    head = ""
+        body.insert(0, _meta(f"file {path.parent.name}/{path.name}"))
+        out.append(part("details", _words(idata), join(body)))
+    head = Markup("")
     if meta_rows:
-        head = ('<p class="meta">One row per posterior file. Point estimates (baselines) have no posterior '
-                "diagnostics.</p>" + '<div class="wide">' + _table_html(pd.DataFrame(meta_rows), index=False)
-                + "</div>")
-    return head + "".join(out)
+        head = (_meta("One row per posterior file. Point estimates (baselines) have no posterior diagnostics.")
+                + part("wide", _table_html(pd.DataFrame(meta_rows), index=False)))
+    return head + join(out)
 
 
 # --------------------------------------------------------------------------- entry point
@@ -869,6 +840,7 @@ def _inputs_digest(run_dir: Path, title: str, max_posteriors: int, options) -> s
     from camo_sbi import __version__
 
     h = hashlib.sha256(json.dumps([__version__, title, max_posteriors, options], default=str).encode())
+    h.update(template_bytes())  # the page's templates: a changed template rebuilds the report
     here = Path(__file__).parent
     files = [here / f"{m}.py" for m in _DRAWING_MODULES]
     files += [run_dir / n for n in ("config.json", "results.csv", "coverage.csv")]
@@ -1013,33 +985,33 @@ def _write_report(run_dir: Path, out_path: Path, title: str, max_posteriors: int
                       meta=f"run directory: {run_dir.resolve()}", digest=digest)
 
 
-def figure_html(fig: Figure, caption: str, alt: str | None = None) -> str:
-    """A matplotlib figure as an embedded PNG ``<figure>`` (the figure is cleared)."""
+def figure_html(fig: Figure, caption: str, alt: str | None = None) -> Markup:
+    """A matplotlib figure as an embedded PNG ``<figure>`` (the figure is cleared); ``caption``
+    and ``alt`` are text (escaped)."""
     return _fig_html(fig, caption, alt)
 
 
-def table_html(df: pd.DataFrame, *, index: bool = False, float_format: str = "{:.4g}") -> str:
-    """A DataFrame as an HTML table (at most the first 400 rows)."""
+def table_html(df: pd.DataFrame, *, index: bool = False, float_format: str = "{:.4g}") -> Markup:
+    """A DataFrame as an HTML table (at most the first 400 rows); every cell is text (escaped)."""
     return _table_html(df, index=index, float_format=float_format)
 
 
 def write_page(out_path, title: str, sections, *, meta: str = "", digest: str | None = None) -> Path:
-    """Write a self-contained HTML page atomically: ``sections`` is [(id, heading, html body)].
+    """Write a self-contained HTML page atomically: ``sections`` is [(id, heading, body)].
 
-    Every section gets ``<section id=...>``; ``meta`` is a line under the title (escaped);
+    Rendered by the templates of `camo_sbi.diagnostics.pages` (page.html.j2): every section
+    gets ``<section id=...>``; ``title``, headings and ``meta`` (a line under the title) are
+    text and escaped; a body is `Markup` built from `pages.part` fragments (`figure_html`,
+    `table_html`, ...), and a plain ``str`` body is shown as text, escaped, never as markup.
     ``digest`` (hex sha256 of the page's inputs) is recorded for `report_digest`.
     """
-    nav = "".join(f'<li><a href="#{sid}">{_esc(name)}</a></li>' for sid, name, _ in sections)
-    body = "".join(f'<section id="{sid}"><h2>{_esc(name)}</h2>{html_}</section>\n'
-                   for sid, name, html_ in sections)
+    if not isinstance(title, str):
+        raise TypeError(f"title: expected str, got {type(title).__name__}")
+    if digest is not None and not re.fullmatch(r"[0-9a-f]{64}", str(digest)):
+        raise ValueError(f"digest: expected a hex sha256 or None, got {digest!r}")
+    sections = [(str(sid), str(name), body if isinstance(body, Markup) else join([body]))
+                for sid, name, body in sections]
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
-    doc = (
-        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-        + (f'<meta name="{_DIGEST_META}" content="{digest}">' if digest else "")
-        + f"<title>{_esc(title)}</title><style>{_CSS}</style></head><body>"
-        f"<h1>{_esc(title)}</h1>"
-        f'<p class="meta">{_esc(meta) + " · " if meta else ""}generated {stamp}</p>'
-        f"<nav><ul>{nav}</ul></nav>\n{body}</body></html>\n"
-    )
+    doc = page(title=title, digest_meta=_DIGEST_META, digest=digest, meta=meta, stamp=stamp, sections=sections)
     atomic_write_text(out_path, doc)
     return Path(out_path)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+import urllib.parse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -43,6 +44,8 @@ from camo_sbi.experiments.models import add_model_arguments, model_from_args, tr
 if TYPE_CHECKING:
     import numpy as np
     import torch
+
+    from camo_sbi.diagnostics.pages import Markup
 
 __all__ = ["CALIBRATION_VERDICTS", "add_infer_arguments", "add_recording_arguments", "add_simulate_arguments",
            "calibration_verdict", "infer_main", "limits_table", "load_from_args", "simulate_main",
@@ -367,11 +370,12 @@ def _method_config(name: str, space: str | None, budget: int, workdir: Path, ove
     return cfg
 
 
-def _limits_html(table, sim) -> str:
+def _limits_html(table, sim) -> Markup:
     """The limits figure (model range, estimates, 90% intervals, "not exercised") and the wide table."""
     import numpy as np
 
     from camo_sbi.diagnostics.figures import plot_limits
+    from camo_sbi.diagnostics.pages import join, part
     from camo_sbi.diagnostics.report import figure_html, table_html
 
     types = getattr(getattr(sim, "spec", None), "joint_types", ("revolute",) * sim.n_joints)
@@ -383,9 +387,8 @@ def _limits_html(table, sim) -> str:
                                  "Inferred joint limits [deg]: the model's range (grey), each method's estimate "
                                  "(marker) and 90% interval (line); hollow markers: bounds no reach exercised (not "
                                  "an impairment: the data say nothing about them)", alt="limits figure"))
-    parts.append('<p class="meta">lower .. upper [deg]; * = not exercised</p>'
-                 + table_html(wide_limits(table), index=True))
-    return "".join(parts)
+    parts.append(part("meta", "lower .. upper [deg]; * = not exercised") + table_html(wide_limits(table), index=True))
+    return join(parts)
 
 
 def _shown_limits(table):
@@ -415,13 +418,12 @@ def _report(out: Path, task, results: dict, notes: list[str], table, settings: d
 
 
 def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int) -> Path:
-    import html
-
     import numpy as np
     import pandas as pd
     import torch
     from matplotlib.figure import Figure
 
+    from camo_sbi.diagnostics.pages import join, part
     from camo_sbi.diagnostics.report import figure_html, table_html, write_page
     from camo_sbi.diagnostics.style import DOUBLE_COLUMN
     from camo_sbi.task import contain
@@ -471,16 +473,15 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
             alt=f"reach {i}"))
     more = len(task.observations) - len(obs)
     if more > 0:
-        reach_html.append(f'<p class="meta">{more} more reaches not shown</p>')
-    esc_notes = "".join(f"<li>{html.escape(n)}</li>" for n in notes)
+        reach_html.append(part("meta", f"{more} more reaches not shown"))
     settings_html = table_html(pd.DataFrame([{"setting": k, "value": str(v)} for k, v in settings.items()]))
     sections = [
         ("limits", "Estimated limits", _limits_html(table, sim)),
-        ("settings", "Settings", settings_html + (f"<ul>{esc_notes}</ul>" if notes else "")),
+        ("settings", "Settings", settings_html + (part("items", notes) if notes else "")),
         ("limits-table", "All columns of limits.csv",
-         '<p class="meta">degrees (limits.csv also holds radians, estimate_rad)</p>'
+         part("meta", "degrees (limits.csv also holds radians, estimate_rad)")
          + table_html(_shown_limits(table), float_format="{:.4g}")),
-        ("reaches", "Observed vs posterior-predictive reaches", "".join(reach_html)),
+        ("reaches", "Observed vs posterior-predictive reaches", join(reach_html)),
     ]
     return write_page(out / "report.html", f"camo_sbi infer: {settings['observations']}", sections,
                       meta=f"model {task.name}, {len(task.observations)} reaches, seed {seed}")
@@ -820,10 +821,10 @@ def infer_folder(args) -> int:
     ``out/report.html`` (per subject: its limits figure, its table, its warnings and a link to
     its own report) are written."""
     import argparse as _argparse
-    import html
 
     import pandas as pd
 
+    from camo_sbi.diagnostics.pages import part
     from camo_sbi.diagnostics.report import write_page
 
     folder = Path(args.observations)
@@ -850,11 +851,12 @@ def infer_folder(args) -> int:
         t.insert(0, "subject", p.stem)
         tables.append(t)
         cfg = json.loads((sub.out / "config.json").read_text())
-        warn = "".join(f"<li>{html.escape(w)}</li>" for w in cfg.get("warnings", []))
+        warnings = cfg.get("warnings", [])
+        # the link: a relative URL of the subject's folder, its name quoted as a path segment
+        href = f"subjects/{urllib.parse.quote(p.stem)}/report.html"
         sections.append((f"subject-{len(sections)}", f"Subject {p.stem}",
-                         f'<p class="meta">{html.escape(str(p))}: {cfg["reaches"]} reaches; '
-                         f'<a href="subjects/{html.escape(p.stem)}/report.html">its report</a></p>'
-                         + (f"<ul>{warn}</ul>" if warn else "")
+                         part("subject_line", str(p), cfg["reaches"], href)
+                         + (part("items", warnings) if warnings else "")
                          + _limits_html(t.drop(columns="subject"), sim)))
     table = pd.concat(tables, ignore_index=True)
     atomic_write_text(out / "limits.csv", table.to_csv(index=False))
