@@ -22,7 +22,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pandas as pd  # noqa: E402
 
 from camo_sbi.distributed import dask_client, worker_count  # noqa: E402
-from camo_sbi.experiments.compare import add_arguments, cell_specs, run_cell, run_cells_on  # noqa: E402
+from camo_sbi.experiments.compare import add_arguments, grid_cells, run_cell  # noqa: E402
+from camo_sbi.experiments.grid import run_grid  # noqa: E402
 from camo_sbi.experiments.store import ResultStore  # noqa: E402
 
 
@@ -44,24 +45,24 @@ def main(argv=None) -> int:
     add_arguments(p)
     args = p.parse_args(["--methods", a.methods, "--budgets", str(a.budget), "--seeds", str(a.seeds),
                          "--tasks", str(a.tasks), "--test-goals", "5"])
-    specs = cell_specs(args)
-    warm = cell_specs(p.parse_args(["--methods", "camo", "--budgets", "50", "--seeds", "1", "--tasks", "1",
+    specs = grid_cells(args)
+    warm = grid_cells(p.parse_args(["--methods", "camo", "--budgets", "50", "--seeds", "1", "--tasks", "1",
                                     "--test-goals", "1", "--seed", "999"]))
     with tempfile.TemporaryDirectory(prefix="bench_distributed_") as tmp:
         tmp = Path(tmp)
-        run_cell(warm[0], str(tmp / "warm_inproc"))
+        run_grid(run_cell, warm, ResultStore(tmp / "warm_inproc"), progress=False)
         t0 = time.perf_counter()
-        for spec in specs:
-            run_cell(spec, str(tmp / "inproc"))
+        run_grid(run_cell, specs, ResultStore(tmp / "inproc"), progress=False)
         t_in = time.perf_counter() - t0
 
         t0 = time.perf_counter()
         with dask_client(a.scheduler) as client:
             client.wait_for_workers(1)
             t_start = time.perf_counter() - t0
-            run_cells_on(client, warm, tmp / "warm_dask")
+            # run_grid with the same spec reuses this open client
+            run_grid(run_cell, warm, ResultStore(tmp / "warm_dask"), scheduler=a.scheduler, progress=False)
             t0 = time.perf_counter()
-            run_cells_on(client, specs, tmp / "dask")
+            run_grid(run_cell, specs, ResultStore(tmp / "dask"), scheduler=a.scheduler, progress=False)
             t_dask = time.perf_counter() - t0
             n_workers = worker_count(client)
         same = _table(tmp / "inproc").equals(_table(tmp / "dask"))

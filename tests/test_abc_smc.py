@@ -511,16 +511,15 @@ def test_a_failed_cell_still_writes_its_rows_with_the_status(monkeypatch, tmp_pa
     import pandas as pd
 
     from camo_sbi.experiments import compare
+    from camo_sbi.experiments.grid import Cell, run_grid
     from camo_sbi.experiments.models import ModelSpec
-    from camo_sbi.experiments.store import cell_key
+    from camo_sbi.experiments.store import ResultStore
 
     _nan_weights_from(monkeypatch, 1)
-    spec = {"task": "panda", "subject": "shoulder_restricted", "method": "abc-smc", "budget": 100, "seed": 0,
-            "tasks": 2, "test_goals": 2, "space": "joint", "base_seed": 0}
-    spec["key"] = cell_key(dict(spec))
-    spec["model"] = ModelSpec(kind="panda")
+    cell = Cell(model=ModelSpec(kind="panda"), subject="shoulder_restricted", method="abc-smc", budget=100, seed=0,
+                tasks=2, extras={"test_goals": 2, "space": "joint", "base_seed": 0}, model_key=(("task", "panda"),))
     with pytest.warns(RuntimeWarning, match="failed"):
-        compare.run_cell(spec, str(tmp_path))
+        assert run_grid(compare.run_cell, [cell], ResultStore(tmp_path), progress=False) == [cell.key]
     rows = pd.concat(pd.read_csv(f) for f in (tmp_path / "cells").glob("*.csv"))
     assert set(rows.n_tasks) == {1, 2} and rows.value.notna().all()
     assert rows.status.str.startswith("failed: pyabc raised AssertionError").all()

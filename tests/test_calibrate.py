@@ -71,7 +71,7 @@ def test_resume_skips_finished_cells(tiny_run, tmp_path, monkeypatch):
     cells[0].unlink()
     calls = []
     real = calibrate.run_cell
-    monkeypatch.setattr(calibrate, "run_cell", lambda spec, o: calls.append(spec["key"]) or real(spec, o))
+    monkeypatch.setattr(calibrate, "run_cell", lambda cell, o: calls.append(cell.key) or real(cell, o))
     assert calibrate.main(_args(*TINY, "--out", str(out))) == 0
     assert calls == [cells[0].stem]
     assert (out / "coverage.csv").read_text() == (tiny_run / "coverage.csv").read_text()

@@ -206,31 +206,36 @@ class _nothing:
 @pytest.mark.slow  # kills and restarts a Dask worker mid-grid (~30 s)
 def test_a_dying_worker_loses_no_cell(tmp_path, cluster):
     """Kill one worker after the first cell finishes: the grid completes, every row exactly once."""
+    import functools
+
     from distributed import Client
 
     from camo_sbi.distributed import map_unordered
-    from camo_sbi.experiments.compare import cell_specs, run_cell
+    from camo_sbi.experiments.compare import grid_cells, run_cell
+    from camo_sbi.experiments.grid import _run_and_store
     from camo_sbi.experiments.store import ResultStore
 
     out = tmp_path / "killed"
     args = _namespace(methods="camo,naive", budgets="100", seeds=3, tasks=1)
-    specs = cell_specs(args)
+    specs = grid_cells(args)
     with Client(cluster) as client:
         victim = next(iter(client.scheduler_info()["workers"]))
         n_before = len(client.scheduler_info()["workers"])
         done = []
-        for key in map_unordered(run_cell, specs, client, retries=2, out=str(out)):
+        # what run_grid does on Dask, with a hook after the first cell to kill a worker
+        for key in map_unordered(functools.partial(_run_and_store, run_cell), specs, client, retries=2,
+                                 out=str(out)):
             done.append(key)
             if len(done) == 1:  # mid-grid: take a worker down (and the cells it holds)
                 try:
                     client.run(os._exit, 1, workers=[victim])
                 except Exception:  # the worker's connection drops by design
                     pass
-        assert sorted(done) == sorted(s["key"] for s in specs)
+        assert sorted(done) == sorted(s.key for s in specs)
         assert victim not in client.scheduler_info()["workers"]  # it did die
         client.wait_for_workers(n_before, timeout=60)  # the nanny restarts it for the next tests
     store = ResultStore(out)
-    assert store.finished_keys() == {s["key"] for s in specs}
+    assert store.finished_keys() == {s.key for s in specs}
     df = store.write_table()
     counts = df.groupby(["method", "seed", "n_tasks", "metric"]).size()
     assert (counts == 1).all()

@@ -514,11 +514,12 @@ def test_cell_vanishing_mid_run_exits_2_naming_it_and_writes_no_table(tmp_path, 
     out = tmp_path / "run"
     real, done = compare.run_cell, []
 
-    def run_then_delete_the_first(spec, path):
-        real(spec, path)
-        done.append(spec["key"])
-        if len(done) == 2:
+    def run_then_delete_the_first(cell, path):
+        rows = real(cell, path)
+        done.append(cell.key)
+        if len(done) == 2:  # the first cell was stored when its function returned
             (out / "cells" / f"{done[0]}.csv").unlink()
+        return rows
 
     monkeypatch.setattr(compare, "run_cell", run_then_delete_the_first)
     capsys.readouterr()

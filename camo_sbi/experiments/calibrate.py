@@ -57,12 +57,9 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tqdm import tqdm
-
 from camo_sbi._io import atomic_write_text
-from camo_sbi.experiments.compare import run_in_processes
 from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
-from camo_sbi.experiments.method_configs import parse_configs
+from camo_sbi.experiments.method_configs import method_config, parse_configs
 from camo_sbi.experiments.models import add_model_arguments, model_from_args
 
 # only light modules at import time: the CLI builds its parser from add_arguments (numpy, pandas,
@@ -73,10 +70,9 @@ if TYPE_CHECKING:
 __all__ = [
     "add_arguments",
     "aggregate",
-    "cell_specs",
     "draw_subject",
+    "grid_cells",
     "main",
-    "method_config",
     "run_cell",
     "subject_rows",
     "summarize",
@@ -112,17 +108,9 @@ def _parse_methods(text: str) -> list[str]:
     return items
 
 
-def method_config(method: str, budget: int, overrides: dict | None = None) -> dict:
-    """The config dict a cell runs ``method`` with: the values the method declares for this
-    per-task budget (`registry.budget_defaults`), then ``overrides``."""
-    from camo_sbi.inference.registry import budget_defaults
-
-    return {**budget_defaults(method, budget), **(overrides or {})}
-
-
-def cell_specs(args) -> list[dict]:
-    """Every cell (subject-major, then method) as a plain picklable dict with its key."""
-    from camo_sbi.experiments.store import cell_key
+def grid_cells(args) -> list:
+    """Every cell (subject-major, then method) as a `Cell` with its key."""
+    from camo_sbi.experiments.grid import Cell
 
     methods = _parse_methods(args.methods)
     for opt in ("subjects", "tasks", "budget", "workers", "sbc_draws"):
@@ -134,35 +122,33 @@ def cell_specs(args) -> list[dict]:
     if getattr(args, "limits", None) is not None:
         raise ValueError("--limits: calibrate draws its subjects' limits from the prior; give no --limits")
     model = model_from_args(args)
-    # a built-in model with its defaults keeps the cell keys it always had
-    model_key = {} if model.is_default else {"model_settings": json.dumps(model.key(), sort_keys=True)}
+    # the model in the key: its name as "model"; a built-in model with its defaults keeps the cell
+    # keys it always had, any other adds its settings as "model_settings"
+    model_key = (("model", model.name),) + (() if model.is_default else
+                                            (("model_settings", json.dumps(model.key(), sort_keys=True)),))
     overrides = parse_configs(args.config, methods)
-    configs = {m: method_config(m, args.budget, overrides.get(m)) for m in methods}
-    from camo_sbi.inference.registry import capabilities
+    from camo_sbi.inference.registry import capabilities, check_budget
 
+    if any(capabilities(m).amortized for m in methods) and getattr(args, "amortized", None) is None:
+        raise ValueError("--amortized: npe-amortized needs an estimator file (main() trains one when none "
+                         "is given)")
+    estimator = None if getattr(args, "amortized", None) is None else str(args.amortized)
+    configs = {}
     for m in methods:
-        if capabilities(m).amortized:
-            if getattr(args, "amortized", None) is None:
-                raise ValueError("--amortized: npe-amortized needs an estimator file (main() trains one when none "
-                                 "is given)")
-            configs[m] = {**configs[m], "estimator_path": str(args.amortized)}
-    from camo_sbi.inference.registry import check_budget
-
+        try:
+            configs[m] = method_config(m, budget=args.budget, estimator_path=estimator, overrides=overrides.get(m))
+        except ValueError as exc:
+            raise ValueError(f"--config: {exc}") from exc
     for m, cfg in configs.items():
         try:
             check_budget(m, cfg, args.budget)
         except ValueError as exc:
             raise ValueError(f"--{exc}") from exc
-    specs = []
-    for subject in range(args.subjects):
-        for m in methods:
-            spec = {"version": _VERSION, "model": model.name, "method": m, "subject": subject,
-                    "tasks": args.tasks, "budget": args.budget, "seed": args.seed,
-                    "sbc_draws": args.sbc_draws, "config": json.dumps(configs[m], sort_keys=True)}
-            spec["key"] = cell_key({**spec, **model_key})
-            spec["model_spec"] = model  # a picklable ModelSpec: workers rebuild the simulator from it
-            specs.append(spec)
-    return specs
+    return [Cell(model=model, subject=subject, seed=args.seed, budget=args.budget, tasks=args.tasks, method=m,
+                 extras={"version": _VERSION, "sbc_draws": args.sbc_draws,
+                         "config": json.dumps(configs[m], sort_keys=True)},
+                 model_key=model_key)
+            for subject in range(args.subjects) for m in methods]
 
 
 # ------------------------------------------------------------------------------ one subject
@@ -247,31 +233,29 @@ def subject_rows(samples, weights, truth, names, *, sbc_draws: int, seed, alphas
     return rows
 
 
-def run_cell(spec: dict, out: str) -> str:
-    """Run one method on one subject and store its rows atomically; returns the cell key."""
+def run_cell(cell, out: str) -> list[dict]:
+    """Run one method on one subject (a `Cell` of `grid_cells`); returns the cell's rows."""
     import numpy as np
 
     from camo_sbi._validation import derive_seed
-    from camo_sbi.experiments.store import ResultStore
     from camo_sbi.inference.registry import run_method
     from camo_sbi.scenarios.reaching import task_binding_metrics
 
-    store = ResultStore(out)
-    sim = spec["model_spec"].build()
-    task, attempt = draw_subject(sim, spec["model"], spec["subject"], n_tasks=spec["tasks"], seed=spec["seed"])
-    res = run_method(spec["method"], task, budget=spec["budget"], seed=derive_seed(spec["seed"], spec["subject"], "method"),
-                     config=json.loads(spec["config"]))
+    sim = cell.model.build()
+    name = cell.model.name
+    task, attempt = draw_subject(sim, name, cell.subject, n_tasks=cell.tasks, seed=cell.seed)
+    res = run_method(cell.method, task, budget=cell.budget, seed=derive_seed(cell.seed, cell.subject, "method"),
+                     config=json.loads(cell.extras["config"]))
     free = task.prior.free_mask.numpy()
     names = [n for n, f in zip(coordinate_names(sim), free, strict=True) if f]
     w = res.normalized_weights()
     rows = subject_rows(res.samples[:, free], res.weights, task.true_theta.numpy()[free], names,
-                        sbc_draws=spec["sbc_draws"], seed=derive_seed(spec["seed"], spec["subject"], "sbc"))
+                        sbc_draws=cell.extras["sbc_draws"], seed=derive_seed(cell.seed, cell.subject, "sbc"))
     meta = {"wall_time": res.wall_time, "compile_time": res.compile_time, "n_simulations": res.n_simulations, "n_samples": res.samples.shape[0],
             "ess": float(1.0 / np.sum(w**2)), "attempt": attempt, **task_binding_metrics(task)}
     rows += [{"record": "meta", "name": k, "alpha": np.nan, "value": float(v)} for k, v in meta.items()]
-    base = {"cell": spec["key"], "task": spec["model"], "method": spec["method"], "subject": spec["subject"]}
-    store.put(spec["key"], [{**base, **r} for r in rows])
-    return spec["key"]
+    base = {"cell": cell.key, "task": name, "method": cell.method, "subject": cell.subject}
+    return [{**base, **r} for r in rows]
 
 
 # ------------------------------------------------------------------------------ aggregation
@@ -369,7 +353,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", action="append", default=[], metavar="METHOD=JSON",
                    help='per-method config overrides, e.g. --config \'npe={"max_epochs": 50}\' (repeatable)')
     p.add_argument("--seed", type=int, default=0, help="base seed (subjects and method seeds derive from it)")
-    p.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (without --scheduler)")
+    p.add_argument("--scheduler", default=None,
+                   help="run the cells on Dask: 'local:N' or a scheduler address 'tcp://host:8786'; default: "
+                        "in-process / --workers")
     p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--amortized", type=Path, default=None,
                    help="trained estimator file for npe-amortized; default: train one under OUT/work/amortized "
@@ -385,10 +372,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
-    import torch
-
     from camo_sbi.diagnostics.calibration import plot_coverage
     from camo_sbi.diagnostics.style import DOUBLE_COLUMN
+    from camo_sbi.experiments.grid import pending, run_grid
     from camo_sbi.experiments.plots import save_figures
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
 
@@ -401,32 +387,21 @@ def main(args) -> int:
         out=args.out,
         simulations=getattr(args, "amortize_simulations", 200_000), space=getattr(args, "space", "joint"),
         seed=args.seed, tasks=args.tasks)})
-    specs = cell_specs(args)
+    cells = grid_cells(args)
     out = Path(args.out)
     # the resolved per-method configs replace the raw --config entries
-    model = specs[0]["model"]
+    model = cells[0].model.name
     settings = run_settings(args, methods=_parse_methods(args.methods), model=model,
-                            config={s["method"]: json.loads(s["config"]) for s in specs})
+                            config={c.method: json.loads(c.extras["config"]) for c in cells})
     with RunDirectory(out, "calibrate", settings, wait=getattr(args, "wait", False)) as run:
         store = run.store
-        todo = [s for s in specs if not store.done(s["key"])]
-        print(f"{len(specs)} cells ({args.subjects} subjects x {len(specs) // args.subjects} methods), "
-              f"{len(specs) - len(todo)} already finished")
-        bar = tqdm(total=len(todo), desc=f"calibrate {model}", unit="cell")
-        if args.workers == 1:
-            threads = torch.get_num_threads()
-            torch.set_num_threads(1)
-            try:
-                for spec in todo:
-                    bar.set_postfix_str(f"{spec['method']} subject {spec['subject']}")
-                    run_cell(spec, str(out))
-                    bar.update()
-            finally:
-                torch.set_num_threads(threads)
-        else:
-            run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
-        bar.close()
-        keys = [s["key"] for s in specs]
+        todo = pending(cells, store)
+        print(f"{len(cells)} cells ({args.subjects} subjects x {len(cells) // args.subjects} methods), "
+              f"{len(cells) - len(todo)} already finished")
+        # in-process with one torch thread, as the workers run
+        run_grid(run_cell, todo, store, args.workers, getattr(args, "scheduler", None), progress=f"calibrate {model}",
+                 threads=1)
+        keys = [c.key for c in cells]
         missing = sorted(k for k in keys if not store.done(k))
         if missing:  # deleted or damaged while the run went on
             raise ValueError(f"--out {out}: {len(missing)} cell(s) vanished or were damaged during the run "
@@ -465,7 +440,7 @@ def _sbi_diagnostics(args, out: Path) -> str:
     from camo_sbi.inference.amortized import load_estimator, sbi_diagnostics
 
     est = load_estimator(args.amortized)
-    space = json.loads(next(s for s in cell_specs(args) if s["method"] == "npe-amortized")["config"]).get(
+    space = json.loads(next(c for c in grid_cells(args) if c.method == "npe-amortized").extras["config"]).get(
         "space", "joint")
     d = sbi_diagnostics(est, model_from_args(args).build(), space, n=args.sbi_diagnostics, seed=args.seed)
     atomic_write_text(out / "sbi_diagnostics.json", json.dumps(d, indent=2))

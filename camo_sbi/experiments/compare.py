@@ -12,11 +12,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import time
 from pathlib import Path
-
-from tqdm import tqdm
 
 # only light modules at import time: the CLI builds its parser from add_arguments (numpy, torch,
 # pandas and the store are imported by the functions that use them)
@@ -26,16 +23,15 @@ from camo_sbi.experiments.figure_options import (
     corner_limits,
     figure_formats,
 )
-from camo_sbi.experiments.method_configs import parse_configs
+from camo_sbi.experiments.method_configs import method_config, parse_configs
 from camo_sbi.experiments.models import (
     add_model_arguments,
     model_from_args,
     subject_list,
     true_limits,
 )
-from camo_sbi.experiments.processes import run_in_processes as _run_in_processes
 
-__all__ = ["add_arguments", "main", "run_cell", "run_cells_on", "cell_specs"]
+__all__ = ["add_arguments", "grid_cells", "main", "run_cell"]
 
 log = logging.getLogger(__name__)
 
@@ -64,13 +60,13 @@ def grid_methods(text: str) -> list[str]:
     return methods + [b for b in names(baseline=True) if b not in methods]
 
 
-def cell_specs(args, *, build: bool = True) -> list[dict]:
-    """Every grid cell as a plain dict (picklable; the cell's identity is its key).
+def grid_cells(args, *, build: bool = True) -> list:
+    """Every grid cell as a `Cell` (picklable; its identity is its key).
 
-    ``build=False``: the same specs without building the model or checking the subjects against
+    ``build=False``: the same cells without building the model or checking the subjects against
     it (`models.model_from_args`), for a re-run whose cells are all finished.
     """
-    from camo_sbi.experiments.store import cell_key
+    from camo_sbi.experiments.grid import Cell
 
     methods = grid_methods(args.methods)
     budgets = _parse_list(args.budgets, "budgets", int)
@@ -84,8 +80,10 @@ def cell_specs(args, *, build: bool = True) -> list[dict]:
         sim = model.build()
         for s in subjects:
             true_limits(model, sim, s)
-    # a built-in model with its defaults keeps the cell keys it always had
-    model_key = {} if model.is_default else {"model": json.dumps(model.key(), sort_keys=True)}
+    # the model in the key: its name as "task"; a built-in model with its defaults keeps the cell
+    # keys it always had, any other adds its settings as "model"
+    model_key = (("task", model.name),) + (() if model.is_default else
+                                           (("model", json.dumps(model.key(), sort_keys=True)),))
     from camo_sbi.inference.registry import capabilities
 
     amortized = {m for m in methods if capabilities(m).amortized}
@@ -94,39 +92,19 @@ def cell_specs(args, *, build: bool = True) -> list[dict]:
         raise ValueError("--amortized: npe-amortized needs an estimator file (main() trains one when none is given)")
     amortized_path = None if amortized_path is None else str(amortized_path)
     overrides = parse_configs(getattr(args, "config", None), methods)
-    specs = []
+    cells = []
     for subject in subjects:
         for method in methods:
             for budget in budgets:
                 for seed in range(args.seeds):
-                    spec = {"task": model.name, "subject": subject, "method": method, "budget": budget,
-                            "seed": seed, "tasks": args.tasks, "test_goals": args.test_goals,
-                            "space": args.space, "base_seed": args.seed}
+                    extras = {"test_goals": args.test_goals, "space": args.space, "base_seed": args.seed}
                     if method in amortized:
-                        spec["estimator"] = amortized_path
+                        extras["estimator"] = amortized_path
                     if method in overrides:  # only then part of the key: runs without --config keep theirs
-                        spec["config"] = json.dumps(overrides[method], sort_keys=True)
-                    spec["key"] = cell_key({**spec, **model_key})
-                    spec["model"] = model  # a picklable ModelSpec: workers rebuild the simulator from it
-                    specs.append(spec)
-    return specs
-
-
-def method_config(method: str, space: str, workdir: Path, estimator: str | None = None) -> dict:
-    """The config a cell gives ``method``, from its capabilities: ``space`` for methods that
-    choose their observation space (a variant that fixes it keeps its own), ``workdir`` for
-    methods that write artefacts, ``estimator_path`` (the trained file) for amortized methods."""
-    from camo_sbi.inference.registry import get_method
-
-    spec = get_method(method)
-    cfg: dict = {}
-    if len(spec.capabilities.spaces) > 1 and "space" not in spec.defaults:
-        cfg["space"] = space
-    if spec.capabilities.workdir:
-        cfg["workdir"] = str(workdir)
-    if spec.capabilities.amortized:
-        cfg["estimator_path"] = estimator
-    return cfg
+                        extras["config"] = json.dumps(overrides[method], sort_keys=True)
+                    cells.append(Cell(model=model, subject=subject, seed=seed, budget=budget, tasks=args.tasks,
+                                      method=method, extras=extras, model_key=model_key))
+    return cells
 
 
 def _model_setting(model) -> str:
@@ -134,56 +112,54 @@ def _model_setting(model) -> str:
     return model.name if model.is_default else json.dumps(model.key(), sort_keys=True)
 
 
-def run_cell(spec: dict, out: str) -> str:
-    """Run one cell and write its rows (and final posterior) atomically; returns its key."""
+def run_cell(cell, out: str) -> list[dict]:
+    """Run one cell (a `Cell` of `grid_cells`); writes its final posterior, returns its rows."""
     from camo_sbi._validation import derive_seed
     from camo_sbi.evaluation.evaluate import PPC_DRAWS, evaluate_result, true_test_trajectories
     from camo_sbi.evaluation.metrics import binding_bounds
-    from camo_sbi.experiments.store import ResultStore
     from camo_sbi.inference.registry import run_method_sequence
     from camo_sbi.scenarios.reaching import make_reaching_task, task_binding_metrics
 
     out = Path(out)
-    store = ResultStore(out)
-    sim = spec["model"].build()
-    true_theta = true_limits(spec["model"], sim, spec["subject"])
+    x = cell.extras
+    sim = cell.model.build()
+    true_theta = true_limits(cell.model, sim, cell.subject)
     # the task (observations, test goals) depends on the seed only: identical across methods
-    task = make_reaching_task(sim, true_theta, n_train=spec["tasks"], n_test=spec["test_goals"],
-                              seed=derive_seed(spec["base_seed"], spec["seed"]), name=spec["task"],
-                              subject=spec["subject"])
+    task = make_reaching_task(sim, true_theta, n_train=cell.tasks, n_test=x["test_goals"],
+                              seed=derive_seed(x["base_seed"], cell.seed), name=cell.model.name,
+                              subject=cell.subject)
     true_test = true_test_trajectories(task)
     binding = binding_bounds(sim, true_theta, task.test_starts, task.test_goals, task.prior)
     informative = task_binding_metrics(task)
-    workdir = out / "work" / spec["key"]
-    results = run_method_sequence(spec["method"], task, budget=spec["budget"],
-                                  seed=derive_seed(spec["base_seed"], spec["seed"], "method"),
-                                  config={**method_config(spec["method"], spec["space"], workdir,
-                                                          spec.get("estimator")),
-                                          **json.loads(spec.get("config", "{}"))})
+    config = method_config(cell.method, space=x["space"], workdir=out / "work" / cell.key,
+                           estimator_path=x.get("estimator"), overrides=json.loads(x.get("config", "{}")))
+    results = run_method_sequence(cell.method, task, budget=cell.budget,
+                                  seed=derive_seed(x["base_seed"], cell.seed, "method"), config=config)
     rows = []
-    base = {k: spec[k] for k in ("task", "subject", "method", "budget", "seed")}
+    base = {"task": cell.model.name, "subject": cell.subject, "method": cell.method, "budget": cell.budget,
+            "seed": cell.seed}
     for res in results:
         # every metric of the catalog that applies, per-joint limit errors and costs included
         metrics = {**evaluate_result(task, res, true_test, binding, posterior_predictive_draws=PPC_DRAWS),
                    **informative}
         rows += [{**base, "n_tasks": res.n_tasks, "metric": k, "value": v, "status": res.status}
                  for k, v in metrics.items()]
-    _save_posterior(out, spec, sim, task, results[-1])
-    store.put(spec["key"], rows)
-    return spec["key"]
+    _save_posterior(out, cell, sim, task, results[-1])
+    return rows
 
 
-def _save_posterior(out: Path, spec: dict, sim, task, res) -> None:
+def _save_posterior(out: Path, cell, sim, task, res) -> None:
     from camo_sbi._validation import derive_seed
     from camo_sbi.diagnostics.arviz_io import observed_arrays, save_in_run, to_inference_data
 
     observed, dims = observed_arrays(task)
     idata = to_inference_data(res, sim.joint_names, prior=task.prior, true_theta=task.true_theta,
-                              seed=derive_seed(spec["base_seed"], spec["seed"], "posterior-file"), observed=observed,
-                              observed_dims=dims, attrs={"task": spec["task"], "status": res.status})
-    idata.posterior.attrs.update({"budget": spec["budget"], "seed": spec["seed"], "subject": spec["subject"],
-                                  "model_spec": spec["model"].to_json()})  # the report rebuilds exactly this body
-    save_in_run(idata, out, spec["key"])  # posteriors/, or estimates/ for a point estimate
+                              seed=derive_seed(cell.extras["base_seed"], cell.seed, "posterior-file"),
+                              observed=observed, observed_dims=dims,
+                              attrs={"task": cell.model.name, "status": res.status})
+    idata.posterior.attrs.update({"budget": cell.budget, "seed": cell.seed, "subject": cell.subject,
+                                  "model_spec": cell.model.to_json()})  # the report rebuilds exactly this body
+    save_in_run(idata, out, cell.key)  # posteriors/, or estimates/ for a point estimate
 
 
 def make_figures(df, out: Path, formats=("png",)) -> list[Path]:
@@ -255,42 +231,6 @@ def _make_figures(df, out: Path, formats) -> list[Path]:
     return paths
 
 
-def run_cells_on(client, specs: list[dict], out, *, retries: int | None = None, on_done=None) -> list[str]:
-    """Run cells on a Dask client; a cell whose worker dies is retried (``retries``).
-
-    A retried cell rewrites the same atomic file, so the store never holds a duplicate or
-    a partial cell. Returns the finished keys in completion order.
-    """
-    from camo_sbi.distributed import DEFAULT_RETRIES, map_unordered
-
-    retries = DEFAULT_RETRIES if retries is None else retries
-    client.run(_init_worker)
-    keys = []
-    for key in map_unordered(run_cell, specs, client, retries=retries, out=str(out)):
-        keys.append(key)
-        if on_done is not None:
-            on_done(key)
-    return keys
-
-
-def _init_worker():
-    import torch
-
-    os.environ.setdefault("NUMBA_NUM_THREADS", "1")
-    torch.set_num_threads(1)
-
-
-def run_in_processes(cell_fn, specs: list[dict], out, workers: int, *, on_done) -> None:
-    """Run ``cell_fn(spec, str(out))`` for every spec in ``workers`` spawned processes.
-
-    Each cell writes its own rows atomically; ``on_done()`` is called as cells finish and the
-    first failing cell's exception is re-raised (its workers killed, cells in flight lost).
-    ``cell_fn`` must be a module-level function. Workers die with the parent
-    (`camo_sbi.experiments.processes`).
-    """
-    _run_in_processes(cell_fn, specs, out, workers, on_done=on_done, initializer=_init_worker)
-
-
 def _with_estimator(args):
     """``args`` with ``amortized`` set to the estimator file amortized methods use (see
     `camo_sbi.experiments.amortize.estimator_for_run`: trained once here, in the parent, before
@@ -334,10 +274,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("runs/compare"))
 
 
-def _finished_grid(args) -> list[dict] | None:
-    """The grid's specs if every cell of it is already finished in ``--out``, else None.
+def _finished_grid(args) -> list | None:
+    """The grid's cells if every one of them is already finished in ``--out``, else None.
 
-    Computed without building the model (`cell_specs` with ``build=False``), so a re-run of a
+    Computed without building the model (`grid_cells` with ``build=False``), so a re-run of a
     finished grid imports neither torch nor numba. Runs with an amortized method take the full
     path: their estimator file is part of the cell keys and is checked on every run.
     """
@@ -347,12 +287,12 @@ def _finished_grid(args) -> list[dict] | None:
     out = Path(args.out)
     if not (out / "manifest.json").is_file() or any(capabilities(m).amortized for m in grid_methods(args.methods)):
         return None
-    specs = cell_specs(args, build=False)
+    cells = grid_cells(args, build=False)
     store = ResultStore(out)
-    if not all(store.done(s["key"]) for s in specs):
+    if not all(store.done(c.key) for c in cells):
         return None
     log.info("every cell of this grid is finished in %s: no model to build", out)
-    return specs
+    return cells
 
 
 def _figures(df, out: Path, formats) -> list[Path]:
@@ -370,9 +310,10 @@ def _figures(df, out: Path, formats) -> list[Path]:
 
 
 def main(args) -> int:
-    from camo_sbi.distributed import dask_client, parse_scheduler
+    from camo_sbi.distributed import parse_scheduler
     from camo_sbi.evaluation import catalog
     from camo_sbi.evaluation.claims import binding_line
+    from camo_sbi.experiments.grid import pending, run_grid
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
 
     t0 = time.perf_counter()
@@ -381,13 +322,13 @@ def main(args) -> int:
     finished = _finished_grid(args)  # a re-run: nothing to compute, no model to build
     if finished is None:
         args = _with_estimator(args)
-    specs = finished if finished is not None else cell_specs(args)
-    if finished is None and specs:  # refuse what the machine cannot hold; say how long the rest takes
+    cells = finished if finished is not None else grid_cells(args)
+    if finished is None and cells:  # refuse what the machine cannot hold; say how long the rest takes
         from camo_sbi.budget import announce_simulation_time, check_budget_fits
 
-        sim = specs[0]["model"].build()
-        check_budget_fits(max(s["budget"] for s in specs), n_joints=sim.n_joints, flag="--budgets")
-        announce_simulation_time(sim, sum(s["budget"] * s["tasks"] for s in specs), what="compare")
+        sim = cells[0].model.build()
+        check_budget_fits(max(c.budget for c in cells), n_joints=sim.n_joints, flag="--budgets")
+        announce_simulation_time(sim, sum(c.budget * c.tasks for c in cells), what="compare")
     if args.workers < 1:
         raise ValueError("--workers: must be >= 1")
     scheduler = getattr(args, "scheduler", None)
@@ -396,34 +337,23 @@ def main(args) -> int:
     except ValueError as exc:
         raise ValueError(f"--{exc}") from exc
     out = Path(args.out)
-    overrides = {s["method"]: json.loads(s["config"]) for s in specs if "config" in s}
+    overrides = {c.method: json.loads(c.extras["config"]) for c in cells if "config" in c.extras}
     # without --config the settings are those of runs made before the flag existed
     settings = run_settings(args, ignore=() if overrides else ("config",), **({"config": overrides} if overrides else {}),
                             methods=_parse_list(args.methods, "methods"),
                             budgets=_parse_list(args.budgets, "budgets", int),
-                            subjects=list(dict.fromkeys(s["subject"] for s in specs)),
-                            model=_model_setting(specs[0]["model"]) if specs else None)
+                            subjects=list(dict.fromkeys(c.subject for c in cells)),
+                            model=_model_setting(cells[0].model) if cells else None)
     with RunDirectory(out, "compare", settings, wait=getattr(args, "wait", False)) as run:
         store = run.store
-        todo = [s for s in specs if not store.done(s["key"])]
+        todo = pending(cells, store)
         if todo and finished is not None:  # a cell went missing since the check: build and validate
             args = _with_estimator(args)
-            specs = cell_specs(args)
-            todo = [s for s in specs if not store.done(s["key"])]
-        print(f"{len(specs)} cells, {len(specs) - len(todo)} already finished")
-        bar = tqdm(total=len(todo), desc="compare", unit="cell")
-        if parse_scheduler(scheduler) is not None:
-            with dask_client(scheduler) as client:
-                run_cells_on(client, todo, out, on_done=lambda _key: bar.update())
-        elif args.workers == 1:
-            for spec in todo:
-                bar.set_postfix_str(f"{spec['method']} b={spec['budget']} s={spec['seed']}")
-                run_cell(spec, str(out))
-                bar.update()
-        else:
-            run_in_processes(run_cell, todo, out, args.workers, on_done=bar.update)
-        bar.close()
-        keys = [s["key"] for s in specs]
+            cells = grid_cells(args)
+            todo = pending(cells, store)
+        print(f"{len(cells)} cells, {len(cells) - len(todo)} already finished")
+        run_grid(run_cell, todo, store, args.workers, scheduler, progress="compare")
+        keys = [c.key for c in cells]
         missing = sorted(k for k in keys if not store.done(k))
         if missing:  # deleted or damaged while the run went on: no partial results.csv
             raise ValueError(f"--out {out}: {len(missing)} cell(s) vanished or were damaged during the run "

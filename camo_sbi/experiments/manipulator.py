@@ -149,6 +149,8 @@ def _setting(args) -> Setting:
     return SETTINGS[getattr(args, "setting", "toolkit")]
 
 
+# Not `method_configs.method_config`: the reproduction's configs are the paper setting's CAMO
+# options (and their command-line overrides), not the grid commands' budget/space/workdir rules.
 def method_config(name: str, args) -> dict | None:
     """The config a run gives method ``name``: the setting's CAMO options (command-line values
     override them) for the CAMO family, else the method's defaults."""

@@ -1,11 +1,55 @@
-"""``--config METHOD=JSON`` for the grid commands (compare, calibrate, infer): parsed and
-validated against each method's config class in one place."""
+"""The config a grid cell runs a method with, and ``--config METHOD=JSON``, in one place.
+
+`method_config` serves compare, calibrate and robustness: each passes what it decides (the
+per-task budget whose declared defaults apply, the observation space, a work directory, the
+trained estimator file, the user's overrides) and gets the dict the method runs with, so the
+rule "which config field comes from where" lives here rather than in each command.
+`parse_configs` reads the repeatable ``--config`` option (compare, calibrate, infer) and
+validates it against each method's config class.
+
+(The manipulator reproduction keeps its own ``method_config``: its configs are the paper
+settings' CAMO options, not these rules.)
+"""
 
 from __future__ import annotations
 
 import json
 
-__all__ = ["parse_configs"]
+__all__ = ["method_config", "parse_configs"]
+
+
+def method_config(method: str, *, budget: int | None = None, space: str | None = None, workdir=None,
+                  estimator_path: str | None = None, overrides: dict | None = None) -> dict:
+    """The config dict a grid cell runs ``method`` with, built in this order:
+
+    * ``budget``: the values the method declares for this per-task budget
+      (`registry.budget_defaults`); None: none (compare's cells never applied them);
+    * ``space``: for a method that chooses its observation space and whose variant does not fix it;
+    * ``workdir``: for a method that writes artefacts (`Capabilities.workdir`), as a str;
+    * ``estimator_path``: for an amortized method (the trained estimator file);
+    * ``overrides``: the user's ``--config`` values, last. An ``estimator_path`` among them that
+      differs from ``estimator_path`` is refused (ValueError): which of the two a cell used
+      differed between commands.
+
+    Arguments left None add nothing.
+    """
+    from camo_sbi.inference.registry import budget_defaults, get_method
+
+    spec = get_method(method)
+    if overrides is not None and not isinstance(overrides, dict):
+        raise TypeError(f"overrides: expected a dict or None, got {type(overrides).__name__}")
+    cfg: dict = {} if budget is None else budget_defaults(method, budget)
+    if space is not None and len(spec.capabilities.spaces) > 1 and "space" not in spec.defaults:
+        cfg["space"] = space
+    if workdir is not None and spec.capabilities.workdir:
+        cfg["workdir"] = str(workdir)
+    if estimator_path is not None and spec.capabilities.amortized:
+        cfg["estimator_path"] = str(estimator_path)
+        other = (overrides or {}).get("estimator_path", cfg["estimator_path"])
+        if str(other) != cfg["estimator_path"]:
+            raise ValueError(f"overrides: {method}: estimator_path {other!r} differs from the estimator file "
+                             f"{cfg['estimator_path']!r} (--amortized); give one of them")
+    return {**cfg, **(overrides or {})}
 
 
 def parse_configs(entries, methods: list[str]) -> dict[str, dict]:

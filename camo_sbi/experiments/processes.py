@@ -80,8 +80,9 @@ def kill_workers(executor: ProcessPoolExecutor, timeout: float = 5.0) -> None:
             pass
 
 
-def run_in_processes(cell_fn, specs: list[dict], out, workers: int, *, on_done, initializer=None) -> None:
-    """Run ``cell_fn(spec, str(out))`` for every spec in ``workers`` spawned processes.
+def run_in_processes(cell_fn, specs: list, out, workers: int, *, on_done, initializer=None) -> list:
+    """Run ``cell_fn(spec, str(out))`` for every spec in ``workers`` spawned processes; returns
+    the values ``cell_fn`` returned, in completion order.
 
     Each cell writes its own rows atomically; ``on_done()`` is called as cells finish and the
     first failing cell's exception is re-raised once the workers are killed (cells in flight
@@ -90,9 +91,10 @@ def run_in_processes(cell_fn, specs: list[dict], out, workers: int, *, on_done, 
     """
     ex = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker,
                              initargs=(os.getpid(), initializer))
+    results = []
     try:
         for f in as_completed([ex.submit(cell_fn, spec, str(out)) for spec in specs]):
-            f.result()
+            results.append(f.result())
             on_done()
     except BaseException:  # a failing cell, Ctrl-C, SIGTERM (via the CLI): stop the workers now
         kill_workers(ex)
@@ -100,3 +102,4 @@ def run_in_processes(cell_fn, specs: list[dict], out, workers: int, *, on_done, 
         raise
     else:
         ex.shutdown(wait=True)
+    return results

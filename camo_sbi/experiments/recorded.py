@@ -359,10 +359,10 @@ def _check_amortized(plan: list, notes: list[str], task, obs, overrides: dict, p
 
 
 def _method_config(name: str, space: str | None, budget: int, workdir: Path, overrides: dict | None) -> dict:
-    from camo_sbi.experiments.calibrate import method_config
+    from camo_sbi.experiments.method_configs import method_config
     from camo_sbi.inference.registry import capabilities
 
-    cfg = method_config(name, budget, overrides)
+    cfg = method_config(name, budget=budget, overrides=overrides)
     if space is not None:
         cfg.setdefault("space", space)
     if capabilities(name).workdir:

@@ -37,8 +37,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tqdm import tqdm
-
 from camo_sbi._io import atomic_write_text
 from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
 from camo_sbi.experiments.models import (
@@ -55,7 +53,8 @@ if TYPE_CHECKING:
 
     from camo_sbi.task import NoiseModel
 
-__all__ = ["CONDITIONS", "Condition", "add_arguments", "coverage90", "main", "run_cell", "summary_table"]
+__all__ = ["CONDITIONS", "Condition", "add_arguments", "coverage90", "grid_cells", "main", "run_cell",
+           "summary_table"]
 
 
 @dataclass(frozen=True)
@@ -108,27 +107,29 @@ def _observations(sim, theta, n, seed, cond: Condition):
     return obs
 
 
-def run_cell(spec: dict, out: str) -> str:
-    """One (seed, condition): every method on the same imperfect observations; writes its rows."""
+def run_cell(cell, out: str) -> list[dict]:
+    """One (seed, condition) `Cell` of `grid_cells`: every method on the same imperfect
+    observations; returns the cell's rows."""
     import numpy as np
     import torch
 
     from camo_sbi._validation import derive_seed, torch_generator
     from camo_sbi.evaluation.evaluate import evaluate_result
     from camo_sbi.evaluation.metrics import binding_bounds
-    from camo_sbi.experiments.store import ResultStore
-    from camo_sbi.inference.registry import budget_defaults, capabilities, run_method
+    from camo_sbi.experiments.method_configs import method_config
+    from camo_sbi.inference.registry import run_method
     from camo_sbi.priors import BoxPrior
     from camo_sbi.scenarios.reaching import reachable_goals, task_binding_metrics
     from camo_sbi.task import Task, predict
 
-    model, cond = spec["model"], next(c for c in CONDITIONS if c.name == spec["condition"])
+    x = cell.extras
+    model, cond = cell.model, next(c for c in CONDITIONS if c.name == x["condition"])
     sim = model.build()
     body = sim if cond.scale == 1.0 else sim.scaled(cond.scale)
-    theta = true_limits(model, sim, spec["subject"])
-    obs = _observations(body, theta, spec["tasks"], derive_seed(spec["base_seed"], spec["seed"]), cond)
+    theta = true_limits(model, sim, cell.subject)
+    obs = _observations(body, theta, cell.tasks, derive_seed(x["base_seed"], cell.seed), cond)
     scale = 1.0
-    if spec.get("body_scale") == "free":
+    if x.get("body_scale") == "free":
         from camo_sbi.io.recordings import estimate_body_scale
 
         q = np.concatenate([o.q.numpy() for o in obs])
@@ -138,30 +139,49 @@ def run_cell(spec: dict, out: str) -> str:
                                                                                    strict=True)])[0]
         sim = sim.scaled(scale)  # the model the methods infer on and predict with
     start = sim.start.to(torch.float64)
-    goals = reachable_goals(body, theta, spec["test_goals"],
-                            torch_generator(derive_seed(spec["base_seed"], spec["seed"], "observation-noise")), start)
+    goals = reachable_goals(body, theta, x["test_goals"],
+                            torch_generator(derive_seed(x["base_seed"], cell.seed, "observation-noise")), start)
     starts = start.expand(goals.shape[0], -1).clone()
     prior = BoxPrior(sim.bounds, obs[0].start)
-    task = Task(name=model.name, subject=spec["subject"], simulator=sim, prior=prior, observations=obs,
+    task = Task(name=model.name, subject=cell.subject, simulator=sim, prior=prior, observations=obs,
                 test_starts=starts, test_goals=goals, true_theta=theta, noise=cond.noise)
     true_test = predict(body, theta, starts, goals)
     binding = binding_bounds(body, theta, starts, goals, prior)
     informative = task_binding_metrics(task, simulator=body)  # the subject's own body
     rows = []
-    base = {k: spec[k] for k in ("task", "subject", "seed", "condition")}
-    for method in spec["methods"]:
-        cfg = budget_defaults(method, spec["budget"])
-        if capabilities(method).workdir:
-            cfg["workdir"] = str(Path(out) / "work" / spec["key"])
-        res = run_method(method, task, budget=spec["budget"], seed=derive_seed(spec["base_seed"], spec["seed"], "method"),
+    base = {"task": model.name, "subject": cell.subject, "seed": cell.seed, "condition": x["condition"]}
+    for method in x["methods"].split(","):
+        cfg = method_config(method, budget=cell.budget, workdir=Path(out) / "work" / cell.key)
+        res = run_method(method, task, budget=cell.budget, seed=derive_seed(x["base_seed"], cell.seed, "method"),
                          config=cfg)
         # the one scorer: predictions from the model (task.simulator), the truth from the body
         metrics = {**evaluate_result(task, res, true_test, binding, interval_coverage=True), **informative}
-        if spec.get("body_scale") == "free":
+        if x.get("body_scale") == "free":
             metrics["body_scale"] = scale
         rows += [{**base, "method": method, "metric": k, "value": v, "status": res.status} for k, v in metrics.items()]
-    ResultStore(out).put(spec["key"], rows)
-    return spec["key"]
+    return rows
+
+
+def grid_cells(args, methods: list[str], conditions: list[str]) -> list:
+    """Every (seed, condition) cell as a `Cell` with its key (``methods``, ``conditions``: checked lists)."""
+    from camo_sbi.experiments.grid import Cell
+
+    model = model_from_args(args)
+    sim = model.build()
+    subject = subject_list(model, args.subjects)[0]
+    true_limits(model, sim, subject)
+    # the model in the key: its name as "task" and its settings as "model" (always)
+    model_key = (("task", model.name), ("model", str(model.key())))
+    cells = []
+    for seed in range(args.seeds):
+        for cond in conditions:
+            extras = {"condition": cond, "test_goals": args.test_goals, "base_seed": args.seed,
+                      "methods": ",".join(methods)}
+            if getattr(args, "body_scale", "fixed") == "free":  # the keys of fixed-scale cells stay as they were
+                extras["body_scale"] = "free"
+            cells.append(Cell(model=model, subject=subject, seed=seed, budget=args.budget, tasks=args.tasks,
+                              extras=extras, model_key=model_key))
+    return cells
 
 
 def _shown(df: pd.DataFrame) -> list[str]:
@@ -267,6 +287,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="free: estimate the observed body's segment-length scale s from its joint and end-effector "
                         "recordings (io.recordings.estimate_body_scale) and infer and predict on model.scaled(s)")
     p.add_argument("--seed", type=int, default=0, help="base seed")
+    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (without --scheduler)")
+    p.add_argument("--scheduler", default=None,
+                   help="run the cells on Dask: 'local:N' or a scheduler address 'tcp://host:8786'; default: "
+                        "in-process / --workers")
     p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     add_figure_format_argument(p)
     p.add_argument("--out", type=Path, default=Path("runs/robustness"))
@@ -274,8 +298,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args) -> int:
     from camo_sbi.evaluation.claims import binding_line
+    from camo_sbi.experiments.grid import pending, run_grid
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
-    from camo_sbi.experiments.store import cell_key
     from camo_sbi.inference.registry import capabilities, get_method
 
     t0 = time.perf_counter()
@@ -296,33 +320,21 @@ def main(args) -> int:
     for name in ("seeds", "tasks", "test_goals", "budget"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
-    model = model_from_args(args)
-    sim = model.build()
-    subject = subject_list(model, args.subjects)[0]
-    true_limits(model, sim, subject)
+    workers = getattr(args, "workers", 1)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"--workers: must be an integer >= 1, got {workers!r}")
+    cells = grid_cells(args, methods, conditions)
+    model, subject = cells[0].model, cells[0].subject
     out = Path(args.out)
-    specs = []
-    for seed in range(args.seeds):
-        for cond in conditions:
-            spec = {"task": model.name, "subject": subject, "seed": seed, "condition": cond, "tasks": args.tasks,
-                    "test_goals": args.test_goals, "budget": args.budget, "base_seed": args.seed,
-                    "methods": methods}
-            if getattr(args, "body_scale", "fixed") == "free":  # the keys of fixed-scale cells stay as they were
-                spec["body_scale"] = "free"
-            spec["key"] = cell_key({**{k: v for k, v in spec.items() if k != "methods"},
-                                    "methods": ",".join(methods), "model": str(model.key())})
-            spec["model"] = model
-            specs.append(spec)
     settings = run_settings(args, methods=methods, conditions=conditions, subjects=[subject],
                             ignore=("body_scale",) if getattr(args, "body_scale", "fixed") == "fixed" else (),
                             model=model.name if model.is_default else str(model.key()))
     with RunDirectory(out, "robustness", settings, wait=getattr(args, "wait", False)) as rundir:
         store = rundir.store
-        todo = [s for s in specs if not store.done(s["key"])]
-        print(f"{len(specs)} cells ({args.seeds} seeds x {len(conditions)} conditions), "
-              f"{len(specs) - len(todo)} already finished")
-        for spec in tqdm(todo, desc="robustness", unit="cell"):
-            run_cell(spec, str(out))
+        todo = pending(cells, store)
+        print(f"{len(cells)} cells ({args.seeds} seeds x {len(conditions)} conditions), "
+              f"{len(cells) - len(todo)} already finished")
+        run_grid(run_cell, todo, store, workers, getattr(args, "scheduler", None), progress="robustness")
         df = store.write_table()
         table = summary_table(df)
         atomic_write_text(out / "robustness.csv", table.to_csv(index=False))
