@@ -122,6 +122,7 @@ def test_run_grid_skips_stored_cells(tmp_path):
     assert run_grid(toy_cell, cells, store, progress=False) == []
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_same_table_for_any_number_of_workers(tmp_path):
     tables = []
     for workers in (1, 2):
@@ -141,6 +142,7 @@ def test_a_failed_run_is_stored_with_its_status_and_the_grid_goes_on(tmp_path):
     assert (failed.status == "failed: toy").all()
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_raising_cell_stops_the_grid_and_the_next_run_resumes(workers, tmp_path):
     """As compare always did: a cell function that raises stops the grid with its exception (a

@@ -211,6 +211,7 @@ def _readme_example() -> str:
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
+@pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
 def test_readme_adding_a_method_example_runs_through_the_registry():
     """The README's NLE module, executed as written: trained through the sbi adapter, sampled
     by `samplers.mcmc`, registered and run by `run_method` on the toy task (then unregistered)."""
