@@ -314,10 +314,10 @@ def test_set_training_data_are_sets_of_one_limit_vector():
     goals = data["x"]["joint"][:, :, :2]
     assert bool((goals[:, 0] != goals[:, 1]).any(dim=-1).all())
     ref = sim.simulate(data["theta"][:1].expand(4, -1), torch.cat([goals[0], torch.zeros(4, 1, dtype=goals.dtype)], 1))
-    from camo_sbi.inference.flow_space import summarize
+    from camo_sbi.inference.flow_space import trajectory_summary
 
     np.testing.assert_allclose(data["x"]["joint"][0, :, 3:].numpy(),
-                               summarize(ref.q, ref.length, n_points=cfg.n_points).numpy(), atol=1e-5)
+                               trajectory_summary(ref.q, ref.length, n_points=cfg.n_points).numpy(), atol=1e-5)
 
 
 def test_config_and_train_arguments_are_checked():

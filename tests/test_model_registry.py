@@ -104,8 +104,8 @@ def test_a_registered_model_is_on_the_command_line(toy_model, capsys):
         ModelSpec,
         add_model_arguments,
         model_from_args,
+        subject_limits,
         subject_list,
-        true_limits,
     )
 
     p = argparse.ArgumentParser()
@@ -116,10 +116,10 @@ def test_a_registered_model_is_on_the_command_line(toy_model, capsys):
     assert spec.key() == {"kind": "toy_planar", "scale": 0.8} and not spec.is_default
     assert subject_list(spec, None, default_all=True) == ["stiff_elbow"]
     sim = spec.build()
-    theta = true_limits(spec, sim, "stiff_elbow").reshape(-1, 2)
+    theta = subject_limits(spec, sim, "stiff_elbow").reshape(-1, 2)
     assert theta[1].tolist() == pytest.approx([0.8 - 0.4 * 3.3, 0.8 + 0.4 * 1.7])
     assert theta[0].tolist() == [-2.5, 2.5]
-    one = true_limits(spec, sim, ONE_JOINT).reshape(-1, 2)
+    one = subject_limits(spec, sim, ONE_JOINT).reshape(-1, 2)
     assert one[0].tolist() == pytest.approx([0.3 - 0.5, 0.3 + 0.5])
     # a setting of one model is refused for another, naming the flag
     with pytest.raises(ValueError, match="--toy-scale: only with --model toy_planar"):

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from camo_sbi.inference import npe, samplers
-from camo_sbi.inference.flow_space import summarize
+from camo_sbi.inference.flow_space import trajectory_summary
 from camo_sbi.inference.npe import NpeConfig
 from camo_sbi.inference.npe_posterior import NpePosterior, load_posterior
 from camo_sbi.inference.registry import make_config, run_method, run_method_sequence
@@ -32,7 +32,7 @@ def test_summarize_resamples_valid_part_and_ignores_padding():
     short = line.clone()
     short[6:] = 99.0  # padding beyond length 6 must never be read
     traj = torch.stack([line, short])
-    x = summarize(traj, torch.tensor([T, 6]), n_points=5)
+    x = trajectory_summary(traj, torch.tensor([T, 6]), n_points=5)
     assert x.shape == (2, 5 * 2 + 1)
     t = torch.arange(1, 6, dtype=torch.float64) / 5
     np.testing.assert_allclose(x[0, :-1].reshape(5, 2).numpy(), (t[:, None] * torch.tensor([1.0, -2.0])).numpy(),
@@ -41,18 +41,18 @@ def test_summarize_resamples_valid_part_and_ignores_padding():
     np.testing.assert_allclose(x[1, :-1].reshape(5, 2).numpy(),
                                (0.5 * t[:, None] * torch.tensor([1.0, -2.0])).numpy(), atol=1e-6)
     assert x[:, -1].tolist() == [T, 6]
-    assert summarize(traj, torch.tensor([T, 6]), n_points=5, include_length=False).shape == (2, 10)
-    one = summarize(torch.zeros(1, 3), torch.tensor([1]), n_points=4)
+    assert trajectory_summary(traj, torch.tensor([T, 6]), n_points=5, include_length=False).shape == (2, 10)
+    one = trajectory_summary(torch.zeros(1, 3), torch.tensor([1]), n_points=4)
     assert torch.all(one[0, :-1] == 0) and one[0, -1] == 1
 
 
 def test_summarize_rejects_bad_lengths():
     with pytest.raises(ValueError, match="^lengths"):
-        summarize(torch.zeros(2, 5, 3), torch.tensor([0, 5]))
+        trajectory_summary(torch.zeros(2, 5, 3), torch.tensor([0, 5]))
     with pytest.raises(ValueError, match="^lengths"):
-        summarize(torch.zeros(2, 5, 3), torch.tensor([2.0, 5.0]))
+        trajectory_summary(torch.zeros(2, 5, 3), torch.tensor([2.0, 5.0]))
     with pytest.raises(ValueError, match="^traj"):
-        summarize(torch.zeros(5), torch.tensor([5]))
+        trajectory_summary(torch.zeros(5), torch.tensor([5]))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -91,7 +91,7 @@ __all__ = [
     "run_counts",
     "save_figure",
     "save_figures",
-    "summarize",
+    "group_means",
     "to_degrees",
 ]
 
@@ -337,7 +337,7 @@ def mean_ci(values, confidence: float = CONFIDENCE) -> tuple[float, float]:
     return float(v.mean()), float(half)
 
 
-def summarize(df: pd.DataFrame, x: str | None, hue: str = "method", value: str = "value") -> pd.DataFrame:
+def group_means(df: pd.DataFrame, x: str | None, hue: str = "method", value: str = "value") -> pd.DataFrame:
     """Columns hue, [x,] mean, ci (95% half-width, `mean_ci`), n per group of a tidy table."""
     keys = [hue] if x is None else [hue, x]
     missing = [c for c in keys + [value] if c not in df.columns]
@@ -667,7 +667,7 @@ def plot_lines(df: pd.DataFrame, *, x: str = "n_tasks", hue: str = "method", ax:
     data = df
     if geometric:  # a log axis: the geometric mean and the CI of the mean of log10 values
         data = df[df["value"] > 0].assign(value=lambda d: np.log10(d["value"]))
-    s = summarize(data, x, hue)
+    s = group_means(data, x, hue)
     few = few_runs(s["n"])
     nonneg = bool(len(df) and (df["value"] >= 0).all()) and not geometric
     series, zs = {}, {}
@@ -729,7 +729,7 @@ def plot_bars(df: pd.DataFrame, *, hue: str = "method", ax: Axes | None = None, 
         with paper_style():
             _, axes = new_figure()
         ax = axes[0, 0]
-    s = summarize(df, None, hue)
+    s = group_means(df, None, hue)
     few = few_runs(s["n"])
     order = method_order(s[hue].astype(str))
     s = s.set_index(s[hue].astype(str)).loc[order]

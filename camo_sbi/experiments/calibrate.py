@@ -75,7 +75,7 @@ __all__ = [
     "main",
     "run_cell",
     "subject_rows",
-    "summarize",
+    "coverage_summary",
 ]
 
 MAX_ATTEMPTS = 25
@@ -290,7 +290,7 @@ def aggregate(df: pd.DataFrame, sbc_draws: int) -> tuple[pd.DataFrame, pd.DataFr
     return table, ranks[["task", "method", "subject", "attempt", "coordinate", "rank", "n_draws"]]
 
 
-def summarize(coverage: pd.DataFrame, ranks: pd.DataFrame, df: pd.DataFrame, sbc_draws: int) -> pd.DataFrame:
+def coverage_summary(coverage: pd.DataFrame, ranks: pd.DataFrame, df: pd.DataFrame, sbc_draws: int) -> pd.DataFrame:
     """One row per (task, method): coverage error, direction, SBC p-values, time per subject."""
     import numpy as np
     import pandas as pd
@@ -410,7 +410,7 @@ def main(args) -> int:
         coverage, ranks = aggregate(df, args.sbc_draws)
         atomic_write_text(out / "coverage.csv", coverage.to_csv(index=False))
         atomic_write_text(out / "sbc.csv", ranks.to_csv(index=False))
-        summary = summarize(coverage, ranks, df, args.sbc_draws)
+        summary = coverage_summary(coverage, ranks, df, args.sbc_draws)
         atomic_write_text(out / "sbc_uniformity.csv", _uniformity_table(ranks, args.sbc_draws).to_csv(index=False))
         labelled = coverage.assign(method=[m + _POINT_LABEL if p else m
                                            for m, p in zip(coverage["method"], coverage["point_estimate"], strict=True)])

@@ -27,8 +27,8 @@ from camo_sbi.experiments.method_configs import method_config, parse_configs
 from camo_sbi.experiments.models import (
     add_model_arguments,
     model_from_args,
+    subject_limits,
     subject_list,
-    true_limits,
 )
 
 __all__ = ["add_arguments", "grid_cells", "main", "run_cell"]
@@ -79,7 +79,7 @@ def grid_cells(args, *, build: bool = True) -> list:
     if build:
         sim = model.build()
         for s in subjects:
-            true_limits(model, sim, s)
+            subject_limits(model, sim, s)
     # the model in the key: its name as "task"; a built-in model with its defaults keeps the cell
     # keys it always had, any other adds its settings as "model"
     model_key = (("task", model.name),) + (() if model.is_default else
@@ -123,7 +123,7 @@ def run_cell(cell, out: str) -> list[dict]:
     out = Path(out)
     x = cell.extras
     sim = cell.model.build()
-    true_theta = true_limits(cell.model, sim, cell.subject)
+    true_theta = subject_limits(cell.model, sim, cell.subject)
     # the task (observations, test goals) depends on the seed only: identical across methods
     task = make_reaching_task(sim, true_theta, n_train=cell.tasks, n_test=x["test_goals"],
                               seed=derive_seed(x["base_seed"], cell.seed), name=cell.model.name,

@@ -65,8 +65,8 @@ from camo_sbi.experiments.figure_options import add_figure_format_argument, figu
 from camo_sbi.experiments.models import (
     add_model_arguments,
     model_from_args,
+    subject_limits,
     subject_list,
-    true_limits,
 )
 from camo_sbi.simulators.registry import ONE_JOINT, get_model
 
@@ -191,7 +191,7 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
     from camo_sbi.scenarios.reaching import make_reaching_task, task_binding_metrics
 
     st = _setting(args)
-    true_theta = true_limits(model, sim, subject)
+    true_theta = subject_limits(model, sim, subject)
     goal_seed = derive_seed(args.seed) if st.fixed_goals else derive_seed(args.seed, run)
     task = make_reaching_task(sim, true_theta, n_train=args.tasks, n_test=args.test_goals, seed=goal_seed,
                               name=model.name, subject=subject, require_reached=st.require_reached,
@@ -437,7 +437,7 @@ def main(args) -> int:
     given = args.subjects or (",".join(named) if named and model.limits is None else None)
     subjects = subject_list(model, given, default_all=True)
     for s in subjects:
-        true_limits(model, sim, s)  # validates names before any work
+        subject_limits(model, sim, s)  # validates names before any work
     out = Path(args.out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
     # a built-in model with its defaults keeps the cell keys it always had

@@ -43,7 +43,7 @@ if TYPE_CHECKING:  # torch is imported where limits are built: the CLI's parser 
     import torch
 
 __all__ = ["ModelSpec", "add_model_arguments", "build_simulator", "load_limits", "model_from_args",
-           "parse_floats", "subject_list", "true_limits"]
+           "parse_floats", "subject_list", "subject_limits"]
 
 _SIMS: dict = {}
 
@@ -313,7 +313,7 @@ def subject_list(spec: ModelSpec, subjects: str | None, *, default_all: bool = F
     return names if default_all else names[:1]
 
 
-def true_limits(spec: ModelSpec, sim, name: str) -> torch.Tensor:
+def subject_limits(spec: ModelSpec, sim, name: str) -> torch.Tensor:
     """(2n,) float64 true limits of subject ``name``: the --limits file, or a named profile."""
     import torch
 

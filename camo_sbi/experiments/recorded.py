@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from camo_sbi._io import atomic_write_text
 from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
-from camo_sbi.experiments.models import add_model_arguments, model_from_args, true_limits
+from camo_sbi.experiments.models import add_model_arguments, model_from_args, subject_limits
 
 # only light modules at import time: the CLI builds its parser from the add_*_arguments functions
 # (numpy and torch are imported by the functions that use them)
@@ -145,7 +145,7 @@ def simulate_main(args) -> int:
     if not (np.isfinite(args.scale) and 0.85 <= args.scale <= 1.15):
         raise ValueError(f"--scale: must lie in [0.85, 1.15], got {args.scale}")
     sim = model.build()
-    theta = true_limits(model, sim, model.limits_name)
+    theta = subject_limits(model, sim, model.limits_name)
     body = sim if args.scale == 1.0 else sim.scaled(args.scale)
     with tqdm(total=1, desc="simulate-observations", unit="file") as bar:
         obs = simulate_recordings(body, theta, args.reaches, seed=args.seed, noise=noise,

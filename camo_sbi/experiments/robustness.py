@@ -42,8 +42,8 @@ from camo_sbi.experiments.figure_options import add_figure_format_argument, figu
 from camo_sbi.experiments.models import (
     add_model_arguments,
     model_from_args,
+    subject_limits,
     subject_list,
-    true_limits,
 )
 
 # only light modules at import time: the CLI builds its parser from add_arguments (numpy, pandas,
@@ -126,7 +126,7 @@ def run_cell(cell, out: str) -> list[dict]:
     model, cond = cell.model, next(c for c in CONDITIONS if c.name == x["condition"])
     sim = model.build()
     body = sim if cond.scale == 1.0 else sim.scaled(cond.scale)
-    theta = true_limits(model, sim, cell.subject)
+    theta = subject_limits(model, sim, cell.subject)
     obs = _observations(body, theta, cell.tasks, derive_seed(x["base_seed"], cell.seed), cond)
     scale = 1.0
     if x.get("body_scale") == "free":
@@ -169,7 +169,7 @@ def grid_cells(args, methods: list[str], conditions: list[str]) -> list:
     model = model_from_args(args)
     sim = model.build()
     subject = subject_list(model, args.subjects)[0]
-    true_limits(model, sim, subject)
+    subject_limits(model, sim, subject)
     # the model in the key: its name as "task" and its settings as "model" (always)
     model_key = (("task", model.name), ("model", str(model.key())))
     cells = []

@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["print_summary", "summarize", "summary_metrics"]
+__all__ = ["print_summary", "run_summary", "summary_metrics"]
 
 
 def summary_metrics() -> list[str]:
@@ -93,7 +93,7 @@ def _table_summary(df) -> tuple[dict, dict]:
     return statuses, {"at": at, "mean": mean}
 
 
-def summarize(command: str, args, exit_code: int, error: str | None, *, started: float) -> dict:
+def run_summary(command: str, args, exit_code: int, error: str | None, *, started: float) -> dict:
     """The summary as a JSON-ready dict (see the module docstring)."""
     out = _out_path(args)
     summary = {"command": command, "exit_code": int(exit_code), "error": error,
@@ -136,6 +136,6 @@ def summarize(command: str, args, exit_code: int, error: str | None, *, started:
 
 
 def print_summary(command: str, args, exit_code: int, error: str | None, *, started: float, file=None) -> None:
-    """Print `summarize` as one JSON document."""
-    print(json.dumps(summarize(command, args, exit_code, error, started=started), indent=2),
+    """Print `run_summary` as one JSON document."""
+    print(json.dumps(run_summary(command, args, exit_code, error, started=started), indent=2),
           file=sys.stdout if file is None else file, flush=True)

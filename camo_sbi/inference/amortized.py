@@ -38,7 +38,7 @@ each (size uniform on 1..max_set), so one flow covers every set size.
 
 Each triple is simulated once (large batched ``simulate`` calls), optionally perturbed with
 the observation-noise model (`NoiseModel.perturb`, seeded), and summarised per space exactly
-as per-task NPE does (`summarize`: the valid part resampled at ``n_points`` times after
+as per-task NPE does (`trajectory_summary`: the valid part resampled at ``n_points`` times after
 the start, plus the length), with the goal prepended: condition x = [goal (3), summary].
 Features constant over the training set are dropped. One conditional flow q(z | x) per
 requested space (joint and/or Cartesian, from the SAME simulations, so training cost is

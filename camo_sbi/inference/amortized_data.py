@@ -4,7 +4,7 @@
 bounds, start, URDF, controller), stored in an estimator file and checked against every task.
 `design_goals` / `simulate_training_set`: the training triples (limits from the box prior,
 goals independent of them, one simulated reach each) and their conditions (`conditions`: the
-goal, then `flow_space.summarize` of the trajectory). See `amortized` for why.
+goal, then `flow_space.trajectory_summary` of the trajectory). See `amortized` for why.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torch
 
 from camo_sbi._validation import check_positive_int
 from camo_sbi.budget import unwrap_simulator
-from camo_sbi.inference.flow_space import summarize
+from camo_sbi.inference.flow_space import trajectory_summary
 from camo_sbi.priors import BoxPrior
 
 __all__ = ["conditions", "design_goals", "fingerprint_differences", "model_fingerprint", "seed_int",
@@ -77,8 +77,8 @@ def fingerprint_differences(a: dict, b: dict) -> list[str]:
 
 
 def conditions(traj: torch.Tensor, lengths: torch.Tensor, goals: torch.Tensor, settings) -> torch.Tensor:
-    """(B, 3 + summary) float64: the goal, then `summarize` of the trajectory."""
-    s = summarize(traj, lengths, n_points=settings.n_points, include_length=settings.include_length)
+    """(B, 3 + summary) float64: the goal, then `trajectory_summary` of the trajectory."""
+    s = trajectory_summary(traj, lengths, n_points=settings.n_points, include_length=settings.include_length)
     return torch.cat([torch.as_tensor(goals, dtype=torch.float64).reshape(-1, 3), s], dim=1)
 
 

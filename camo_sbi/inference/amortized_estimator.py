@@ -84,7 +84,7 @@ class TrainConfig:
         spaces: observation spaces to train a flow for ("joint", "cartesian" or both; the
             same simulations serve every space).
         noise: observation-noise model applied to the simulated trajectories (seeded).
-        n_points, include_length: the trajectory summary (`summarize`).
+        n_points, include_length: the trajectory summary (`trajectory_summary`).
         density_estimator: "nsf" (default; sbi's neural spline flow, coupling layers: one pass
             per transform to sample) or "maf" (sbi's masked autoregressive flow: sampling takes
             one pass per coordinate and transform, slower; and in nflows' MADE the

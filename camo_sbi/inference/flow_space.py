@@ -1,6 +1,6 @@
 """Coordinates, summaries and thread settings shared by the flow-based methods (npe, npe-amortized).
 
-- `summarize`: the fixed-size summary of a padded trajectory both NPE forms condition on.
+- `trajectory_summary`: the fixed-size summary of a padded trajectory both NPE forms condition on.
 - `to_unconstrained` / `from_unconstrained`: the flow coordinates z = logit of the position
   inside the prior box (so a flow has no mass outside it), with the log-Jacobian, and
   `logistic_log_prob`, the uniform box prior pushed to z (a standard logistic per coordinate).
@@ -17,13 +17,13 @@ from torch import nn
 
 from camo_sbi._validation import as_tensor, check_positive_int
 
-__all__ = ["from_unconstrained", "logistic_log_prob", "summarize", "to_unconstrained", "torch_threads"]
+__all__ = ["from_unconstrained", "logistic_log_prob", "trajectory_summary", "to_unconstrained", "torch_threads"]
 
 # positions inside the box are clamped to [_U_EPS, 1 - _U_EPS] before the logit
 _U_EPS = 1e-6
 
 
-def summarize(traj, lengths, *, n_points: int = 20, include_length: bool = True) -> torch.Tensor:
+def trajectory_summary(traj, lengths, *, n_points: int = 20, include_length: bool = True) -> torch.Tensor:
     """Fixed-size summaries of padded trajectories.
 
     traj: (B, T, D) (steps >= length are padding) or (T, D); lengths: (B,) ints in [1, T]

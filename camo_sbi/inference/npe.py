@@ -59,7 +59,7 @@ from camo_sbi._validation import (
 from camo_sbi.distributed import parse_scheduler, run_chunks
 from camo_sbi.inference import samplers, sbi_adapter
 from camo_sbi.inference.contract import check_run_args
-from camo_sbi.inference.flow_space import summarize, to_unconstrained, torch_threads
+from camo_sbi.inference.flow_space import to_unconstrained, torch_threads, trajectory_summary
 from camo_sbi.inference.npe_posterior import TRANSFORMS, NpePosterior
 from camo_sbi.inference.result import PosteriorResult, weighted_median
 from camo_sbi.priors import BoxPrior
@@ -233,7 +233,7 @@ def _simulate_summaries(job, *, simulator, start, goal, dtype, config: NpeConfig
     x = out.q if config.space == "joint" else out.ee
     if noise.sigma(config.space) > 0:
         x = noise.perturb(x, config.space, np.random.default_rng(key))
-    return summarize(x, out.length, n_points=config.n_points, include_length=config.include_length)
+    return trajectory_summary(x, out.length, n_points=config.n_points, include_length=config.include_length)
 
 
 def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
@@ -259,7 +259,7 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
                            noise=task.noise)
         t_sim = time.perf_counter() - t0
         x = torch.cat(feats)
-        xo = summarize(traj_obs, torch.tensor([traj_obs.shape[0]]), n_points=config.n_points,
+        xo = trajectory_summary(traj_obs, torch.tensor([traj_obs.shape[0]]), n_points=config.n_points,
                        include_length=config.include_length)[0]
         finite = torch.isfinite(x).all(dim=1)
         keep = x[finite].std(dim=0) > 1e-8 * (1.0 + x[finite].abs().amax(dim=0))

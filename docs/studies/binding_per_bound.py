@@ -12,7 +12,7 @@ import numpy as np
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.experiments.manipulator import SETTINGS
-from camo_sbi.experiments.models import ModelSpec, true_limits
+from camo_sbi.experiments.models import ModelSpec, subject_limits
 from camo_sbi.scenarios.reaching import make_reaching_task, task_binding_metrics
 
 model = ModelSpec(kind=sys.argv[1])
@@ -21,7 +21,7 @@ subjects = list(SETTINGS["informative"].subjects)
 vals = {s: [] for s in subjects}
 for run in range(30):
     s = subjects[run % len(subjects)]
-    th = true_limits(model, sim, s)
+    th = subject_limits(model, sim, s)
     task = make_reaching_task(sim, th, n_train=10, n_test=20, seed=derive_seed(0, run), workspace="nominal",
                               min_binding_test=0.5)
     vals[s].append(task_binding_metrics(task)["binding_test_bound_min_fraction"])

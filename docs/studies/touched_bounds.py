@@ -16,7 +16,7 @@ import numpy as np
 from camo_sbi._validation import derive_seed
 from camo_sbi.evaluation.metrics import binding_bounds
 from camo_sbi.experiments.manipulator import SETTINGS, method_config
-from camo_sbi.experiments.models import ModelSpec, true_limits
+from camo_sbi.experiments.models import ModelSpec, subject_limits
 from camo_sbi.inference.registry import run_method
 from camo_sbi.inference.touched import touched_bounds
 from camo_sbi.scenarios.reaching import make_reaching_task
@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     flagged = wrong = 0
     for run in range(runs):
         subject = st.subjects[run % len(st.subjects)]
-        truth = true_limits(model, sim, subject)
+        truth = subject_limits(model, sim, subject)
         task = make_reaching_task(sim, truth, n_train=10, n_test=20, seed=derive_seed(0, run),
                                   workspace=st.workspace, min_binding_test=st.min_binding_test)
         binding = binding_bounds(sim, truth, task.test_starts, task.test_goals, task.prior)

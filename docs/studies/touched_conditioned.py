@@ -17,7 +17,7 @@ import torch
 from camo_sbi._validation import derive_seed
 from camo_sbi.evaluation.metrics import binding_bounds
 from camo_sbi.experiments.manipulator import SETTINGS, method_config
-from camo_sbi.experiments.models import ModelSpec, true_limits
+from camo_sbi.experiments.models import ModelSpec, subject_limits
 from camo_sbi.inference.registry import run_method
 from camo_sbi.inference.touched import touched_bounds
 from camo_sbi.priors import BoxPrior
@@ -30,7 +30,7 @@ args = argparse.Namespace(setting="informative", keep_best=None, bandwidth=None,
 res = {k: [] for k in ("naive", "camo-touched", "conditioned")}
 for run in range(int(sys.argv[2])):
     subject = st.subjects[run % 2]
-    truth = true_limits(model, sim, subject)
+    truth = subject_limits(model, sim, subject)
     task = make_reaching_task(sim, truth, n_train=10, n_test=20, seed=derive_seed(0, run), workspace="nominal", min_binding_test=0.5)
     b = binding_bounds(sim, truth, task.test_starts, task.test_goals, task.prior)
     touched, ext = touched_bounds([o.q for o in task.observations])
