@@ -818,3 +818,11 @@ def test_smc_with_no_finite_density_reports_it_instead_of_nan_weights():
     assert not draws.diagnostics["reached"] and draws.ess == 0.0
     assert torch.isfinite(draws.weights).all() and abs(float(draws.weights.sum()) - 1) < 1e-12
     assert torch.isfinite(draws.samples).all()
+
+
+def test_settings_of_an_estimator_file_written_before_the_vocabulary_still_load():
+    """An estimator file's metadata from before chunk_size (``simulation_batch_size``) loads as chunk_size."""
+    d = TrainConfig(simulations=200, chunk_size=32).to_json()
+    assert d["chunk_size"] == 32 and "simulation_batch_size" not in d
+    d["simulation_batch_size"] = d.pop("chunk_size")
+    assert TrainConfig.from_json(d) == TrainConfig(simulations=200, chunk_size=32)
