@@ -24,9 +24,10 @@ seeds. A second run of the base gave the same file, so the comparison is not luc
 moment. (The flows are tiny and briefly trained: the point is identity, not accuracy.)
 
 Measured again 2026-12-05 on main after the whole of issue 26's second step (samplers, the
-body-model registry, the metric catalog, named seed streams, declared budget rules and the
+body-model registry, the metric catalog, named seed streams, declared budget rules, the
 unified vocabulary: ``point_estimate``/"mode", ``chunk_size``, ``estimator_path``,
-``max_simulations``), the script run from main's tree against d128a24:
+``max_simulations``, ``trajectory_summary``; then again after the grid runner, the jinja2
+report and scipy's bootstrap), the script run from main's tree against d128a24:
 
     cd /tmp/i26a_base && OMP_NUM_THREADS=1 PYTHONPATH=/tmp/i26a_base \
         /work/main/.venv/bin/python /work/main/docs/studies/redesign2_identity.py /tmp/id2_base_now.json
