@@ -379,3 +379,23 @@ def test_reproduce_paper_setting(tmp_path):
     assert set(pd.read_csv(out / "claims.csv").setting) == {"paper"}
     config = __import__("json").loads((out / "config.json").read_text())
     assert config["setting"] == "paper" and config["horizon"] == 21
+
+
+def test_printed_summary_reads_by_metric_in_words_with_the_small_n_rule():
+    """compare's stdout: metrics as rows in words (angles in degrees), methods as columns, and with
+    2 seeds each cell is 'mean (min–max)', never a ± interval from two values."""
+    import pandas as pd
+
+    from camo_sbi.experiments.compare import summary_text
+
+    rows = [{"method": m, "budget": 100, "seed": s, "n_tasks": 2, "metric": k, "value": v}
+            for m, base in (("camo", 1.0), ("naive", 3.0)) for s in (0, 1)
+            for k, v in (("cartesian_error_mm", base * 10 + s), ("reference_joint", base * 0.1 + 0.01 * s))]
+    text = summary_text(pd.DataFrame(rows), ["cartesian_error_mm", "reference_joint"])
+    assert "±" not in text and "fewer than 5 seeds" in text
+    lines = text.splitlines()
+    assert lines[1].split()[-2:] == ["camo", "naive"]  # methods as columns, in their order
+    cart = next(ln for ln in lines if ln.startswith("Cartesian error"))
+    assert "[mm]" in cart and "10.5 (10–11)" in cart and "30.5 (30–31)" in cart
+    joint = next(ln for ln in lines if ln.startswith("authors' metric (joint)"))
+    assert "[deg]" in joint and "6.02 (5.73–6.3)" in joint  # stored in radians: 0.105 rad = 6.02 deg

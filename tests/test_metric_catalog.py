@@ -73,7 +73,7 @@ def test_a_metric_added_to_the_list_reaches_every_table_and_figure(toy, tmp_path
     toy_rows = df[df.metric == "toy_score"]
     assert set(toy_rows.method) == {"naive", "nominal", "oracle"} and set(toy_rows.n_tasks) == {1, 2}
     assert (toy_rows.value >= 1.0).all()
-    assert "toy_score" in capsys.readouterr().out  # the printed summary table
+    assert "toy score" in capsys.readouterr().out  # the printed summary table (metrics in words)
     assert any("toy score of the estimate [mm]" in t for t in drawn)  # compare's figures
     assert shown and all("toy_score" in s for s in shown)  # the report's figure panels
     html = (out / "report.html").read_text()

@@ -40,7 +40,7 @@ import functools
 import io
 import textwrap
 import zlib
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,9 +52,22 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.markers import MarkerStyle
 from matplotlib.ticker import FixedLocator, MaxNLocator, NullLocator, ScalarFormatter
-from scipy import stats
 
 from camo_sbi._io import atomic_write_bytes
+from camo_sbi.diagnostics.numbers import (  # the text half, re-exported: style is the one look
+    SMALL_N,
+    band_label,
+    cell_rule,
+    cell_text,
+    display_metric,
+    few_runs,
+    group_means,
+    mean_ci,
+    metric_label,
+    number,
+    run_counts,
+    to_degrees,
+)
 
 __all__ = [
     "BASELINE_NAMES",
@@ -95,11 +108,8 @@ __all__ = [
     "to_degrees",
 ]
 
-CONFIDENCE = 0.95
 DWARF_FACTOR = 4.0
 """A series whose top exceeds this many times the methods' top is drawn off scale (`robust_ylim`)."""
-SMALL_N = 5
-"""With fewer runs (or seeds) than this, no confidence interval is drawn or written (`few_runs`)."""
 SINGLE_COLUMN = 3.5
 """A single-column figure's width [in]."""
 DOUBLE_COLUMN = 7.0
@@ -215,147 +225,6 @@ def method_order(names: Iterable[str]) -> list[str]:
         return (method_style(n).baseline, known.index(b) if b in known else len(known), n)
 
     return sorted(uniq, key=key)
-
-
-# --------------------------------------------------------------------------- words
-
-def metric_label(metric: str) -> str:
-    """A metric's name in words with its unit as a person reads it, from the metric catalog
-    (`camo_sbi.evaluation.catalog`; angles in degrees: `display_metric` converts the values
-    of a metric stored in radians); a name the catalog does not know, in words."""
-    from camo_sbi.evaluation import catalog
-
-    metric = str(metric)
-    m = catalog.find(metric)
-    if m is None:
-        return metric.replace("_", " ")
-    return m.display_label(metric[len(m.prefix):] if m.per_joint else None)
-
-
-def to_degrees(x):
-    """Radians to degrees (arrays, scalars and DataFrame columns alike)."""
-    return np.degrees(x)
-
-
-def display_metric(df: pd.DataFrame, metric_col: str = "metric", value_col: str = "value") -> pd.DataFrame:
-    """A tidy table with the values of metrics stored in radians converted to degrees (for a
-    figure or a table; `metric_label` names the unit). Other rows are returned unchanged."""
-    if metric_col not in df.columns:
-        return df
-    from camo_sbi.evaluation import catalog
-
-    radians = {n for n in df[metric_col].astype(str).unique()
-               if (m := catalog.find(n)) is not None and m.unit == "rad"}
-    rad = df[metric_col].astype(str).isin(radians)
-    if not rad.any():
-        return df
-    out = df.copy()
-    out.loc[rad, value_col] = to_degrees(out.loc[rad, value_col].astype(float))
-    return out
-
-
-def few_runs(n_runs) -> bool:
-    """The small-n rule of every figure and table: True when some shown value averages fewer
-    than `SMALL_N` runs (``n_runs``: an int or the counts seen); then no interval is drawn."""
-    counts = [int(n) for n in np.atleast_1d(n_runs) if int(n) > 0]
-    return bool(counts) and min(counts) < SMALL_N
-
-
-def _count_text(n_runs) -> str:
-    counts = sorted({int(n) for n in np.atleast_1d(n_runs)})
-    if not counts:
-        raise ValueError("n_runs: no counts given")
-    return str(counts[0]) if len(counts) == 1 else f"{counts[0]}–{counts[-1]}"
-
-
-def band_label(n_runs, confidence: float = CONFIDENCE, *, geometric: bool = False) -> str:
-    """What a band (or its absence) is, for a legend title or caption: ``n_runs`` an int or
-    the counts seen; ``geometric`` for a log axis (`plot_lines(logy=True)` averages log10
-    values). Fewer than `SMALL_N` runs: the dots are the runs, the line their mean."""
-    n = _count_text(n_runs)
-    counts = sorted({int(v) for v in np.atleast_1d(n_runs)})
-    if counts[-1] < 2:
-        return f"mean of {n} run (no interval)"
-    if few_runs(counts):
-        mean = "geometric mean" if geometric else "mean"
-        return f"dots: each of {n} runs, line: {mean}\n(fewer than {SMALL_N} runs: no CI band)"
-    if geometric:
-        return f"geometric mean and {confidence:.0%} CI\nover {n} runs (Student t on log10)"
-    return f"mean and {confidence:.0%} CI of the mean\nover {n} runs (Student t)"
-
-
-def _range_text(lo: str, hi: str) -> str:
-    return f"{lo} to {hi}" if lo.startswith("-") or hi.startswith("-") else f"{lo}–{hi}"
-
-
-def cell_text(values, fmt: Callable[[float], str] | None = None,
-              ci_fmt: Callable[[float], str] | None = None) -> str:
-    """One table cell for the values of a group (the small-n rule of `few_runs`):
-    ``mean ± half-width`` of the 95% CI of the mean (Student t) with at least `SMALL_N`
-    values, ``mean (min–max)`` with 2 to 4, the value alone with one (or identical ones).
-    ``fmt`` formats the mean and range (default `number`), ``ci_fmt`` the half-width
-    (default: 2 significant digits)."""
-    fmt = fmt or number
-    ci_fmt = ci_fmt or (lambda v: number(v, 2))
-    v = np.asarray(values, dtype=float)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return "–"
-    m, half = mean_ci(v)
-    lo, hi = float(v.min()), float(v.max())
-    if v.size == 1 or hi - lo <= 1e-9 * max(1.0, abs(m)):
-        return fmt(m)
-    if few_runs(v.size):
-        return f"{fmt(m)} ({_range_text(fmt(lo), fmt(hi))})"
-    return f"{fmt(m)} ± {ci_fmt(half)}"
-
-
-def cell_rule(n_runs, unit: str = "runs", confidence: float = CONFIDENCE) -> str:
-    """What the cells of `cell_text` hold, for a table's caption (``unit``: "runs", "seeds")."""
-    n = _count_text(n_runs)
-    counts = sorted({int(v) for v in np.atleast_1d(n_runs)})
-    if counts[-1] < 2:
-        return f"the value of {n} {unit.rstrip('s')} (no interval)"
-    if few_runs(counts):
-        return (f"mean (min–max) over {n} {unit}; fewer than {SMALL_N} {unit}, so no confidence "
-                "interval")
-    return f"mean ± half-width of the {confidence:.0%} confidence interval of the mean over {n} {unit} (Student t)"
-
-
-# --------------------------------------------------------------------------- statistics
-
-
-def mean_ci(values, confidence: float = CONFIDENCE) -> tuple[float, float]:
-    """Mean and half-width of the Student-t confidence interval of the mean (0 for one value)."""
-    v = np.asarray(values, dtype=float)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return float("nan"), float("nan")
-    if v.size == 1:
-        return float(v[0]), 0.0
-    half = stats.t.ppf(0.5 + confidence / 2, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size)
-    return float(v.mean()), float(half)
-
-
-def group_means(df: pd.DataFrame, x: str | None, hue: str = "method", value: str = "value") -> pd.DataFrame:
-    """Columns hue, [x,] mean, ci (95% half-width, `mean_ci`), n per group of a tidy table."""
-    keys = [hue] if x is None else [hue, x]
-    missing = [c for c in keys + [value] if c not in df.columns]
-    if missing:
-        raise ValueError(f"df: missing columns {missing}")
-    rows = []
-    for k, g in df.groupby(keys, sort=True, dropna=False):
-        m, c = mean_ci(g[value])
-        k = k if isinstance(k, tuple) else (k,)
-        rows.append({**dict(zip(keys, k, strict=True)), "mean": m, "ci": c, "n": int(g[value].notna().sum())})
-    return pd.DataFrame(rows, columns=keys + ["mean", "ci", "n"])
-
-
-def run_counts(df: pd.DataFrame, x: str | None = None, hue: str = "method", by: Sequence[str] = ()) -> np.ndarray:
-    """How many runs (finite values) each plotted point of ``df`` averages, for `band_label`
-    (per hue, x, the columns ``by`` (e.g. the panel's prior) and, when the table has one, metric)."""
-    keys = ([hue] if x is None else [hue, x]) + list(by) + (["metric"] if "metric" in df.columns else [])
-    return df.groupby(keys, dropna=False)["value"].count().to_numpy()
 
 
 # --------------------------------------------------------------------------- figures and axes
@@ -501,16 +370,6 @@ def _log_x(ax: Axes, values) -> bool:
         ax.xaxis.set_major_formatter(fmt)
         ax.xaxis.set_minor_locator(NullLocator())
     return True
-
-
-def number(v: float, digits: int = 3) -> str:
-    """``v`` with ``digits`` significant digits and no exponent (1234.5 -> "1,235", 0.000123 -> "0.000123")."""
-    v = float(v)
-    if not np.isfinite(v):
-        return "–"
-    if abs(v) >= 10 ** (digits - 1):
-        return f"{v:,.0f}"
-    return np.format_float_positional(v, precision=digits, unique=False, fractional=False, trim="-")
 
 
 _fmt = number

@@ -14,6 +14,7 @@ import json
 import logging
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 # only light modules at import time: the CLI builds its parser from add_arguments (numpy, torch,
 # pandas and the store are imported by the functions that use them)
@@ -31,9 +32,13 @@ from camo_sbi.experiments.models import (
     subject_list,
 )
 
+if TYPE_CHECKING:  # pandas is imported where it is used (a fast --help)
+    import pandas as pd
+
 __all__ = ["add_arguments", "grid_cells", "main", "run_cell"]
 
 log = logging.getLogger(__name__)
+
 
 def _parse_list(text: str, name: str, cast=str) -> list:
     items = [t.strip() for t in str(text).split(",") if t.strip()]
@@ -309,6 +314,26 @@ def _figures(df, out: Path, formats) -> list[Path]:
     return paths
 
 
+def summary_text(last: pd.DataFrame, metrics: list[str]) -> str:
+    """The printed summary of a grid's last task count: one block per budget, the metrics as
+    rows (in words, with their units; angles in degrees) in ``metrics``' order, the methods as
+    columns, each cell `style.cell_text` of the seeds' values (the small-n rule: no interval
+    from fewer than 5 seeds), the rule said once above the blocks."""
+    from camo_sbi.diagnostics.numbers import cell_rule, cell_text, display_metric, metric_label
+
+    shown = display_metric(last)
+    methods = list(dict.fromkeys(shown["method"]))
+    n_seeds = shown.groupby(["method", "budget"])["seed"].nunique().to_numpy()
+    lines = [f"each cell: {cell_rule(n_seeds, 'seeds')}"]
+    for budget, b in shown.groupby("budget", sort=True):
+        t = b.groupby(["metric", "method"])["value"].apply(cell_text).unstack("method")
+        t = t.reindex(index=[m for m in metrics if m in t.index], columns=methods).fillna("–")
+        t.index = [metric_label(m) for m in t.index]
+        t.index.name = f"budget {budget:g}"
+        lines.append(t.to_string())
+    return "\n".join(lines)
+
+
 def main(args) -> int:
     from camo_sbi.distributed import parse_scheduler
     from camo_sbi.evaluation import catalog
@@ -365,9 +390,7 @@ def main(args) -> int:
 
             write_cost_table(df, args.amortized, out)
         shown = catalog.headline(df.metric.unique()) + [m.name for m in catalog.METRICS if m.group == "cost"]
-        last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(shown)]
-        summary = last.groupby(["method", "budget", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
-        print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
+        print(summary_text(df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(shown)], shown))
         print(binding_line(df))
         print(f"table: {out / 'results.csv'} ({len(df)} rows)  figures: {', '.join(str(f.name) for f in figs)}")
         if not args.no_report:
