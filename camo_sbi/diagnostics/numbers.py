@@ -17,7 +17,7 @@ import pandas as pd
 from scipy import stats
 
 __all__ = ["CONFIDENCE", "SMALL_N", "band_label", "cell_rule", "cell_text", "display_metric", "few_runs",
-           "group_means", "mean_ci", "metric_label", "number", "run_counts", "to_degrees"]
+           "group_means", "mean_ci", "metric_label", "number", "run_counts", "summary_table", "to_degrees"]
 
 CONFIDENCE = 0.95
 SMALL_N = 5
@@ -173,3 +173,25 @@ def number(v: float, digits: int = 3) -> str:
     if abs(v) >= 10 ** (digits - 1):
         return f"{v:,.0f}"
     return np.format_float_positional(v, precision=digits, unique=False, fractional=False, trim="-")
+
+
+def summary_table(last: pd.DataFrame, metrics: Sequence[str], *, unit: str = "seeds", block: str | None = None) -> str:
+    """A commands' printed summary of tidy rows (``method``, ``metric``, ``value``, and ``block``
+    when given): the metrics as rows in words with their units (angles in degrees) in ``metrics``'
+    order, the methods as columns in their order, one block per value of ``block`` (e.g. the
+    budget), each cell `cell_text` of its values (the small-n rule: no interval from fewer than
+    `SMALL_N`), and the rule said once on the first line (``unit``: what the values are; "values"
+    when there is more than one subject)."""
+    shown = display_metric(last)
+    methods = list(dict.fromkeys(shown["method"]))
+    if "subject" in shown.columns and shown["subject"].nunique() > 1:
+        unit = "values"
+    keys = ["metric", "method"] + ([block] if block else [])
+    lines = [f"each cell: {cell_rule(shown.groupby(keys)['value'].size().to_numpy(), unit)}"]
+    for b, part in (shown.groupby(block, sort=True) if block else [(None, shown)]):
+        t = part.groupby(["metric", "method"])["value"].apply(cell_text).unstack("method")
+        t = t.reindex(index=[m for m in metrics if m in t.index], columns=methods).fillna("–")
+        t.index = [metric_label(m) for m in t.index]
+        t.index.name = f"{block} {number(b)}" if block else "metric"
+        lines.append(t.to_string())
+    return "\n".join(lines)

@@ -315,23 +315,11 @@ def _figures(df, out: Path, formats) -> list[Path]:
 
 
 def summary_text(last: pd.DataFrame, metrics: list[str]) -> str:
-    """The printed summary of a grid's last task count: one block per budget, the metrics as
-    rows (in words, with their units; angles in degrees) in ``metrics``' order, the methods as
-    columns, each cell `style.cell_text` of the seeds' values (the small-n rule: no interval
-    from fewer than 5 seeds), the rule said once above the blocks."""
-    from camo_sbi.diagnostics.numbers import cell_rule, cell_text, display_metric, metric_label
+    """The printed summary of a grid's last task count (`numbers.summary_table`, one block per
+    budget, the cells over the seeds)."""
+    from camo_sbi.diagnostics.numbers import summary_table
 
-    shown = display_metric(last)
-    methods = list(dict.fromkeys(shown["method"]))
-    n_seeds = shown.groupby(["method", "budget"])["seed"].nunique().to_numpy()
-    lines = [f"each cell: {cell_rule(n_seeds, 'seeds')}"]
-    for budget, b in shown.groupby("budget", sort=True):
-        t = b.groupby(["metric", "method"])["value"].apply(cell_text).unstack("method")
-        t = t.reindex(index=[m for m in metrics if m in t.index], columns=methods).fillna("–")
-        t.index = [metric_label(m) for m in t.index]
-        t.index.name = f"budget {budget:g}"
-        lines.append(t.to_string())
-    return "\n".join(lines)
+    return summary_table(last, metrics, unit="seeds", block="budget")
 
 
 def main(args) -> int:

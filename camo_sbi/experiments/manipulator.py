@@ -414,6 +414,7 @@ def _check(args) -> None:
 
 
 def main(args) -> int:
+    from camo_sbi.diagnostics.numbers import summary_table
     from camo_sbi.distributed import dask_client
     from camo_sbi.evaluation import catalog
     from camo_sbi.evaluation.claims import binding_line, informative_claims, manipulator_claims
@@ -467,9 +468,9 @@ def main(args) -> int:
                   else manipulator_claims(df, setting=args.setting))
         atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     wall = time.perf_counter() - t0
-    last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(catalog.headline(df.metric.unique()))]
-    summary = last.groupby(["method", "metric"])["value"].agg(["mean", "std"]).unstack("metric")
-    print(summary.to_string(float_format=lambda v: f"{v:.4g}"))
+    headline = catalog.headline(df.metric.unique())
+    last = df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(headline)]
+    print(summary_table(last, headline, unit="runs"))
     print(binding_line(df))
     print(claims[["claim", "method", "baseline", "value", "p_value", "holds", "few_reaches"]].to_string(index=False))
     bad = df[df.status != "ok"]
