@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from camo_sbi._validation import check_positive_int
+from camo_sbi._validation import check_positive_int, renamed_fields
 from camo_sbi.simulators.base import Trajectories
 
 __all__ = ["BudgetExceededError", "CountingSimulator", "announce_simulation_time", "charge", "check_budget_fits",
@@ -17,6 +17,7 @@ class BudgetExceededError(RuntimeError):
     """Raised when a method asks for more simulated trajectories than its budget allows."""
 
 
+@renamed_fields(budget="max_simulations")  # a total cap; budget is per task
 class CountingSimulator:
     """Wraps a simulator; one simulated trajectory (one theta for one goal) costs one unit.
 
@@ -27,11 +28,7 @@ class CountingSimulator:
     argument a user sets. (The cap's old name, ``budget``, is refused naming the new one.)
     """
 
-    def __init__(self, simulator, max_simulations: int | None = None, **renamed):
-        if "budget" in renamed:
-            raise TypeError("budget: renamed 'max_simulations' (a total cap; budget is per task); use max_simulations=")
-        if renamed:
-            raise TypeError(f"unexpected argument(s) {sorted(renamed)}")
+    def __init__(self, simulator, max_simulations: int | None = None):
         self._sim = simulator
         self.max_simulations = (None if max_simulations is None
                                 else check_positive_int(max_simulations, "max_simulations"))

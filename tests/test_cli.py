@@ -386,12 +386,12 @@ def test_printed_summary_reads_by_metric_in_words_with_the_small_n_rule():
     2 seeds each cell is 'mean (min–max)', never a ± interval from two values."""
     import pandas as pd
 
-    from camo_sbi.experiments.compare import summary_text
+    from camo_sbi.diagnostics.numbers import summary_table
 
     rows = [{"method": m, "budget": 100, "seed": s, "n_tasks": 2, "metric": k, "value": v}
             for m, base in (("camo", 1.0), ("naive", 3.0)) for s in (0, 1)
             for k, v in (("cartesian_error_mm", base * 10 + s), ("reference_joint", base * 0.1 + 0.01 * s))]
-    text = summary_text(pd.DataFrame(rows), ["cartesian_error_mm", "reference_joint"])
+    text = summary_table(pd.DataFrame(rows), ["cartesian_error_mm", "reference_joint"], unit="seeds", block="budget")
     assert "±" not in text and "fewer than 5 seeds" in text
     lines = text.splitlines()
     assert lines[1].split()[-2:] == ["camo", "naive"]  # methods as columns, in their order

@@ -104,11 +104,11 @@ VAR_NAME = "limits"
 DRAWS_INDEPENDENT = "independent draws"
 DRAWS_RESAMPLED = "resampled from weighted samples (not MCMC)"
 DRAWS_POINT = "point estimate"
-_MIN_ARVIZ_DRAWS = 8  # 2 chains of 4: the fewest arviz's diagnostics accept without a log warning
 _REORDER_TRIES = 20
 _MCMC_COLUMNS = ("mcse_mean", "mcse_sd", "ess_bulk", "ess_tail", "r_hat")
 BOUNDS = ("lower", "upper")
 _MIN_DRAWS = 4  # per chain: arviz's diagnostics warn below 4 draws (and below 2 chains)
+_MIN_ARVIZ_DRAWS = 2 * _MIN_DRAWS  # 2 chains of 4: the fewest arviz's diagnostics accept without a log warning
 _UNITS = ("rad", "deg")
 _DIMS = ["joint", "bound"]
 
@@ -170,11 +170,15 @@ def _attr_value(v):
     return None
 
 
+def _arviz_logger() -> logging.Logger:
+    """arviz's logger: built outside logging's registry (arviz._log), so fetched from the package."""
+    return getattr(az, "_log", None) or logging.getLogger("arviz")
+
+
 @contextlib.contextmanager
 def _quiet_arviz():
     """Silence arviz's single-chain shape warnings and constant-data KDE warnings."""
-    # arviz's logger is built outside logging's registry (arviz._log), so fetch it from the package.
-    logger = getattr(az, "_log", None) or logging.getLogger("arviz")
+    logger = _arviz_logger()
     level = logger.level
     logger.setLevel(logging.ERROR)
     try:
@@ -460,7 +464,7 @@ def arviz_draw_count(kish_ess: float) -> int:
 def _arviz_reads_quietly(draws: np.ndarray) -> bool:
     """True when plain ``az.summary`` reads (chains, draws, k) without a warning or a log record."""
     rec = _LogRecords()
-    logger = getattr(az, "_log", None) or logging.getLogger("arviz")
+    logger = _arviz_logger()
     logger.addHandler(rec)
     try:
         with warnings.catch_warnings(record=True) as caught:
@@ -497,7 +501,7 @@ def _posterior_draws(result: PosteriorResult, kind: str, n_resample: int | None,
     """
     samples = result.samples
     if kind == DRAWS_POINT:
-        return np.broadcast_to(samples[:1], (2, samples.shape[1]))[None].copy()
+        return _point_draws(samples[0])
     if kind == DRAWS_INDEPENDENT:  # a seeded random subset, without replacement
         m = min(n_resample or arviz_draw_count(samples.shape[0]), samples.shape[0])
         draws = samples[rng.permutation(samples.shape[0])[:m]]
@@ -505,7 +509,7 @@ def _posterior_draws(result: PosteriorResult, kind: str, n_resample: int | None,
     m = n_resample or arviz_draw_count(result.ess)
     resampled = result.systematic(m)
     if m >= 2 and np.all(resampled == resampled[:1]):  # one sample carries all the draws: a point
-        return np.broadcast_to(resampled[:1], (2, samples.shape[1]))[None].copy()
+        return _point_draws(resampled[0])
     draws = _in_chains(resampled[rng.permutation(m)])
     if draws.shape[0] * draws.shape[1] <= 2 * _MIN_ARVIZ_DRAWS:
         for _ in range(_REORDER_TRIES):
@@ -513,6 +517,11 @@ def _posterior_draws(result: PosteriorResult, kind: str, n_resample: int | None,
                 break
             draws = _in_chains(resampled[rng.permutation(m)])
     return draws
+
+
+def _point_draws(point: np.ndarray) -> np.ndarray:
+    """(1, 2, 2n): one point twice in one chain (mean = the point, sd 0)."""
+    return np.broadcast_to(point, (1, 2, point.shape[0])).copy()
 
 
 def _in_chains(draws: np.ndarray) -> np.ndarray:

@@ -14,7 +14,6 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 # only light modules at import time: the CLI builds its parser from add_arguments (numpy, torch,
 # pandas and the store are imported by the functions that use them)
@@ -31,9 +30,6 @@ from camo_sbi.experiments.models import (
     subject_limits,
     subject_list,
 )
-
-if TYPE_CHECKING:  # pandas is imported where it is used (a fast --help)
-    import pandas as pd
 
 __all__ = ["add_arguments", "grid_cells", "main", "run_cell"]
 
@@ -314,14 +310,6 @@ def _figures(df, out: Path, formats) -> list[Path]:
     return paths
 
 
-def summary_text(last: pd.DataFrame, metrics: list[str]) -> str:
-    """The printed summary of a grid's last task count (`numbers.summary_table`, one block per
-    budget, the cells over the seeds)."""
-    from camo_sbi.diagnostics.numbers import summary_table
-
-    return summary_table(last, metrics, unit="seeds", block="budget")
-
-
 def main(args) -> int:
     from camo_sbi.distributed import parse_scheduler
     from camo_sbi.evaluation import catalog
@@ -377,8 +365,11 @@ def main(args) -> int:
             from camo_sbi.experiments.amortize import write_cost_table
 
             write_cost_table(df, args.amortized, out)
+        from camo_sbi.diagnostics.numbers import summary_table
+
         shown = catalog.headline(df.metric.unique()) + [m.name for m in catalog.METRICS if m.group == "cost"]
-        print(summary_text(df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(shown)], shown))
+        print(summary_table(df[(df.n_tasks == df.n_tasks.max()) & df.metric.isin(shown)], shown, unit="seeds",
+                            block="budget"))
         print(binding_line(df))
         print(f"table: {out / 'results.csv'} ({len(df)} rows)  figures: {', '.join(str(f.name) for f in figs)}")
         if not args.no_report:
