@@ -8,6 +8,7 @@ tests/data/arm7.urdf, in millimetres, in a lab frame where the model's base sits
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -229,6 +230,125 @@ def test_bvh_with_a_mapping_file_loads_as_the_joint_csv(tmp_path, sim):
     (tmp_path / "bad.json").write_text(json.dumps(bad))
     with pytest.raises(ValueError, match=r"^--bvh-map .*bad\.json: joint 'elbow' is missing"):
         load_recording(bvh, sim, goal="final", bvh_map=tmp_path / "bad.json")
+
+
+def _bvh_rows(path: Path, rows: np.ndarray, order: str = "Zrotation Xrotation Yrotation") -> Path:
+    """A two-joint BVH (B0 with a position and three rotation channels, B1 with three) holding ``rows``."""
+    text = ["HIERARCHY", "ROOT B0", "{", "  OFFSET 0 0 0", f"  CHANNELS 6 Xposition Yposition Zposition {order}",
+            "  JOINT B1", "  {", "    OFFSET 0 0.3 0", f"    CHANNELS 3 {order}", "    End Site", "    {",
+            "      OFFSET 0 0.2 0", "    }", "  }", "}", "MOTION", f"Frames: {len(rows)}", "Frame Time: 0.02"]
+    path.write_text("\n".join(text + [" ".join(f"{v:.6f}" for v in r) for r in rows]) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("order", ["Zrotation Xrotation Yrotation", "Xrotation Yrotation Zrotation",
+                                   "Yrotation Zrotation Xrotation"])
+def test_bvh_parser_reads_the_channels_bvhio_reads(tmp_path, order):
+    """On complete files with angles inside (-90, 90) degrees (where an Euler triple is unique) our
+    parser's channel values equal bvhio's per-frame rotation decomposed in the channel order (the
+    reader used before issue 36), to 1e-4 degrees (bvhio works in float32)."""
+    with __import__("warnings").catch_warnings():
+        __import__("warnings").simplefilter("ignore")
+        bvhio = pytest.importorskip("bvhio")
+    from camo_sbi.io.bvh import parse_bvh
+
+    rng = np.random.default_rng(3)
+    rows = np.c_[rng.uniform(-1, 1, (40, 3)), rng.uniform(-85, 85, (40, 6))]
+    path = _bvh_rows(tmp_path / "a.bvh", rows, order)
+    got = parse_bvh(path)
+    assert got.channels["B1"] == tuple(order.split()) and got.column == {"B0": 0, "B1": 6}
+    assert got.frame_time == 0.02 and got.motion.shape == (40, 9)
+    ref = bvhio.readAsBvh(str(path))
+    for joint, first in (("B0", 3), ("B1", 6)):
+        bj = ref.Root if joint == "B0" else ref.Root.Children[0]
+        axes = [c for c in bj.Channels if c.endswith("rotation")]
+        euler = np.array([list(k.getEuler(order="".join(c[0] for c in axes)[::-1], extrinsic=True))
+                          for k in bj.Keyframes])
+        for i, c in enumerate(axes):
+            np.testing.assert_allclose(got.motion[:, first + i], euler[:, "XYZ".index(c[0])], atol=1e-4)
+    np.testing.assert_allclose(got.motion, np.round(rows, 6), atol=1e-12)  # the file's own numbers
+
+
+def test_bvh_keeps_a_middle_channel_beyond_90_degrees(tmp_path):
+    """An elbow at 120 degrees in the middle channel: the value written (bvhio's Euler round trip
+    gave 60, an equivalent rotation but not the joint angle)."""
+    from camo_sbi.io.bvh import parse_bvh
+
+    path = _bvh_rows(tmp_path / "a.bvh", np.array([[0, 0, 0, 10, 120, 5, 0, 0, 0], [0, 0, 0, 10, 30, 5, 0, 0, 0]]))
+    np.testing.assert_allclose(parse_bvh(path).motion[:, 4], [120.0, 30.0])
+
+
+def _cut(good: str, case: str) -> str:
+    lines = good.splitlines()
+    motion = lines.index("MOTION")
+    return {"empty": "", "blank": "\n\n  \n", "cut_at_a_line": "\n".join(lines[:-10]) + "\n",
+            "cut_in_a_row": good[: len(good) - 25],
+            "no_motion": "\n".join(lines[:motion]) + "\n",
+            "cut_in_the_hierarchy": "\n".join(lines[:5]) + "\n",
+            "more_frames_declared": good.replace(lines[motion + 1], "Frames: 100000000000"),
+            "fewer_frames_declared": good.replace(lines[motion + 1], "Frames: 3"),
+            "nan_in_a_row": good.replace(lines[-1], " ".join(["nan"] * len(lines[-1].split()))),
+            "word_in_a_row": good.replace(lines[-2], " ".join(["x"] * len(lines[-2].split()))),
+            "short_row": good.replace(lines[-3], lines[-3].rsplit(" ", 1)[0]),
+            "unbalanced_braces": good.replace("End Site", "JOINT Z\n{\nOFFSET 0 0 0\nCHANNELS 1 Xrotation", 1),
+            "binary": "\x00\xff\xfe" * 100}[case]
+
+
+@pytest.fixture(scope="module")
+def joint_reaches(sim):
+    theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)
+    return tuple(Observation(o.start, sim.forward_kinematics(o.q[-1]).double(), o.q, None)
+                 for o in simulate_recordings(sim, theta, 2, seed=6))
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("case, needle", [
+    ("empty", "is empty"), ("blank", "is empty"),
+    ("cut_at_a_line", r"line \d+: 'Frames: \d+' declares \d+ motion rows but the file holds \d+ \(cut off\?\)"),
+    ("cut_in_a_row", r"line \d+: a motion row needs 21 values \(one per channel\), found 1?\d"),
+    ("no_motion", "end of file: the file ends where MOTION should follow"),
+    ("cut_in_the_hierarchy", "end of file: the file ends where"),
+    ("more_frames_declared", r"line \d+: 'Frames: 100000000000' declares 100000000000 motion rows but the file holds"),
+    ("fewer_frames_declared", r"line \d+: 'Frames: 3' declares 3 motion rows but the file holds"),
+    ("nan_in_a_row", r"line \d+: a motion row needs 21 finite numbers"),
+    ("word_in_a_row", r"line \d+: a motion row needs 21 finite numbers"),
+    ("short_row", r"line \d+: a motion row needs 21 values \(one per channel\), found 20"),
+    ("unbalanced_braces", r"line \d+: expected JOINT, End Site or }, found"),
+    ("binary", "not a UTF-8 text file"),
+])
+def test_damaged_bvh_is_refused_naming_the_file_and_line(tmp_path, sim, joint_reaches, case, needle):
+    """Issue 36: an empty, cut-off or inconsistent BVH hung forever inside bvhio's parser."""
+    good, _ = write_bvh(tmp_path / "good.bvh", joint_reaches, list(sim.joint_names), signs=[1] * 7,
+                        offsets=[0.0] * 7)
+    bad = tmp_path / f"{case}.bvh"
+    bad.write_bytes(_cut(good.read_text(), case).encode("latin-1"))
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(bad))}: ({needle})"):
+        load_recording(bad, sim, goal="final", bvh_map=good.with_suffix(".json"))
+
+
+@pytest.mark.timeout(60)
+def test_empty_bvh_exits_2_from_the_cli(tmp_path, capsys):
+    (tmp_path / "e.bvh").touch()
+    (tmp_path / "map.json").write_text(json.dumps({"joints": {}}))
+    with pytest.raises(SystemExit) as exc:
+        main(["infer", "--observations", str(tmp_path / "e.bvh"), "--bvh-map", str(tmp_path / "map.json"),
+              "--goal", "final", *MODEL, "--methods", "naive", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and len(err) == 1 and err[0].startswith("camo-sbi: error: ")
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").glob("limits.csv"))
+
+
+def test_overlapping_bvh_reaches_are_refused_naming_them(tmp_path, sim):
+    from camo_sbi.io.bvh import load_bvh_map
+
+    joints = {j: {"bvh": f"B{k}", "channel": "Zrotation"} for k, j in enumerate(sim.joint_names)}
+    path = tmp_path / "map.json"
+    path.write_text(json.dumps({"joints": joints, "reaches": [[50, 60], [0, 30], [10, 40]]}))
+    with pytest.raises(ValueError, match=rf"^--bvh-map {path}: 'reaches' 1 \[0, 30\] and 2 \[10, 40\] overlap "
+                                         r"\(frames 10-30 would count twice\)"):
+        load_bvh_map(path, list(sim.joint_names))
+    path.write_text(json.dumps({"joints": joints, "reaches": [[0, 30], [31, 40]]}))  # adjacent: fine
+    assert load_bvh_map(path, list(sim.joint_names))["reaches"] == [[0, 30], [31, 40]]
 
 
 def test_the_readme_session_c3d(tmp_path, sim, capsys):

@@ -52,6 +52,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
+from camo_sbi._files import parse_json, read_json
 from camo_sbi._io import atomic_write_text
 from camo_sbi.diagnostics.pages import Markup, join, page, part, table_parts, template_bytes
 
@@ -214,8 +215,8 @@ def _settings(run_dir: Path) -> Markup:
     if not p.is_file():
         return _note("config.json not found in the run directory")
     try:
-        cfg = json.loads(p.read_text())
-    except (OSError, ValueError) as exc:
+        cfg = read_json(p, "config.json")
+    except ValueError as exc:
         return _note(f"config.json could not be parsed ({exc})")
     rows = _flatten(cfg)
     if not rows:
@@ -575,7 +576,7 @@ def _simulator(task: str, idata):
         return None, (f"the posterior files of {task!r} do not record their model's settings (written before "
                       "camo-sbi stored them): run the command again into a new --out to draw these figures")
     try:
-        spec = json.loads(raw)
+        spec = parse_json(raw, "model_spec")
         kind = spec["kind"]
     except (TypeError, ValueError, KeyError) as exc:
         return None, f"the posterior files' model_spec is unreadable ({type(exc).__name__}: {exc})"

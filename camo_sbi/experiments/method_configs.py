@@ -13,7 +13,7 @@ settings' CAMO options, not these rules.)
 
 from __future__ import annotations
 
-import json
+from camo_sbi._files import parse_json
 
 __all__ = ["method_config", "parse_configs"]
 
@@ -64,10 +64,7 @@ def parse_configs(entries, methods: list[str]) -> dict[str, dict]:
             raise ValueError(f"--config: expected METHOD=JSON, got {entry!r}")
         if name not in methods:
             raise ValueError(f"--config: method {name!r} is not in --methods ({', '.join(methods)})")
-        try:
-            cfg = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"--config: {name}: invalid JSON ({exc})") from exc
+        cfg = parse_json(text, f"--config: {name}")
         if not isinstance(cfg, dict):
             raise ValueError(f"--config: {name}: expected a JSON object, got {text!r}")
         out[name] = {**out.get(name, {}), **cfg}

@@ -37,6 +37,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from camo_sbi._files import read_json
 from camo_sbi.simulators import registry
 
 if TYPE_CHECKING:  # torch is imported where limits are built: the CLI's parser imports this module
@@ -257,12 +258,7 @@ def load_limits(path, sim, *, degrees: bool = False) -> torch.Tensor:
 
     path = Path(path)
     where = f"--limits: {path}"
-    try:
-        data = json.loads(path.read_text())
-    except OSError as exc:
-        raise ValueError(f"{where}: cannot read ({exc.strerror or exc})") from exc
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{where}: invalid JSON ({exc})") from exc
+    data = read_json(path, where)
     if not isinstance(data, dict):
         raise ValueError(f'{where}: expected a JSON object {{"joint_name": [lo, hi], ...}}')
     names = list(sim.joint_names)

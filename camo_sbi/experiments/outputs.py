@@ -19,6 +19,7 @@ import json
 from collections.abc import Iterable
 from pathlib import Path
 
+from camo_sbi._files import read_json
 from camo_sbi._io import atomic_write_text
 
 __all__ = ["RECORD", "cached", "digest_files", "record"]
@@ -46,8 +47,8 @@ def digest_files(paths: Iterable[Path], *, extra=()) -> str:
 
 def _load(out: Path) -> dict:
     try:
-        data = json.loads((Path(out) / RECORD).read_text())
-    except (OSError, ValueError):
+        data = read_json(Path(out) / RECORD)
+    except ValueError:
         return {}
     return data if isinstance(data, dict) else {}
 

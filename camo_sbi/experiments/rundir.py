@@ -31,6 +31,7 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
+from camo_sbi._files import parse_json
 from camo_sbi._io import atomic_write_text
 from camo_sbi.experiments.store import ResultStore
 
@@ -193,7 +194,7 @@ class RunDirectory:
             self._create_manifest()
             return
         try:
-            old = json.loads(text.decode("utf-8"))  # a binary file: UnicodeDecodeError, a ValueError
+            old = parse_json(text.decode("utf-8"), MANIFEST)  # a binary file: UnicodeDecodeError, a ValueError
             if not isinstance(old, dict) or not isinstance(old.get("settings"), dict):
                 raise ValueError("not a manifest object")
         except ValueError as exc:

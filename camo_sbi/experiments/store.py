@@ -31,6 +31,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from camo_sbi._files import read_json
 from camo_sbi._io import atomic_write_bytes, atomic_write_text
 
 __all__ = ["CorruptCellWarning", "ResultStore", "atomic_write_bytes", "atomic_write_text", "cell_key"]
@@ -88,7 +89,9 @@ class ResultStore:
         except OSError as exc:
             return f"unreadable ({exc.strerror or exc})", None, None
         try:
-            record = json.loads(self._record_path(key).read_text())
+            if not self._record_path(key).exists():
+                raise FileNotFoundError(self._record_path(key))
+            record = read_json(self._record_path(key), "record")
             size, digest = int(record["bytes"]), str(record["sha256"])
             if not isinstance(record["columns"], list) or not isinstance(record["dtypes"], dict):
                 raise ValueError("bad columns/dtypes")

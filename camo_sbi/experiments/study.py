@@ -23,8 +23,9 @@ import argparse
 import hashlib
 import json
 import shlex
-import tomllib
 from pathlib import Path
+
+from camo_sbi._files import parse_toml, read_text
 
 __all__ = ["add_arguments", "compare_argvs", "load_study", "main"]
 
@@ -82,16 +83,8 @@ def _compare_parser() -> argparse.ArgumentParser:
 def load_study(path: Path) -> tuple[dict, str]:
     """The parsed study and its text (ValueError naming the file otherwise)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read the study file ({exc.strerror or exc})") from exc
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: not a text file ({exc.reason})") from exc
-    try:
-        study = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: invalid TOML ({exc})") from exc
+    text = read_text(path, str(path))
+    study = parse_toml(text, str(path))
     models = study.get("model")
     if not isinstance(models, list) or not models or not all(isinstance(m, dict) for m in models):
         raise ValueError(f"{path}: needs at least one [[model]] table")

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from camo_sbi._files import read_json
 from camo_sbi._validation import as_tensor, check_choice, check_positive_float, check_positive_int
 from camo_sbi.inference import samplers, sbi_adapter
 from camo_sbi.inference.flow_space import (
@@ -342,14 +343,15 @@ def load_posterior(path) -> NpePosterior:
     """
     import hashlib
     import io
-    import json
 
     path = Path(path)
     meta_path = _meta_path(path)
     if not path.is_file():
         raise ValueError(f"path: no such file {str(path)!r}")
     try:
-        meta = json.loads(meta_path.read_text())
+        if not meta_path.exists():
+            raise FileNotFoundError(meta_path)
+        meta = read_json(meta_path, "metadata")
         if not isinstance(meta, dict):
             raise ValueError("not a JSON object")
     except FileNotFoundError:

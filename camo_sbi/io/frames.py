@@ -13,12 +13,13 @@ of the fit: the offset the transform leaves, in metres.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from camo_sbi._files import read_json
 
 __all__ = ["Frame", "frame_from_markers", "load_frame", "load_marker_positions"]
 
@@ -42,13 +43,7 @@ class Frame:
 
 def _read_json(path, flag: str):
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-        data = json.loads(text)
-    except OSError as exc:
-        raise ValueError(f"{flag} {path}: cannot read ({exc.strerror or exc})") from None
-    except ValueError as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
-        raise ValueError(f"{flag} {path}: not a JSON file ({exc})") from None
+    data = read_json(path, f"{flag} {path}")
     if not isinstance(data, dict):
         raise ValueError(f"{flag} {path}: expected a JSON object")
     return path, data

@@ -1,0 +1,127 @@
+"""Issue 36, the file readers: hostile or damaged files end in ONE line naming the file, key or
+flag (exit 2), or run and warn, quickly; never a traceback, a hang or another exception type.
+
+The BVH cases are in tests/test_mocap.py (next to the BVH writer); the random-bytes tests of
+every reader are in tests/test_fuzz_readers.py.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from camo_sbi._files import MAX_DEPTH, parse_json, parse_toml, read_json, read_text, read_toml
+from camo_sbi.experiments.cli import main
+from tests.test_infer_cli import DATA, LIMITS, MODEL
+
+DEEP_JSON = "[" * 100_000
+DEEP_TOML = "a = " + "[" * 5000 + "]" * 5000 + "\n"
+TINY_COMPARE = ["compare", *MODEL, "--methods", "naive", "--budgets", "20", "--seeds", "1", "--tasks", "1"]
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _exit_2(argv, capsys) -> str:
+    """Run the CLI expecting exit 2 with one line on stderr; returns that line without its prefix."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and len(err) == 1 and err[0].startswith("camo-sbi: error: "), err
+    return err[0].removeprefix("camo-sbi: error: ")
+
+
+# ----------------------------------------------------------------------------- the one reader
+
+
+def test_the_helper_names_the_file_for_every_failure(tmp_path):
+    p = tmp_path / "x.json"
+    p.write_text(DEEP_JSON)
+    with pytest.raises(ValueError, match=rf"^--flag {re.escape(str(p))}: invalid JSON \(nested more than 64 "):
+        read_json(p, f"--flag {p}")
+    p.write_text("[" * (MAX_DEPTH + 1) + "]" * (MAX_DEPTH + 1))  # parses, but deeper than allowed
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(p))}: nested more than {MAX_DEPTH} levels deep$"):
+        read_json(p)
+    p.write_text("[" * MAX_DEPTH + "]" * MAX_DEPTH)
+    assert read_json(p) is not None
+    p.write_bytes(b"\xef\xbb\xbf{\"a\": 1}")  # a byte-order mark (Excel, Notepad)
+    assert read_json(p) == {"a": 1}
+    p.write_bytes(b'{"a": "\xff\xfe"}')
+    with pytest.raises(ValueError, match=r": not a UTF-8 text file \(byte 7 is b'\\xff'\)$"):
+        read_json(p)
+    with pytest.raises(ValueError, match=r"x\.json: more than the 3 bytes|x\.json: [\d,]+ bytes, more than the 3 "):
+        read_text(p, max_bytes=3)
+    with pytest.raises(ValueError, match=r"nope\.json: cannot read \(No such file or directory\)$"):
+        read_json(tmp_path / "nope.json")
+    with pytest.raises(ValueError, match=r"dir: cannot read \(Is a directory\)$"):
+        read_json(tmp_path, "dir")
+    t = tmp_path / "s.toml"
+    t.write_text(DEEP_TOML)
+    with pytest.raises(ValueError, match=r"s\.toml: invalid TOML \(nested more than 64 levels deep\)$"):
+        read_toml(t)
+    with pytest.raises(ValueError, match=r"^lbl: invalid JSON \(Expecting value: line 1 column 1 \(char 0\)\)$"):
+        parse_json("", "lbl")
+    with pytest.raises(ValueError, match=r"^lbl: invalid TOML \(.*\)$"):
+        parse_toml("a = = 1\n\n\n", "lbl")
+
+
+# ----------------------------------------------------------------------------- every JSON/TOML flag
+
+
+def test_deeply_nested_json_in_every_flag_exits_2_naming_it(tmp_path, capsys):
+    """Issue 36: 100,000 '[' ended in a RecursionError traceback (exit 1) in each of these."""
+    deep = tmp_path / "deep.json"
+    deep.write_text(DEEP_JSON)
+    c3d = ["infer", "--observations", str(DATA / "session.c3d"), "--ee-marker", "TOOL", "--goal", "final", *MODEL,
+           "--methods", "naive", "--out", str(tmp_path / "o")]
+    nested = "invalid JSON (nested more than 64 levels deep)"
+    assert _exit_2([*TINY_COMPARE, "--limits", str(deep), "--out", str(tmp_path / "a")], capsys) == \
+        f"--limits: {deep}: {nested}"
+    assert _exit_2([*c3d, "--frame", str(deep)], capsys) == f"--frame {deep}: {nested}"
+    (tmp_path / "x.bvh").write_text("HIERARCHY\n")  # the map is read first
+    assert _exit_2(["infer", "--observations", str(tmp_path / "x.bvh"), "--bvh-map", str(deep), *c3d[5:]],
+                   capsys) == \
+        f"--bvh-map {deep}: {nested}"
+    assert _exit_2([*TINY_COMPARE, *LIMITS, "--config", f"naive={DEEP_JSON}", "--out", str(tmp_path / "b")],
+                   capsys) == f"--config: naive: {nested}"
+    out = tmp_path / "planted"
+    out.mkdir()
+    (out / "manifest.json").write_text(DEEP_JSON)
+    assert _exit_2([*TINY_COMPARE, *LIMITS, "--out", str(out)], capsys) == \
+        f"--out {out}: its manifest.json is unreadable (manifest.json: {nested}); use a new --out"
+
+
+def test_deeply_nested_study_toml_exits_2_naming_the_file(tmp_path, capsys):
+    study = tmp_path / "deep.toml"
+    study.write_text(DEEP_TOML)
+    assert _exit_2(["run", str(study), "--out", str(tmp_path / "o")], capsys) == \
+        f"{study}: invalid TOML (nested more than 64 levels deep)"
+    study.write_bytes(b"name = \"\xff\"\n")
+    assert _exit_2(["run", str(study), "--out", str(tmp_path / "o")], capsys) == \
+        f"{study}: not a UTF-8 text file (byte 8 is b'\\xff')"
+
+
+def test_binary_limits_file_exits_2_naming_it(tmp_path, capsys):
+    """Issue 36: exit 2 with only "'utf-8' codec can't decode ...", naming no file."""
+    limits = tmp_path / "limits.json"
+    limits.write_bytes(bytes(range(256)) * 8)
+    line = _exit_2([*TINY_COMPARE, "--limits", str(limits), "--out", str(tmp_path / "o")], capsys)
+    assert line == f"--limits: {limits}: not a UTF-8 text file (byte 128 is b'\\x80')"
+    assert json.loads(json.dumps(line)) == line  # one plain line
+
+
+def test_store_and_output_records_with_deep_json_are_treated_as_damaged(tmp_path):
+    """Files the toolkit writes itself (cell integrity records, output records, NPE metadata)
+    read through the same helper: a planted deep record is 'unreadable', never a RecursionError."""
+    from camo_sbi.experiments import outputs
+    from camo_sbi.experiments.store import ResultStore
+
+    store = ResultStore(tmp_path / "run")
+    store.put("k", [{"a": 1.0}])
+    assert store.problem("k") is None
+    store._record_path("k").write_text(DEEP_JSON)
+    assert store.problem("k").startswith("unreadable integrity record (ValueError: record: invalid JSON (nested")
+    (tmp_path / "run" / outputs.RECORD).write_text(DEEP_JSON)
+    assert outputs._load(tmp_path / "run") == {}
