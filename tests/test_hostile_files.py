@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import re
 
+import numpy as np
 import pytest
 
 from camo_sbi._files import MAX_DEPTH, parse_json, parse_toml, read_json, read_text, read_toml
@@ -125,3 +126,99 @@ def test_store_and_output_records_with_deep_json_are_treated_as_damaged(tmp_path
     assert store.problem("k").startswith("unreadable integrity record (ValueError: record: invalid JSON (nested")
     (tmp_path / "run" / outputs.RECORD).write_text(DEEP_JSON)
     assert outputs._load(tmp_path / "run") == {}
+
+
+# ----------------------------------------------------------------------------- C3D, frames, URDF
+
+
+def test_c3d_cut_off_is_refused_against_its_header(tmp_path, capsys):
+    """Issue 36: half of a C3D ran with exit 0 on the frames left, without a warning (ezc3d reads
+    what is there and shrinks its header to match)."""
+    data = (DATA / "session.c3d").read_bytes()
+    for cut in (len(data) // 2, len(data) - 200):
+        half = tmp_path / f"cut{cut}.c3d"
+        half.write_bytes(data[:cut])
+        line = _exit_2(["infer", "--observations", str(half), "--ee-marker", "TOOL", "--frame",
+                        str(DATA / "session_frame.json"), "--goal", "final", *MODEL, "--methods", "nominal",
+                        "--out", str(tmp_path / "o")], capsys)
+        assert re.fullmatch(rf"{re.escape(str(half))}: its header declares 278 frames but the file holds \d+ "
+                            rf"complete ones \([\d,]+ bytes; cut off\?\)", line), line
+    whole = tmp_path / "whole.c3d"
+    whole.write_bytes(data + b"\0" * 100)  # padding after the data is fine
+    from camo_sbi.io.c3d import read_c3d
+
+    assert len(read_c3d(whole, ["TOOL"])["time"]) == len(read_c3d(DATA / "session.c3d", ["TOOL"])["time"])
+
+
+def test_c3d_with_analog_channels_is_checked_with_its_analog_bytes(tmp_path):
+    """The frame size counts the analog samples (3 channels at 10 per frame here): a file cut by
+    one frame's worth is refused, the complete one reads."""
+    ezc3d = pytest.importorskip("ezc3d")
+    from camo_sbi.io.c3d import read_c3d
+
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = [100.0]
+    c["parameters"]["POINT"]["LABELS"]["value"] = ("TOOL", "B")
+    c["parameters"]["POINT"]["UNITS"]["value"] = ["mm"]
+    c["parameters"]["ANALOG"]["RATE"]["value"] = [1000.0]
+    c["parameters"]["ANALOG"]["LABELS"]["value"] = ("F1", "F2", "F3")
+    c["data"]["points"] = np.ones((4, 2, 50))
+    c["data"]["analogs"] = np.ones((1, 3, 500))
+    path = tmp_path / "an.c3d"
+    c.write(str(path))
+    assert len(read_c3d(path, ["TOOL"])["time"]) == 50
+    frame_bytes = (4 * 2 + 3 * 10) * 4
+    data = path.read_bytes()
+    end = 3 * 512 + 50 * frame_bytes  # the data block starts at block 4 (ezc3d's layout, checked below)
+    assert len(data) >= end and data[8 * 2:9 * 2] == (4).to_bytes(2, "little")
+    (tmp_path / "cut.c3d").write_bytes(data[:end - frame_bytes])
+    with pytest.raises(ValueError, match=r"cut\.c3d: its header declares 50 frames but the file holds 49 complete"):
+        read_c3d(tmp_path / "cut.c3d", ["TOOL"])
+
+
+def test_c3d_far_away_gets_no_ee_units_hint(tmp_path, capsys):
+    """Issue 36: a C3D 1000 m away was told "use --ee-units mm", which a C3D refuses."""
+    ezc3d = pytest.importorskip("ezc3d")
+    c = ezc3d.c3d(str(DATA / "session.c3d"))
+    pts = np.array(c["data"]["points"])
+    pts[0] += 1e6  # +1000 m in x (the file is in mm)
+    c["data"]["points"] = pts
+    far = tmp_path / "far.c3d"
+    c.write(str(far))
+    line = _exit_2(["infer", "--observations", str(far), "--ee-marker", "TOOL", "--goal", "final", *MODEL,
+                    "--methods", "nominal", "--out", str(tmp_path / "o")], capsys)
+    assert line.startswith(f"{far}: column 'ee_x', frame ") and "--ee-units" not in line
+    assert "check the frame (--frame, --frame-from-markers)" in line and "POINT:UNITS" in line
+    assert re.search(r": 100\d\.\d+ m is \d+(\.\d+)?x as far as the model reaches", line), line
+
+
+def test_frame_translation_of_1e308_is_refused_naming_the_frame_file(tmp_path, capsys):
+    """Issue 36: printed a 330-digit number and blamed the C3D's column."""
+    frame = json.loads((DATA / "session_frame.json").read_text())
+    path = tmp_path / "frame.json"
+    path.write_text(json.dumps({**frame, "translation": [1e308, 0, 0]}))
+    line = _exit_2(["infer", "--observations", str(DATA / "session.c3d"), "--ee-marker", "TOOL", "--frame", str(path),
+                    "--goal", "final", *MODEL, "--methods", "nominal", "--out", str(tmp_path / "o")], capsys)
+    assert line == (f"--frame {path}: key 'translation': 1e+308 m is farther than 1000 m from the lab's origin; "
+                    "the translation is in metres")
+    path.write_text(json.dumps({**frame, "translation": [frame["translation"][0] + 999, *frame["translation"][1:]]}))
+    line = _exit_2(["infer", "--observations", str(DATA / "session.c3d"), "--ee-marker", "TOOL", "--frame", str(path),
+                    "--goal", "final", *MODEL, "--methods", "nominal", "--out", str(tmp_path / "o")], capsys)
+    assert f"after the transform of {path}: 99" in line and len(line) < 400, line  # names the frame file
+
+
+def test_a_non_urdf_file_is_never_echoed(tmp_path, capsys):
+    """Issue 36: a study's urdf = "../../../../etc/passwd" printed the file's first 200 characters."""
+    secret = tmp_path / "secret.txt"
+    secret.write_text("root:x:0:0:SECRET-LINE\n" * 50)
+    line = _exit_2(["compare", "--urdf", str(secret), "--ee", "tool", *LIMITS, "--methods", "naive", "--budgets", "20",
+                    "--seeds", "1", "--tasks", "1", "--out", str(tmp_path / "o")], capsys)
+    assert line == f"--urdf: {secret}: urdf: not a URDF (no <robot> element in its 1,150 characters)"
+    study = tmp_path / "s.toml"
+    study.write_text(f'methods = ["naive"]\nbudgets = [20]\nseeds = 1\ntasks = 1\n[[model]]\nurdf = "{secret}"\n'
+                     'ee = "tool"\n')
+    assert "SECRET" not in _exit_2(["run", str(study), "--out", str(tmp_path / "o2")], capsys)
+    secret.write_bytes(b"\x89PNG\r\n" + bytes(range(256)))
+    line = _exit_2(["compare", "--urdf", str(secret), "--ee", "tool", *LIMITS, "--methods", "naive", "--budgets", "20",
+                    "--seeds", "1", "--tasks", "1", "--out", str(tmp_path / "o")], capsys)
+    assert line == f"--urdf: {secret}: not a UTF-8 text file (byte 0 is b'\\x89')"

@@ -37,7 +37,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from camo_sbi._files import read_json
+from camo_sbi._files import read_json, read_text
 from camo_sbi.simulators import registry
 
 if TYPE_CHECKING:  # torch is imported where limits are built: the CLI's parser imports this module
@@ -134,10 +134,7 @@ def _build(spec: ModelSpec):
     if spec.kind != "urdf":
         return registry.build_model(spec.kind, dict(spec.settings), **kwargs)
     path = Path(spec.urdf)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ValueError(f"--urdf: cannot read {path} ({exc.strerror or exc})") from exc
+    text = read_text(path, f"--urdf: {path}")
     if spec.digest is not None and _digest(text) != spec.digest:
         raise ValueError(f"--urdf: {path} changed since the run was set up (sha256 differs)")
     try:
@@ -223,7 +220,8 @@ def model_from_args(args, *, build: bool = True) -> ModelSpec:
         path = Path(urdf)
         if not path.is_file():
             raise ValueError(f"--urdf: no such file {path}")
-        spec = ModelSpec(kind="urdf", urdf=str(path.resolve()), digest=_digest(path.read_text()), ee=args.ee,
+        spec = ModelSpec(kind="urdf", urdf=str(path.resolve()), digest=_digest(read_text(path, f"--urdf: {path}")),
+                         ee=args.ee,
                          start=start, joints=joints)
     else:
         values = {s.name: getattr(args, s.dest, None) for s in declared}

@@ -9,6 +9,7 @@ maps it to the model's base.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,40 @@ def _param(c3d, group: str, name: str, path: Path):
         raise ValueError(f"{path}: parameter {group}:{name} is missing (not a C3D point file?)") from None
 
 
+def _check_complete(path: Path, c3d) -> None:
+    """ValueError when the file holds fewer frames than its header declares (a cut-off file:
+    ezc3d reads what is there and quietly shrinks its header to match). The frame count, data
+    start and counts of the header's first 24 bytes are read here; the sample size comes from
+    POINT:SCALE (negative: 4-byte floats, else 2-byte integers)."""
+    import struct
+
+    try:
+        with open(path, "rb") as fh:
+            head, proc = fh.read(512), b""
+            size = os.fstat(fh.fileno()).st_size
+            if head:  # the processor type: byte 4 of the parameter section (its block is byte 1)
+                fh.seek(max(head[0] - 1, 0) * 512 + 3)
+                proc = fh.read(1)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if len(head) < 24 or not proc:
+        raise ValueError(f"{path}: cut off inside its header ({size} bytes)")
+    endian = ">" if proc[0] == 86 else "<"  # 84 Intel, 85 DEC (little-endian integers), 86 MIPS
+    _, n_points, n_analog, first, last, _, _, _, data_block = struct.unpack(f"{endian}9H", head[:18])
+    if last == 0xFFFF or last < first or data_block < 1:  # long trials keep their count in parameters only
+        return
+    scale = np.asarray(_param(c3d, "POINT", "SCALE", path), dtype=np.float64).reshape(-1)
+    sample = 4 if scale.size and scale[0] < 0 else 2
+    frame_bytes = (4 * n_points + n_analog) * sample
+    if frame_bytes == 0:
+        return
+    declared = last - first + 1
+    held = max(size - (data_block - 1) * 512, 0) // frame_bytes
+    if held < declared:
+        raise ValueError(f"{path}: its header declares {declared} frames but the file holds {held} complete ones "
+                         f"({size:,} bytes; cut off?)")
+
+
 def read_c3d(path, ee_markers, extra_markers=()) -> dict:
     """{"time" (F,), "reach" (F,), "ee" (F, 3) [m], "frames" (F,), "markers" {name: (3,) mean lab
     position [m]} for ``extra_markers``, "units": the file's unit} for the frames where every
@@ -36,6 +71,7 @@ def read_c3d(path, ee_markers, extra_markers=()) -> dict:
         c3d = ezc3d.c3d(str(path))
     except (OSError, RuntimeError, ValueError) as exc:
         raise ValueError(f"{path}: cannot read as C3D ({exc})") from None
+    _check_complete(path, c3d)
     labels = [str(s).strip() for s in _param(c3d, "POINT", "LABELS", path)]
     units_v = _param(c3d, "POINT", "UNITS", path)
     unit = str(units_v[0]).strip().lower() if len(units_v) else ""

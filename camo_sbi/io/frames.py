@@ -23,6 +23,9 @@ from camo_sbi._files import read_json
 
 __all__ = ["Frame", "frame_from_markers", "load_frame", "load_marker_positions"]
 
+MAX_TRANSLATION_M = 1000.0
+"""A lab frame's translation beyond this many metres is refused (millimetres typed as metres, or worse)."""
+
 ROTATION_TOL = 1e-4
 """|R^T R - I| and |det R - 1| beyond this: not a rotation (a file typed by hand keeps ~5 digits)."""
 
@@ -55,7 +58,7 @@ def _vector(value, n: int, what: str) -> np.ndarray:
     except (TypeError, ValueError):
         raise ValueError(f"{what}: expected {n} numbers, got {value!r}") from None
     if a.shape != (n,) or not np.isfinite(a).all():
-        raise ValueError(f"{what}: expected {n} finite numbers, got {value!r}")
+        raise ValueError(f"{what}: expected {n} finite numbers, got {str(value)[:80]}")
     return a
 
 
@@ -81,6 +84,9 @@ def load_frame(path, flag: str = "--frame") -> Frame:
     if "translation" not in data:
         raise ValueError(f"{flag} {path}: key 'translation' is missing ([x, y, z] in metres)")
     t = _vector(data["translation"], 3, f"{flag} {path}: key 'translation'")
+    if float(np.abs(t).max()) > MAX_TRANSLATION_M:
+        raise ValueError(f"{flag} {path}: key 'translation': {float(np.abs(t).max()):.3g} m is farther than "
+                         f"{MAX_TRANSLATION_M:g} m from the lab's origin; the translation is in metres")
     if ("rotation" in data) == ("quaternion" in data):
         raise ValueError(f"{flag} {path}: give exactly one of 'rotation' (3x3) or 'quaternion' ([w, x, y, z])")
     if "rotation" in data:

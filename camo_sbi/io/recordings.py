@@ -377,18 +377,26 @@ def reach_radius(simulator) -> float:
     return float(np.linalg.norm(fk, axis=1).max())
 
 
-def _check_units(table: _Table, radius: float, ee_units: str) -> None:
-    """Positions far beyond the model's reach: with a hint when they would fit in millimetres."""
+def _check_units(table: _Table, radius: float, ee_units: str, frame: Frame | None = None) -> None:
+    """Positions far beyond the model's reach: with a hint when they would fit in millimetres.
+    ``ee_units`` "file": the file states its units (C3D), so no --ee-units hint; ``frame``: the
+    transform applied to the positions, named in the message."""
     for c in (*EE_COLUMNS, *GOAL_COLUMNS):
         if c not in table.columns:
             continue
         a = np.abs(table.columns[c])
         i = int(np.argmax(a))
         if a[i] > UNITS_FACTOR * max(radius, 0.05):
-            hint = (" the positions look like millimetres: use --ee-units mm" if ee_units == "m"
-                    and a[i] / 1000 <= 2 * radius else " check the units (--ee-units) and the frame (--frame)")
-            raise ValueError(f"{table.where(c, i)}: {table.columns[c][i]:.6g} m is {a[i] / radius:.0f}x as far as the "
-                             f"model reaches ({radius:.3g} m from the base);{hint}")
+            if ee_units == "file":
+                hint = (" check the frame (--frame, --frame-from-markers) and the end-effector marker "
+                        "(--ee-marker); the units come from the file's POINT:UNITS")
+            elif ee_units == "m" and a[i] / 1000 <= 2 * radius:
+                hint = " the positions look like millimetres: use --ee-units mm"
+            else:
+                hint = " check the units (--ee-units) and the frame (--frame)"
+            after = f" after the transform of {frame.source}" if frame is not None else ""
+            raise ValueError(f"{table.where(c, i)}{after}: {table.columns[c][i]:.6g} m is {a[i] / radius:.3g}x as far "
+                             f"as the model reaches ({radius:.3g} m from the base);{hint}")
 
 
 IK_ITERATIONS = 300
@@ -596,7 +604,7 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                 warns.append(f"--frame-from-markers: the markers lie {frame.residual_m * 1000:.1f} mm (RMS) from "
                              f"their model positions after the best rigid transform: check the marker positions")
     radius = reach_radius(simulator)
-    _check_units(table, radius, ee_units or "m")
+    _check_units(table, radius, "file" if path.suffix.lower() == ".c3d" else ee_units or "m", frame)
     reaches = _reaches(table, goal)
     q_all = _joint_values(table, simulator, degrees, noise) if has_q else None
     ee_all = np.stack([table.columns[c] for c in EE_COLUMNS], axis=1) if has_ee else None

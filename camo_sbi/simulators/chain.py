@@ -209,7 +209,10 @@ def _quiet_parser():
 
 
 def read_urdf(urdf) -> str:
-    """URDF text from text or a path (str / os.PathLike). TypeError/ValueError naming ``urdf``."""
+    """URDF text from text or a path (str / os.PathLike). TypeError/ValueError naming ``urdf``;
+    a message never quotes a file's text (only a short one-line string, taken as a path)."""
+    if isinstance(urdf, str) and "<robot" not in urdf and ("\n" in urdf or "\0" in urdf or len(urdf) > 1024):
+        raise ValueError(f"urdf: not a URDF (no <robot> element in its {len(urdf):,} characters)")
     if isinstance(urdf, os.PathLike) or (isinstance(urdf, str) and "<robot" not in urdf):
         path = Path(urdf)
         if not path.is_file():
