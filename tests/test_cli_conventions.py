@@ -118,6 +118,10 @@ def test_light_copies_agree_with_their_sources():
     assert HUMAN_PROFILES == tuple(IMPAIRED_PROFILES) == tuple(subject_names("human"))
     assert hrc.OBSERVED_MOTIONS == OBSERVED_MOTIONS
     assert hrc.CAMO_BANDWIDTH == CamoConfig().bandwidth
+    from camo_sbi.experiments import recorded
+    from camo_sbi.io import recordings
+
+    assert recorded.MAX_REACHES == recordings.MAX_REACHES
 
 
 def test_version_and_python_dash_m(capsys):

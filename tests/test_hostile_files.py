@@ -15,10 +15,12 @@ import pytest
 
 from camo_sbi._files import MAX_DEPTH, parse_json, parse_toml, read_json, read_text, read_toml
 from camo_sbi.experiments.cli import main
+from tests import test_infer_cli
 from tests.test_infer_cli import DATA, LIMITS, MODEL
 
 DEEP_JSON = "[" * 100_000
 DEEP_TOML = "a = " + "[" * 5000 + "]" * 5000 + "\n"
+sim = test_infer_cli.sim  # the arm7 model fixture
 TINY_COMPARE = ["compare", *MODEL, "--methods", "naive", "--budgets", "20", "--seeds", "1", "--tasks", "1"]
 
 pytestmark = pytest.mark.timeout(120)
@@ -222,3 +224,52 @@ def test_a_non_urdf_file_is_never_echoed(tmp_path, capsys):
     line = _exit_2(["compare", "--urdf", str(secret), "--ee", "tool", *LIMITS, "--methods", "naive", "--budgets", "20",
                     "--seeds", "1", "--tasks", "1", "--out", str(tmp_path / "o")], capsys)
     assert line == f"--urdf: {secret}: not a UTF-8 text file (byte 0 is b'\\x89')"
+
+
+# ----------------------------------------------------------------------------- large recordings
+
+
+def test_start_posture_ik_on_the_kernel_equals_the_reference_fk(sim, monkeypatch, caplog):
+    """The IK of the start postures runs on the numba kernel's FK (a 141-reach C3D: 84.6 s -> 4.1 s on
+    the shared 2-core machine); its postures equal those of the pytorch_kinematics reference FK
+    to 1e-9 rad over 40 iterations (the two FKs agree to 1e-12 m). From IK_PROGRESS_MIN reaches it logs its time."""
+    import logging
+
+    import torch
+
+    from camo_sbi.io import recordings
+
+    rng = np.random.default_rng(4)
+    q_true = sim.start.double().numpy() + rng.uniform(-0.2, 0.2, size=(4, sim.n_joints))  # near the start
+    targets = sim.forward_kinematics(torch.from_numpy(q_true)).to(torch.float64).numpy()
+    monkeypatch.setattr(recordings, "IK_PROGRESS_MIN", 2)
+    monkeypatch.setattr(recordings, "IK_ITERATIONS", 40)  # the reference FK is slow: 40 of the 300 iterations
+    with caplog.at_level(logging.INFO, logger="camo_sbi.io.recordings"):
+        q_kernel, res_kernel = recordings.estimate_starts(sim, targets, sim.start)
+    assert re.search(r"start postures: IK of 4 reaches .*about [\d.e+-]+ s at most", caplog.text), caplog.text
+    monkeypatch.setattr(recordings, "_fk_numpy", lambda s: (
+        lambda q: s.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()))
+    q_ref, res_ref = recordings.estimate_starts(sim, targets, sim.start)
+    np.testing.assert_allclose(q_kernel, q_ref, atol=1e-9)
+    np.testing.assert_allclose(res_kernel, res_ref, atol=1e-9)
+    assert res_kernel.max() < 0.2 * np.linalg.norm(targets - sim.forward_kinematics(sim.start).double().numpy(),
+                                                     axis=1).max()  # it moved towards the targets
+
+
+def test_more_reaches_than_max_reaches_are_refused_naming_the_flag(tmp_path, sim, capsys):
+    """Issue 36: a 200,000-frame C3D sat silent for 240 s in the start-posture IK."""
+    from camo_sbi.io.frames import load_frame
+    from camo_sbi.io.recordings import MAX_REACHES, load_recording
+
+    args = {"goal": "final", "ee_markers": ["TOOL"], "frame": load_frame(DATA / "session_frame.json")}
+    with pytest.raises(ValueError, match=r"^--max-reaches: .*session\.c3d holds 8 reaches, more than 5: .* give "
+                                         r"--max-reaches 8 to run them all$"):
+        load_recording(DATA / "session.c3d", sim, max_reaches=5, **args)
+    assert len(load_recording(DATA / "session.c3d", sim, max_reaches=8, **args).observations) == 8
+    assert MAX_REACHES >= 1000
+    with pytest.raises(ValueError, match=r"^--max-reaches: expected a whole number >= 1, got 0$"):
+        load_recording(DATA / "session.c3d", sim, max_reaches=0, **args)
+    line = _exit_2(["infer", "--observations", str(DATA / "session.c3d"), "--ee-marker", "TOOL", "--frame",
+                    str(DATA / "session_frame.json"), "--goal", "final", *MODEL, "--methods", "nominal",
+                    "--max-reaches", "7", "--out", str(tmp_path / "o")], capsys)
+    assert line.startswith("--max-reaches: ") and "holds 8 reaches, more than 7" in line

@@ -540,7 +540,7 @@ def _infer_settings(args, model, overrides: dict) -> dict:
         except OSError:
             return None  # reported by the loader, naming the file
 
-    return run_settings(args, ignore=("config",), model_spec=json.loads(model.to_json()),
+    return run_settings(args, ignore=("config", "max_reaches"), model_spec=json.loads(model.to_json()),
                         config=json.dumps(overrides, sort_keys=True),
                         observations_sha256=digest(args.observations),
                         predict_goals_sha256=digest(args.predict_goals),
@@ -559,6 +559,7 @@ def _clear_infer_outputs(out: Path) -> None:
 
 
 SUGGEST_CANDIDATES = 200
+MAX_REACHES = 2000  # --max-reaches: a light copy of camo_sbi.io.recordings.MAX_REACHES (--help needs no torch)
 SUGGEST_DRAWS = 100
 
 
@@ -760,6 +761,9 @@ def add_recording_arguments(p: argparse.ArgumentParser) -> None:
                    help="C3D marker(s) of the end effector (several: their mean)")
     p.add_argument("--bvh-map", type=Path, default=None,
                    help="JSON mapping of a BVH file's channels to the model's joints (signs, offsets, reaches)")
+    p.add_argument("--max-reaches", type=int, default=MAX_REACHES, metavar="N",
+                   help="refuse a recording of more reaches (each is a task of every method; a larger one "
+                        "runs with a larger N)")
     p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
                    help="free: estimate the body's segment-length scale s in [0.85, 1.15] from the joint and "
                         "end-effector columns and infer on the scaled body")
@@ -791,7 +795,8 @@ def load_from_args(args, path, sim, noise, start):
                           resample=None if args.resample == "none" else args.resample, rate=args.rate,
                           ee_units=args.ee_units, goal=args.goal, frame=frame, ee_markers=ee_markers,
                           frame_markers=markers, body_scale=getattr(args, "body_scale", "fixed"),
-                          bvh_map=getattr(args, "bvh_map", None))
+                          bvh_map=getattr(args, "bvh_map", None),
+                          max_reaches=getattr(args, "max_reaches", MAX_REACHES))
 
 
 def write_starts(path: Path, obs, sim) -> Path:

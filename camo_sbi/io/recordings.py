@@ -402,13 +402,41 @@ def _check_units(table: _Table, radius: float, ee_units: str, frame: Frame | Non
 IK_ITERATIONS = 300
 IK_DAMPING = 0.02
 IK_MAX_STEP = 0.2
+IK_PROGRESS_MIN = 200
+"""From this many reaches on, the start-posture IK shows a progress bar and logs its estimated time."""
+
+MAX_REACHES = 2000
+"""A recording with more reaches is refused unless ``max_reaches`` (``--max-reaches``) allows it:
+every reach is a task of every method (``--budget`` simulations each) and an IK problem."""
+
+
+def _fk_numpy(simulator):
+    """q (B, n) float64 -> end-effector positions (B, 3): the simulator's numba kernel when it has
+    one (agrees with the reference FK to 1e-12 m, tests/test_simulators.py; thousands of times
+    faster than pytorch_kinematics on a batch), else its reference `forward_kinematics`."""
+    spec = getattr(simulator, "spec", None)
+    if spec is not None and getattr(simulator, "backend", "torch") != "torch":
+        from camo_sbi.simulators.kernel import kernel_fk
+
+        return lambda q: kernel_fk(spec, np.ascontiguousarray(q, dtype=np.float64))
+    return lambda q: simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
 
 
 def estimate_starts(simulator, targets, initial, bounds=None) -> tuple[np.ndarray, np.ndarray]:
     """Start postures whose end effector is at ``targets`` (R, 3): damped least squares from
     ``initial`` (n,) within ``bounds`` (default: the model's range), with a null-space pull
     back towards ``initial`` (the posture nearest the model's start that reaches the point).
-    Returns (postures (R, n), residual distances (R,) [m])."""
+    Returns (postures (R, n), residual distances (R,) [m]).
+
+    From `IK_PROGRESS_MIN` reaches on, a progress bar counts the iterations and the time of all
+    `IK_ITERATIONS` (an upper bound: it stops when every reach is solved), measured on the first
+    iteration, is logged (a warning above a minute)."""
+    import logging
+    import time
+
+    from tqdm import tqdm
+
+    fk_numpy = _fk_numpy(simulator)
     b = (simulator.bounds if bounds is None else torch.as_tensor(bounds)).to(torch.float64).numpy()
     x_t = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
     q0 = np.asarray(initial, dtype=np.float64)
@@ -416,10 +444,21 @@ def estimate_starts(simulator, targets, initial, bounds=None) -> tuple[np.ndarra
     q = np.broadcast_to(q0, (r, n)).copy()
     eps = 1e-6
     eye = np.eye(n)
-    for _ in range(IK_ITERATIONS):
+    big = r >= IK_PROGRESS_MIN
+    bar = tqdm(total=IK_ITERATIONS, desc=f"start postures (IK of {r} reaches)", unit="it", disable=not big,
+               leave=False)
+    fk_numpy(q[:1])  # loads (or compiles) the kernel before the timing
+    t0 = time.perf_counter()
+    for it in range(IK_ITERATIONS):
+        if it == 1 and big:
+            total = (time.perf_counter() - t0) * IK_ITERATIONS
+            logging.getLogger(__name__).log(
+                logging.WARNING if total > 60 else logging.INFO,
+                "start postures: IK of %d reaches (their first end-effector samples), about %.3g s at most "
+                "(%d iterations, measured on the first)", r, total, IK_ITERATIONS)
+        bar.update(1)
         pert = np.concatenate([q[:, None, :], q[:, None, :] + eps * eye[None]], axis=1)  # (r, n+1, n)
-        fk = simulator.forward_kinematics(torch.from_numpy(pert.reshape(-1, n))).to(torch.float64).numpy()
-        fk = fk.reshape(r, n + 1, 3)
+        fk = fk_numpy(pert.reshape(-1, n)).reshape(r, n + 1, 3)
         x = fk[:, 0]
         e = x_t - x
         if float(np.linalg.norm(e, axis=1).max()) < 1e-6:
@@ -433,8 +472,8 @@ def estimate_starts(simulator, targets, initial, bounds=None) -> tuple[np.ndarra
         step = np.abs(dq).max(axis=1, keepdims=True)
         dq *= np.minimum(1.0, IK_MAX_STEP / np.maximum(step, 1e-12))
         q = np.clip(q + dq, b[:, 0], b[:, 1])
-    x = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
-    return q, np.linalg.norm(x_t - x, axis=1)
+    bar.close()
+    return q, np.linalg.norm(x_t - fk_numpy(q), axis=1)
 
 
 def _uniform_in_time(t: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -503,7 +542,7 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                    start=None, resample: str | None = "time", rate: float | None = None,
                    ee_units: str | None = None, goal: str = "columns", frame: Frame | None = None,
                    ee_markers=None, frame_markers: dict | None = None, body_scale: str = "fixed",
-                   bvh_map=None) -> Recording:
+                   bvh_map=None, max_reaches: int | None = MAX_REACHES) -> Recording:
     """The observed reaches in the recording file ``path`` (CSV, .npz or .c3d), for ``simulator``.
 
     Args:
@@ -532,6 +571,8 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
             recorded body is estimated from the joint and end-effector columns
             (`estimate_body_scale`) and ``Recording.scale`` holds it; the checks use the
             scaled body (``simulator.scaled(s)``), as the caller should.
+        max_reaches: refuse a recording of more reaches (ValueError naming ``--max-reaches``);
+            None: no limit. Default `MAX_REACHES`.
 
     Returns:
         A `Recording`: one `Observation` per reach, in file order (float64), the warnings
@@ -550,6 +591,9 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         raise ValueError(f"ee_units: expected one of {tuple(EE_UNITS)}, got {ee_units!r}")
     if goal not in GOAL_MODES:
         raise ValueError(f"goal: expected one of {GOAL_MODES}, got {goal!r}")
+    if max_reaches is not None and (isinstance(max_reaches, bool) or not isinstance(max_reaches, int)
+                                    or max_reaches < 1):
+        raise ValueError(f"--max-reaches: expected a whole number >= 1, got {max_reaches!r}")
     if body_scale not in ("fixed", "free"):
         raise ValueError(f"body_scale: expected 'fixed' or 'free', got {body_scale!r}")
     path = Path(path)
@@ -606,6 +650,10 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
     radius = reach_radius(simulator)
     _check_units(table, radius, "file" if path.suffix.lower() == ".c3d" else ee_units or "m", frame)
     reaches = _reaches(table, goal)
+    if max_reaches is not None and len(reaches) > max_reaches:
+        raise ValueError(f"--max-reaches: {path} holds {len(reaches):,} reaches, more than {max_reaches:,}: every "
+                         f"reach is a task of every method (--budget simulations each) and, when the recording "
+                         f"has no joint columns, an IK problem; give --max-reaches {len(reaches)} to run them all")
     q_all = _joint_values(table, simulator, degrees, noise) if has_q else None
     ee_all = np.stack([table.columns[c] for c in EE_COLUMNS], axis=1) if has_ee else None
     if goal == "final":
