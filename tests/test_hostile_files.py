@@ -273,3 +273,47 @@ def test_more_reaches_than_max_reaches_are_refused_naming_the_flag(tmp_path, sim
                     str(DATA / "session_frame.json"), "--goal", "final", *MODEL, "--methods", "nominal",
                     "--max-reaches", "7", "--out", str(tmp_path / "o")], capsys)
     assert line.startswith("--max-reaches: ") and "holds 8 reaches, more than 7" in line
+
+
+def test_a_c3d_that_crashes_ezc3d_is_refused_and_this_process_lives_on(tmp_path, monkeypatch):
+    """Four bytes of session.c3d's parameter section, changed as a fuzzer did, made ezc3d 1.7
+    segfault (exit 139, the whole command gone): the file is opened in a child process first."""
+    from camo_sbi.io import c3d
+
+    data = bytearray((DATA / "session.c3d").read_bytes())
+    for pos, value in ((655, 0o114), (717, 0o112), (1036, 0o364), (1252, 0o106)):  # cmp -l: 1-based
+        data[pos - 1] = value
+    bad = tmp_path / "bad.c3d"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(bad))}: (cannot read as C3D|parameter|its header)"):
+        c3d.read_c3d(bad, ["TOOL"])
+    monkeypatch.setattr(c3d, "_PROBE", "import os, signal\nos.kill(os.getpid(), signal.SIGSEGV)\n")
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(bad))}: cannot read as C3D \(the C3D reader crashed on "
+                                         r"it, signal 11: a damaged file\)$"):
+        c3d.read_c3d(bad, ["TOOL"])
+    monkeypatch.setattr(c3d, "_PROBE", "import time\ntime.sleep(30)\n")
+    monkeypatch.setattr(c3d, "PROBE_TIMEOUT_S", 0.5)
+    with pytest.raises(ValueError, match=r"cannot read as C3D \(the reader took more than 0.5 s on it"):
+        c3d.read_c3d(bad, ["TOOL"])
+
+
+def test_c3d_with_more_frames_than_its_16_bit_header_says_is_warned(tmp_path):
+    """ezc3d writes 65,600 frames under a header count of 65,535 and reads back 65,535: the
+    frames beyond are reported, not silently dropped."""
+    ezc3d = pytest.importorskip("ezc3d")
+    from camo_sbi.io.c3d import read_c3d
+
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = [100.0]
+    c["parameters"]["POINT"]["LABELS"]["value"] = ("TOOL",)
+    c["parameters"]["POINT"]["UNITS"]["value"] = ["mm"]
+    pts = np.ones((4, 1, 65_600))
+    pts[0, 0] = np.arange(65_600) * 1e-3
+    c["data"]["points"] = pts
+    path = tmp_path / "long.c3d"
+    c.write(str(path))
+    d = read_c3d(path, ["TOOL"])
+    assert len(d["time"]) == 65_535
+    assert d["warnings"] == [f"{path}: holds data for 65,600 frames but its header declares 65,535 (a 16-bit count "
+                             "stops at 65,535): only those 65,535 were read"]
+    assert read_c3d(DATA / "session.c3d", ["TOOL"])["warnings"] == []

@@ -408,7 +408,7 @@ def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
                          f"checksum; retrain it with `camo-sbi amortize` (format {FORMAT!r})")
     try:
         meta = json.loads(blob["metadata"])
-    except ValueError as exc:
+    except (ValueError, RecursionError) as exc:  # RecursionError: nested thousands of levels deep
         raise ValueError(f"estimator: {name}'s metadata is not valid JSON (damaged file)") from exc
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__

@@ -5,6 +5,13 @@ than one is named) in metres (units from the file's ``POINT:UNITS``), with each 
 in seconds (``POINT:RATE``), split into reaches at the frames where a named marker is missing
 (a gap in the recording separates two reaches). The lab frame is kept: `camo_sbi.io.frames`
 maps it to the model's base.
+
+A damaged C3D can crash ezc3d (a segmentation fault in its C++ parser: a few flipped bytes in the
+parameter section do it) or make it allocate without bound. So every file is first opened by
+ezc3d in a child process (`_probe`: no torch, an address-space limit of 1 GiB + 32x the file's
+size, a time limit); only a
+file that opens there is read in this process. A crash, a timeout or an error there is a
+ValueError naming the file.
 """
 
 from __future__ import annotations
@@ -18,6 +25,41 @@ __all__ = ["UNITS", "read_c3d"]
 
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 
+PROBE_TIMEOUT_S = 120
+PROBE_MEMORY_BYTES = 1 << 30
+"""The child's address-space limit is this plus `PROBE_BYTES_PER_FILE_BYTE` times the file's size
+(ezc3d holds ~15 bytes per byte of a file it reads whole: a damaged parameter section that asks
+for more fails there, in ~5 s, instead of filling this process's memory)."""
+PROBE_BYTES_PER_FILE_BYTE = 32
+_PROBE = ("import resource, sys\n"
+          "resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[2]), int(sys.argv[2])))\n"
+          "import ezc3d\n"
+          "ezc3d.c3d(sys.argv[1])\n")
+
+
+def _probe(path: Path) -> None:
+    """Open ``path`` with ezc3d in a child process first; ValueError naming it when that crashes,
+    runs out of memory or time, or fails."""
+    import subprocess
+    import sys
+
+    try:
+        limit = PROBE_MEMORY_BYTES + PROBE_BYTES_PER_FILE_BYTE * path.stat().st_size
+        r = subprocess.run([sys.executable, "-I", "-c", _PROBE, str(path), str(limit)],
+                           capture_output=True, timeout=PROBE_TIMEOUT_S, text=True, errors="replace",
+                           stdin=subprocess.DEVNULL)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except subprocess.TimeoutExpired:
+        raise ValueError(f"{path}: cannot read as C3D (the reader took more than {PROBE_TIMEOUT_S} s on it: a "
+                         f"damaged file?)") from None
+    if r.returncode < 0:
+        raise ValueError(f"{path}: cannot read as C3D (the C3D reader crashed on it, signal {-r.returncode}: a "
+                         f"damaged file)")
+    if r.returncode != 0:
+        last = (r.stderr.strip().splitlines() or [f"exit status {r.returncode}"])[-1]
+        raise ValueError(f"{path}: cannot read as C3D ({' '.join(last.split())[:200]})")
+
 
 def _param(c3d, group: str, name: str, path: Path):
     try:
@@ -26,7 +68,7 @@ def _param(c3d, group: str, name: str, path: Path):
         raise ValueError(f"{path}: parameter {group}:{name} is missing (not a C3D point file?)") from None
 
 
-def _check_complete(path: Path, c3d) -> None:
+def _check_complete(path: Path, c3d) -> int | None:
     """ValueError when the file holds fewer frames than its header declares (a cut-off file:
     ezc3d reads what is there and quietly shrinks its header to match). The frame count, data
     start and counts of the header's first 24 bytes are read here; the sample size comes from
@@ -46,32 +88,37 @@ def _check_complete(path: Path, c3d) -> None:
         raise ValueError(f"{path}: cut off inside its header ({size} bytes)")
     endian = ">" if proc[0] == 86 else "<"  # 84 Intel, 85 DEC (little-endian integers), 86 MIPS
     _, n_points, n_analog, first, last, _, _, _, data_block = struct.unpack(f"{endian}9H", head[:18])
-    if last == 0xFFFF or last < first or data_block < 1:  # long trials keep their count in parameters only
-        return
+    if last < first or data_block < 1:
+        return None
     scale = np.asarray(_param(c3d, "POINT", "SCALE", path), dtype=np.float64).reshape(-1)
     sample = 4 if scale.size and scale[0] < 0 else 2
     frame_bytes = (4 * n_points + n_analog) * sample
     if frame_bytes == 0:
-        return
+        return None
     declared = last - first + 1
     held = max(size - (data_block - 1) * 512, 0) // frame_bytes
-    if held < declared:
+    if held < declared and last != 0xFFFF:  # 65535: a long trial keeps its count in its parameters
         raise ValueError(f"{path}: its header declares {declared} frames but the file holds {held} complete ones "
                          f"({size:,} bytes; cut off?)")
+    return max(size - (data_block - 1) * 512 - 511, 0) // frame_bytes  # frames held beyond any block padding
 
 
 def read_c3d(path, ee_markers, extra_markers=()) -> dict:
     """{"time" (F,), "reach" (F,), "ee" (F, 3) [m], "frames" (F,), "markers" {name: (3,) mean lab
-    position [m]} for ``extra_markers``, "units": the file's unit} for the frames where every
-    end-effector marker is present; reaches are runs of such frames (>= 2 frames)."""
+    position [m]} for ``extra_markers``, "units": the file's unit, "warnings": [str]} for the frames
+    where every end-effector marker is present; reaches are runs of such frames (>= 2 frames). A
+    warning says when the file holds more frames than its header declares (and ezc3d reads)."""
     import ezc3d
 
     path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file")
+    _probe(path)
     try:
         c3d = ezc3d.c3d(str(path))
     except (OSError, RuntimeError, ValueError) as exc:
         raise ValueError(f"{path}: cannot read as C3D ({exc})") from None
-    _check_complete(path, c3d)
+    held = _check_complete(path, c3d)
     labels = [str(s).strip() for s in _param(c3d, "POINT", "LABELS", path)]
     units_v = _param(c3d, "POINT", "UNITS", path)
     unit = str(units_v[0]).strip().lower() if len(units_v) else ""
@@ -111,5 +158,9 @@ def read_c3d(path, ee_markers, extra_markers=()) -> dict:
         if not ok.any():
             raise ValueError(f"--frame-from-markers: marker {m!r} is never visible in {path}")
         markers[m] = x[ok].mean(axis=0)
+    warnings = []
+    if held is not None and held > pts.shape[2]:
+        warnings.append(f"{path}: holds data for {held:,} frames but its header declares {pts.shape[2]:,} (a 16-bit "
+                        f"count stops at 65,535): only those {pts.shape[2]:,} were read")
     return {"time": frame_no[keep] / rate, "reach": reach.astype(np.float64), "ee": ee[keep],
-            "frames": frame_no[keep], "markers": markers, "units": unit}
+            "frames": frame_no[keep], "markers": markers, "units": unit, "warnings": warnings}

@@ -606,6 +606,7 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
             raise ValueError(f"{path}: no such file")
         table, c3d = _read_c3d(path, ee_markers, frame_markers)
         info["ee_units"] = f"{c3d['units']} (POINT:UNITS)"
+        warns.extend(c3d["warnings"])
         info["ee_marker"] = "+".join(ee_markers)
         if frame_markers:
             frame = frame_from_markers(c3d["markers"], frame_markers)
