@@ -442,7 +442,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             code = int(args.func(command_args) or 0)
         except ValueError as exc:
-            code, error = 2, str(exc)
+            code, error = 2, " ".join(str(exc).splitlines())  # one line, whatever a library put in it
         except OSError as exc:  # a full disk, a read-only or forbidden path, a file gone: one line, no traceback
             code, error = 2, os_error_line(exc)
     if options["json"]:

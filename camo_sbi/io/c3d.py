@@ -8,8 +8,8 @@ maps it to the model's base.
 
 A damaged C3D can crash ezc3d (a segmentation fault in its C++ parser: a few flipped bytes in the
 parameter section do it) or make it allocate without bound. So every file is first opened by
-ezc3d in a child process (`_probe`: no torch, an address-space limit of 1 GiB + 32x the file's
-size, a time limit); only a
+ezc3d in a child process (`_probe`: no torch, an address-space limit of 512 MiB + 32x the
+file's size, 20 s + 1 s per 10 MB); only a
 file that opens there is read in this process. A crash, a timeout or an error there is a
 ValueError naming the file.
 """
@@ -25,14 +25,19 @@ __all__ = ["UNITS", "read_c3d"]
 
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 
-PROBE_TIMEOUT_S = 120
-PROBE_MEMORY_BYTES = 1 << 30
+PROBE_TIMEOUT_S = 20
+"""The child's time limit is this plus one second per 10 MB of file (ezc3d reads ~10 MB/s)."""
+PROBE_MEMORY_BYTES = 512 << 20
 """The child's address-space limit is this plus `PROBE_BYTES_PER_FILE_BYTE` times the file's size
-(ezc3d holds ~15 bytes per byte of a file it reads whole: a damaged parameter section that asks
-for more fails there, in ~5 s, instead of filling this process's memory)."""
+(a 12.8 MB file reads within 256 MiB: a damaged parameter section that asks for more fails there,
+in ~3 s, instead of filling this process's memory)."""
 PROBE_BYTES_PER_FILE_BYTE = 32
-_PROBE = ("import resource, sys\n"
-          "resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[2]), int(sys.argv[2])))\n"
+_PROBE = ("import sys\n"
+          "try:\n"
+          "    import resource\n"
+          "    resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[2]), int(sys.argv[2])))\n"
+          "except (ImportError, ValueError, OSError):\n"  # a system without RLIMIT_AS: no memory limit
+          "    pass\n"
           "import ezc3d\n"
           "ezc3d.c3d(sys.argv[1])\n")
 
@@ -44,14 +49,16 @@ def _probe(path: Path) -> None:
     import sys
 
     try:
-        limit = PROBE_MEMORY_BYTES + PROBE_BYTES_PER_FILE_BYTE * path.stat().st_size
+        size = path.stat().st_size
+        limit = PROBE_MEMORY_BYTES + PROBE_BYTES_PER_FILE_BYTE * size
+        timeout = PROBE_TIMEOUT_S + size / 1e7
         r = subprocess.run([sys.executable, "-I", "-c", _PROBE, str(path), str(limit)],
-                           capture_output=True, timeout=PROBE_TIMEOUT_S, text=True, errors="replace",
+                           capture_output=True, timeout=timeout, text=True, errors="replace",
                            stdin=subprocess.DEVNULL)
     except OSError as exc:
         raise ValueError(f"{path}: cannot read ({exc.strerror or exc})") from None
     except subprocess.TimeoutExpired:
-        raise ValueError(f"{path}: cannot read as C3D (the reader took more than {PROBE_TIMEOUT_S} s on it: a "
+        raise ValueError(f"{path}: cannot read as C3D (the reader took more than {timeout:.3g} s on it: a "
                          f"damaged file?)") from None
     if r.returncode < 0:
         raise ValueError(f"{path}: cannot read as C3D (the C3D reader crashed on it, signal {-r.returncode}: a "

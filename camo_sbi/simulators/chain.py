@@ -211,7 +211,7 @@ def _quiet_parser():
 def read_urdf(urdf) -> str:
     """URDF text from text or a path (str / os.PathLike). TypeError/ValueError naming ``urdf``;
     a message never quotes a file's text (only a short one-line string, taken as a path)."""
-    if isinstance(urdf, str) and "<robot" not in urdf and ("\n" in urdf or "\0" in urdf or len(urdf) > 1024):
+    if isinstance(urdf, str) and "<robot" not in urdf and ("\n" in urdf or "\0" in urdf or len(urdf) > 4096):
         raise ValueError(f"urdf: not a URDF (no <robot> element in its {len(urdf):,} characters)")
     if isinstance(urdf, os.PathLike) or (isinstance(urdf, str) and "<robot" not in urdf):
         path = Path(urdf)
@@ -308,12 +308,12 @@ def load_chain(urdf, end_effector: str, joints=None, *, base_link: str | None = 
         with _quiet_parser():
             robot = URDF.from_xml_string(text)
     except Exception as exc:  # the parser raises assorted types on malformed XML
-        raise ValueError(f"urdf: cannot parse URDF ({exc})") from exc
+        raise ValueError(f"urdf: cannot parse URDF ({' '.join(str(exc).split())[:300]})") from exc
     _check_urdf_structure(robot)
     try:
         root = robot.get_root()
     except Exception as exc:  # e.g. two roots
-        raise ValueError(f"urdf: no single root link ({exc})") from exc
+        raise ValueError(f"urdf: no single root link ({' '.join(str(exc).split())[:300]})") from exc
     _check_urdf_numbers(robot)
     if not isinstance(end_effector, str) or end_effector not in robot.link_map:
         raise ValueError(f"end_effector: no link named {end_effector!r} in the URDF")
