@@ -8,8 +8,8 @@ maps it to the model's base.
 
 A damaged C3D can crash ezc3d (a segmentation fault in its C++ parser: a few flipped bytes in the
 parameter section do it) or make it allocate without bound. So every file is first opened by
-ezc3d in a child process (`_probe`: no torch, an address-space limit of 512 MiB + 32x the
-file's size, 20 s + 1 s per 10 MB); only a
+ezc3d in a child process (`_probe`: no torch, an address-space limit that grows with the
+file's size, `PROBE_MEMORY_BYTES` and up, and a time limit, `PROBE_TIMEOUT_S` and up); only a
 file that opens there is read in this process. A crash, a timeout or an error there is a
 ValueError naming the file.
 """
