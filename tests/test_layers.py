@@ -30,7 +30,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "camo_sbi"
 
 LAYERS = {
-    "_validation": 0, "_io": 0, "_threads": 0.5,
+    "_validation": 0, "_io": 0, "_threads": 0.5, "_memory": 0,
     "simulators": 1,
     "priors": 2, "budget": 2,
     "task": 3, "distributed": 3,

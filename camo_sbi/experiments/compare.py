@@ -61,6 +61,24 @@ def grid_methods(text: str) -> list[str]:
     return methods + [b for b in names(baseline=True) if b not in methods]
 
 
+FLAGS = {"seeds": "--seeds", "tasks": "--tasks", "test_goals": "--test-goals", "workers": "--workers"}
+
+
+def check_grid_size(args, *, subjects: int = 1, sim=None, names: dict | None = None) -> int:
+    """Refuse counts (--seeds, --tasks, --test-goals, --workers) whose grid cannot fit in memory
+    (`camo_sbi._memory.check_grid_fits`, a lower bound), before anything is built. Without ``sim``
+    the model's size is taken as its least (one joint, one point per reach): the check a study
+    makes of all its entries up front. ``names``: how the counts are spelt to the user."""
+    from camo_sbi._memory import check_grid_fits
+
+    cells_per_seed = subjects * len(grid_methods(args.methods)) * len(_parse_list(args.budgets, "budgets", int))
+    size = {} if sim is None else {"n_joints": sim.n_joints,
+                                   "max_steps": getattr(getattr(sim, "config", None), "max_steps", 1)}
+    return check_grid_fits(seeds=args.seeds, cells_per_seed=cells_per_seed, tasks=args.tasks,
+                           test_goals=args.test_goals, workers=getattr(args, "workers", 1) or 1,
+                           names=names or FLAGS, **size)
+
+
 def grid_cells(args, *, build: bool = True) -> list:
     """Every grid cell as a `Cell` (picklable; its identity is its key).
 
@@ -77,8 +95,9 @@ def grid_cells(args, *, build: bool = True) -> list:
         raise ValueError("--seeds/--tasks/--test-goals: must be >= 1")
     model = model_from_args(args, build=build)
     subjects = subject_list(model, args.subjects)
+    sim = model.build() if build else None
+    check_grid_size(args, subjects=len(subjects), sim=sim)  # before a cell or a task is built
     if build:
-        sim = model.build()
         for s in subjects:
             subject_limits(model, sim, s)
     # the model in the key: its name as "task"; a built-in model with its defaults keeps the cell

@@ -157,6 +157,25 @@ def compare_argvs(study: dict, path: Path, out: Path) -> list[tuple[str, list[st
     return entries
 
 
+def _check_sizes(entries: list[tuple[str, list[str]]], path: Path) -> None:
+    """Every entry's counts (seeds, tasks, test-goals, workers) against this machine's memory,
+    before the first entry runs (`compare.check_grid_size`; its own check follows per entry with
+    the model's real size): ValueError naming the file, the entry and the key."""
+    from camo_sbi.experiments import compare
+
+    parser = _compare_parser()
+    names = {"seeds": "seeds", "tasks": "tasks", "test_goals": "test-goals", "workers": "workers"}
+    for i, (name, argv) in enumerate(entries, 1):
+        args = parser.parse_args(argv)
+        if min(args.seeds, args.tasks, args.test_goals, args.workers) < 1:
+            continue  # compare refuses these itself, naming the flag
+        subjects = len([s for s in str(args.subjects or "x").split(",") if s.strip()]) or 1
+        try:
+            compare.check_grid_size(args, subjects=subjects, names=names)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: [[model]] {i} ({name}): {exc}") from exc
+
+
 def main(args) -> int:
     from camo_sbi._io import atomic_write_text
     from camo_sbi.experiments import compare
@@ -167,6 +186,7 @@ def main(args) -> int:
     entries = compare_argvs(study, path, out)
     if args.workers is not None:
         entries = [(n, [*argv, "--workers", str(args.workers)]) for n, argv in entries]
+    _check_sizes(entries, path)
     commands = {n: "camo-sbi compare " + shlex.join(argv) for n, argv in entries}
     if args.dry_run:
         print("\n".join(commands.values()))

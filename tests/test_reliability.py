@@ -1,0 +1,68 @@
+"""Issue 36 (reliability, round four): counts bounded up front, a study's combined table keeps its
+entries apart, estimator metadata checked before use, a full disk, planted symlinks and an
+unreachable scheduler end in one clear line (exit 2), never a hang, a traceback or a segfault."""
+
+from __future__ import annotations
+
+import pytest
+
+from camo_sbi import _memory as budget
+from camo_sbi.experiments.cli import main
+from tests.test_cli_conventions import STUDY
+
+GB = 2**30
+
+
+def _exit_2(argv, capsys) -> str:
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err  # one line, no traceback
+    return err[0]
+
+
+# ----------------------------------------------------------------------------- counts (severe 3)
+
+def test_grid_memory_bound_names_the_count_that_does_not_fit():
+    kw = {"cells_per_seed": 3, "tasks": 3, "test_goals": 10, "n_joints": 7, "max_steps": 100}
+    small = budget.check_grid_fits(seeds=2, **kw, memory_bytes=GB)
+    # the lower bound: 6 cells of 1 KB + 3 rows of 100 B each, and one cell's 13 reaches in flight
+    assert small == 6 * (1000 + 3 * 100) + 13 * 100 * 10 * 8
+    assert budget.check_grid_fits(seeds=4, **kw, memory_bytes=GB) > small
+    with pytest.raises(ValueError, match=r"^--seeds: 1000000000000000000 is too large: .* make --seeds smaller$"):
+        budget.check_grid_fits(seeds=10**18, **kw, names={"seeds": "--seeds"}, memory_bytes=23 * GB)
+    with pytest.raises(ValueError, match=r"^tasks: 100000000 is too large: .*needs at least .* this machine has 23 GB"):
+        budget.check_grid_fits(seeds=2, **{**kw, "tasks": 10**8}, memory_bytes=23 * GB)
+    with pytest.raises(ValueError, match=r"^test_goals: "):
+        budget.check_grid_fits(seeds=2, **{**kw, "test_goals": 10**9}, memory_bytes=23 * GB)
+    with pytest.raises(ValueError, match=r"^workers: 1000 is too large"):
+        budget.check_grid_fits(seeds=1000, **kw, workers=1000, memory_bytes=23 * GB)
+    with pytest.raises(ValueError, match=r"^seeds: must be >= 1"):
+        budget.check_grid_fits(seeds=0, **kw)
+
+
+@pytest.mark.parametrize("key, value", [("seeds", 10**18), ("tasks", 10**8), ("test-goals", 10**9)])
+def test_study_with_absurd_counts_is_refused_up_front(key, value, tmp_path, capsys, monkeypatch):
+    """The reporter's cases (23 GB machine): refused before the first entry runs, naming the
+    file, the entry and the key; nothing is written."""
+    monkeypatch.setattr(budget, "physical_memory", lambda: 23 * GB)
+    line = f"{key} = 1\n" if key != "test-goals" else "test-goals = 2\n"
+    assert line in STUDY
+    study = tmp_path / "study.toml"
+    study.write_text(STUDY.replace(line, f"{key} = {value}\n"))
+    msg = _exit_2(["run", str(study), "--out", str(tmp_path / "out")], capsys)
+    assert msg.startswith(f"camo-sbi: error: {study}: [[model]] 1 (panda): {key}: {value} is too large"), msg
+    assert not (tmp_path / "out").exists()
+
+
+def test_compare_refuses_counts_with_the_models_real_size(tmp_path, capsys, monkeypatch):
+    """compare's own check knows the model (7 joints, 100 points a reach): 1e7 tasks need 80 GB."""
+    monkeypatch.setattr(budget, "physical_memory", lambda: 23 * GB)
+    msg = _exit_2(["compare", "--model", "panda", "--methods", "naive", "--tasks", "10000000",
+                   "--out", str(tmp_path / "o")], capsys)
+    assert msg.startswith("camo-sbi: error: --tasks: 10000000 is too large") and "80.1 GB" in msg, msg
+    msg = _exit_2(["compare", "--model", "panda", "--methods", "naive", "--seeds", "1000", "--workers", "1000",
+                   "--out", str(tmp_path / "o")], capsys)
+    assert msg.startswith("camo-sbi: error: --workers: 1000 is too large"), msg
+    assert not (tmp_path / "o").exists()
