@@ -66,3 +66,58 @@ def test_compare_refuses_counts_with_the_models_real_size(tmp_path, capsys, monk
                    "--out", str(tmp_path / "o")], capsys)
     assert msg.startswith("camo-sbi: error: --workers: 1000 is too large"), msg
     assert not (tmp_path / "o").exists()
+
+
+# ----------------------------------------------------------------------------- study table (severe 4)
+
+TWO_ON_ONE = """\
+methods = ["naive"]
+budgets = [20]
+seeds = 1
+tasks = 2
+test-goals = 2
+no-report = true
+
+[[model]]
+name = "a"
+model = "panda"
+
+[[model]]
+name = "b"
+model = "panda"
+seed = 1
+"""
+
+
+def test_study_table_keeps_two_entries_on_one_model_apart(tmp_path, capsys):
+    import pandas as pd
+
+    study = tmp_path / "study.toml"
+    study.write_text(TWO_ON_ONE)
+    out = tmp_path / "out"
+    assert main(["run", str(study), "--out", str(out)]) == 0
+    table = pd.read_csv(out / "results.csv")
+    assert table.columns[0] == "entry" and set(table.entry) == {"a", "b"}
+    key = ["entry", "task", "subject", "method", "budget", "seed", "n_tasks", "metric"]
+    assert set(key) <= set(table.columns)
+    assert not table.duplicated(key).any()
+    # without the entry the two grids collide on every row: the column is what keeps them apart
+    assert table.drop(columns="entry").duplicated(key[1:]).sum() == len(table) // 2
+    for name in ("a", "b"):  # every entry's rows are its own grid's, unchanged
+        own = pd.read_csv(out / name / "results.csv")
+        mine = table[table.entry == name].drop(columns="entry").reset_index(drop=True)
+        pd.testing.assert_frame_equal(mine, own)
+    capsys.readouterr()
+    assert main(["run", str(study), "--out", str(out)]) == 0  # a re-run resumes: every cell finished
+    rerun = capsys.readouterr().out
+    assert rerun.count("cells, ") == 2 and all(
+        line.split()[0] == line.split()[2] for line in rerun.splitlines() if " already finished" in line), rerun
+    pd.testing.assert_frame_equal(pd.read_csv(out / "results.csv"), table)
+
+
+@pytest.mark.parametrize("second", ['name = "a"', 'name = "A"'])
+def test_study_refuses_duplicate_entry_names(second, tmp_path, capsys):
+    study = tmp_path / "study.toml"
+    study.write_text(TWO_ON_ONE.replace('name = "b"', second))
+    msg = _exit_2(["run", str(study), "--out", str(tmp_path / "out")], capsys)
+    assert msg.startswith(f"camo-sbi: error: {study}: [[model]] 2") and "must be unique" in msg, msg

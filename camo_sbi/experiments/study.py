@@ -13,7 +13,8 @@ the equivalent ``camo-sbi compare`` command line); each entry's compare manifest
 ``study`` (the file and the entry's name) next to its settings. Re-running the same study skips
 every finished cell (each grid resumes like ``compare``); a study whose settings changed is
 refused per entry, like a re-run of ``compare`` with other settings. ``OUT/results.csv`` is the
-concatenation of the entries' tables (their ``task`` column names the model).
+concatenation of the entries' tables, each row led by an ``entry`` column (the entry's name, unique
+in the file, also ignoring case; the ``task`` column names the model, which two entries may share).
 ``--dry-run`` prints the compare command lines and runs nothing.
 """
 
@@ -131,9 +132,10 @@ def compare_argvs(study: dict, path: Path, out: Path) -> list[tuple[str, list[st
         merged = {**base, **{k: v for k, v in entry.items() if k != "name"}}
         name = str(entry.get("name") or merged.get("model") or Path(str(merged.get("urdf", f"model{i}"))).stem)
         where = f"{path}: [[model]] {i} ({name})"
-        if name in seen or not name or "/" in name or name.startswith("."):
-            raise ValueError(f"{where}: name {name!r} must be unique and a plain directory name")
-        seen.add(name)
+        if name.casefold() in seen or not name or "/" in name or "\\" in name or name.startswith("."):
+            raise ValueError(f"{where}: name {name!r} must be unique (also ignoring case) and a plain "
+                             f"directory name")
+        seen.add(name.casefold())
         if "config" in entry or "out" in entry:
             raise ValueError(f"{where}: 'config' and 'out' belong to the study, not to an entry")
         argv = []
@@ -209,7 +211,11 @@ def main(args) -> int:
         tables.append(out / name / "results.csv")
     import pandas as pd
 
-    table = pd.concat([pd.read_csv(t) for t in tables], ignore_index=True)
+    # the entry's name first in every row: two entries on one model (other seed, other height)
+    # share every other column, and only the entry tells their rows apart
+    table = pd.concat([pd.read_csv(t).assign(entry=name) for (name, _), t in zip(entries, tables)],
+                      ignore_index=True)
+    table = table[["entry", *(c for c in table.columns if c != "entry")]]
     atomic_write_text(out / "results.csv", table.to_csv(index=False))
     print(f"study: {out / 'results.csv'} ({len(table)} rows from {len(tables)} grids); "
           f"reports: {', '.join(str(out / n / 'report.html') for n, _ in entries)}")
