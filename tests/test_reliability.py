@@ -70,14 +70,9 @@ def test_compare_refuses_counts_with_the_models_real_size(tmp_path, capsys, monk
 
 # ----------------------------------------------------------------------------- study table (severe 4)
 
-TWO_ON_ONE = """\
-methods = ["naive"]
-budgets = [20]
-seeds = 1
-tasks = 2
-test-goals = 2
-no-report = true
-
+# STUDY's settings (naive, budget 20, 2 test goals, no report) with 2 tasks, on two entries that
+# differ only by their name and seed
+TWO_ON_ONE = STUDY.split("[[model]]")[0].replace("tasks = 1", "tasks = 2") + """\
 [[model]]
 name = "a"
 model = "panda"

@@ -199,7 +199,6 @@ def main(args) -> int:
         {"file": str(path), "sha256": hashlib.sha256(text.encode()).hexdigest(), "name": study.get("name"),
          "entries": commands}, indent=2) + "\n")
     parser = _compare_parser()
-    tables = []
     for i, (name, argv) in enumerate(entries, 1):
         print(f"== study entry {i}/{len(entries)} ({name}): {commands[name]}", flush=True)
         entry_args = parser.parse_args(argv)
@@ -208,15 +207,14 @@ def main(args) -> int:
             compare.main(entry_args)
         except ValueError as exc:
             raise ValueError(f"{path}: [[model]] {i} ({name}): {exc}") from exc
-        tables.append(out / name / "results.csv")
     import pandas as pd
 
     # the entry's name first in every row: two entries on one model (other seed, other height)
     # share every other column, and only the entry tells their rows apart
-    table = pd.concat([pd.read_csv(t).assign(entry=name) for (name, _), t in zip(entries, tables)],
+    table = pd.concat([pd.read_csv(out / name / "results.csv").assign(entry=name) for name, _ in entries],
                       ignore_index=True)
     table = table[["entry", *(c for c in table.columns if c != "entry")]]
     atomic_write_text(out / "results.csv", table.to_csv(index=False))
-    print(f"study: {out / 'results.csv'} ({len(table)} rows from {len(tables)} grids); "
+    print(f"study: {out / 'results.csv'} ({len(table)} rows from {len(entries)} grids); "
           f"reports: {', '.join(str(out / n / 'report.html') for n, _ in entries)}")
     return 0
