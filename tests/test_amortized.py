@@ -278,19 +278,25 @@ def test_a_damaged_or_incomplete_estimator_file_is_refused_by_name(paths, tmp_pa
         load_estimator(save("old.pt", old))
 
 
-def test_infer_with_a_byte_flipped_estimator_exits_2_naming_the_file(paths, tmp_path, capsys):
+def _compare_refuses(estimator, tmp_path, capsys) -> str:
+    """compare with this estimator file exits 2 with one line naming it, running no cell."""
     from camo_sbi.experiments.cli import main
 
-    flipped = tmp_path / "flipped.pt"
-    flipped.write_bytes(_flip(paths["set"].read_bytes()))
     out = tmp_path / "run"
     with pytest.raises(SystemExit) as exc:
-        main(["compare", "--model", "panda", "--methods", "npe-amortized", "--amortized", str(flipped),
+        main(["compare", "--model", "panda", "--methods", "npe-amortized", "--amortized", str(estimator),
               "--budgets", "20", "--seeds", "1", "--tasks", "2", "--no-report", "--out", str(out)])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("camo-sbi: error: --amortized: estimator: ") and str(flipped) in err[0]
+    assert len(err) == 1 and err[0].startswith("camo-sbi: error: --amortized: estimator: ") and str(estimator) in err[0]
     assert not (out / "cells").exists()
+    return err[0]
+
+
+def test_infer_with_a_byte_flipped_estimator_exits_2_naming_the_file(paths, tmp_path, capsys):
+    flipped = tmp_path / "flipped.pt"
+    flipped.write_bytes(_flip(paths["set"].read_bytes()))
+    _compare_refuses(flipped, tmp_path, capsys)
 
 
 def _resigned(blob: dict, edit) -> bytes:
@@ -355,20 +361,10 @@ def test_a_resigned_estimator_with_edited_metadata_is_refused_naming_the_key(pat
 
 
 def test_compare_with_a_resigned_estimator_exits_2_in_one_line(paths, tmp_path, capsys):
-    from camo_sbi.experiments.cli import main
-
     blob = torch.load(paths["set"], weights_only=True)
     edited = tmp_path / "edited.pt"
     edited.write_bytes(_resigned(blob, _set("features.joint.n_kept", 10**7)))
-    out = tmp_path / "run"
-    with pytest.raises(SystemExit) as exc:
-        main(["compare", "--model", "panda", "--methods", "npe-amortized", "--amortized", str(edited),
-              "--budgets", "20", "--seeds", "1", "--tasks", "2", "--no-report", "--out", str(out)])
-    assert exc.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("camo-sbi: error: --amortized: estimator: ") and str(edited) in err[0]
-    assert "features.joint.n_kept" in err[0], err
-    assert not (out / "cells").exists()
+    assert "features.joint.n_kept" in _compare_refuses(edited, tmp_path, capsys)
 
 
 def test_set_form_refuses_more_reaches_than_it_was_trained_on(paths):
