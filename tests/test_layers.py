@@ -166,6 +166,7 @@ def test_the_graph_is_not_vacuous():
 #: third-party libraries reached through one adapter module each (README, Architecture)
 ADAPTERS = {
     "arviz": {"camo_sbi.diagnostics.arviz_io"},
+    "xarray": {"camo_sbi.diagnostics.arviz_io"},  # arviz's data model, used only to write netCDF in memory
     "pyabc": {"camo_sbi.inference.abc_smc"},
     "sbi": {"camo_sbi.inference.sbi_adapter"},
     "ezc3d": {"camo_sbi.io.c3d"},

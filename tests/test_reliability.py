@@ -116,3 +116,120 @@ def test_study_refuses_duplicate_entry_names(second, tmp_path, capsys):
     study.write_text(TWO_ON_ONE.replace('name = "b"', second))
     msg = _exit_2(["run", str(study), "--out", str(tmp_path / "out")], capsys)
     assert msg.startswith(f"camo-sbi: error: {study}: [[model]] 2") and "must be unique" in msg, msg
+
+
+# ----------------------------------------------------------------------------- a full disk
+
+_LIMITED = """\
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG), as on a full disk
+resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit}))
+from camo_sbi.experiments.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def _run_limited(argv, limit_bytes: int):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-c", _LIMITED.format(limit=limit_bytes), *argv],
+                          capture_output=True, text=True, timeout=600)
+
+
+def _assert_one_clean_line(proc, needle: str):
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])  # not 139 (a segfault), not 1
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr[-2000:]
+    assert lines[-1].startswith("camo-sbi: error: ") and needle in lines[-1], lines[-1]
+    assert not any(line.startswith("camo-sbi: error") for line in lines[:-1]), proc.stderr
+
+
+def test_a_netcdf_that_cannot_be_written_is_one_oserror_naming_the_file(tmp_path):
+    """In this process, the file size limited below the file (the kernel refuses the write, as a
+    full disk does): one OSError naming the file, no half-written file, no HDF5 object left open
+    (before, HDF5 wrote on disk itself and crashed the interpreter at exit)."""
+    import errno
+    import resource
+    import signal
+
+    import arviz as az
+    import numpy as np
+
+    from camo_sbi.diagnostics.arviz_io import load_netcdf, save_netcdf
+
+    idata = az.from_dict(posterior={"limits": np.random.default_rng(0).normal(size=(1, 2000, 4))})
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    old = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (8192, hard))
+    try:
+        with pytest.raises(OSError) as exc:
+            save_netcdf(idata, tmp_path / "p.nc")
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, old)
+    assert exc.value.errno == errno.EFBIG and exc.value.filename == str(tmp_path / "p.nc")
+    assert list(tmp_path.iterdir()) == []
+    save_netcdf(idata, tmp_path / "p.nc")  # with room, the same call writes a file arviz reads back
+    np.testing.assert_array_equal(load_netcdf(tmp_path / "p.nc").posterior["limits"].values,
+                                  idata.posterior["limits"].values)
+
+
+@pytest.fixture(scope="module")
+def reaches(tmp_path_factory):
+    from tests.test_infer_cli import LIMITS, MODEL, NOISE
+
+    path = tmp_path_factory.mktemp("obs") / "reaches.csv"
+    assert main(["simulate-observations", *MODEL, *LIMITS, "--reaches", "3", "--seed", "2", *NOISE,
+                 "--out", str(path)]) == 0
+    return path
+
+
+@pytest.mark.slow
+def test_infer_on_a_full_disk_exits_2_in_one_line(reaches, tmp_path):
+    """Every file size limited to 8 KB (RLIMIT_FSIZE: the kernel refuses the write in C, where
+    HDF5 writes, as a full disk does; no root needed): the first netCDF (a few tens of KB) cannot
+    be written. Before, HDF5's half-written file printed "Exception ignored" tracebacks and the
+    interpreter crashed at exit (139); now one line names the file, exit 2."""
+    from tests.test_infer_cli import MODEL, NOISE
+
+    out = tmp_path / "infer"
+    proc = _run_limited(["infer", "--observations", str(reaches), *MODEL, *NOISE, "--methods", "naive",
+                         "--out", str(out)], 8192)
+    _assert_one_clean_line(proc, f"{out}/estimates/naive.nc: File too large (EFBIG)")
+    assert not list((out / "estimates").glob(".*.tmp"))  # no half-written file left behind
+
+
+@pytest.mark.slow
+def test_compare_on_a_full_disk_exits_2_in_one_line(tmp_path):
+    """As above for compare (its cells write their netCDF through the same writer)."""
+    out = tmp_path / "compare"
+    proc = _run_limited(["compare", "--model", "panda", "--methods", "naive", "--budgets", "20", "--seeds", "1",
+                         "--tasks", "1", "--test-goals", "2", "--no-report", "--out", str(out)], 8192)
+    _assert_one_clean_line(proc, "File too large (EFBIG)")
+    assert f"{out}/estimates/" in proc.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.slow
+def test_infer_on_a_real_full_filesystem_exits_2_naming_the_file(reaches, tmp_path):
+    """The reporter's case itself, ENOSPC from a 300 KB tmpfs (needs root to mount, as on CI)."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.test_infer_cli import MODEL, NOISE
+
+    full = tmp_path / "full"
+    full.mkdir()
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root (CI runs as root); the RLIMIT_FSIZE test covers the path")
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(full)], capture_output=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"mount -t tmpfs refused here: {mounted.stderr.decode().strip()}")
+    try:
+        proc = subprocess.run([sys.executable, "-m", "camo_sbi", "infer", "--observations", str(reaches), *MODEL,
+                               *NOISE, "--methods", "naive", "--out", str(full / "o")],
+                              capture_output=True, text=True, timeout=600)
+        _assert_one_clean_line(proc, "No space left on device (ENOSPC)")
+    finally:
+        subprocess.run(["umount", str(full)], check=True)
