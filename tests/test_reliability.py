@@ -9,6 +9,7 @@ import pytest
 from camo_sbi import _memory as budget
 from camo_sbi.experiments.cli import main
 from tests.test_cli_conventions import STUDY
+from tests.test_infer_cli import recording  # noqa: F401 - the fixture: 4 simulated reaches of arm7
 
 GB = 2**30
 
@@ -175,18 +176,8 @@ def test_a_netcdf_that_cannot_be_written_is_one_oserror_naming_the_file(tmp_path
                                   idata.posterior["limits"].values)
 
 
-@pytest.fixture(scope="module")
-def reaches(tmp_path_factory):
-    from tests.test_infer_cli import LIMITS, MODEL, NOISE
-
-    path = tmp_path_factory.mktemp("obs") / "reaches.csv"
-    assert main(["simulate-observations", *MODEL, *LIMITS, "--reaches", "3", "--seed", "2", *NOISE,
-                 "--out", str(path)]) == 0
-    return path
-
-
 @pytest.mark.slow
-def test_infer_on_a_full_disk_exits_2_in_one_line(reaches, tmp_path):
+def test_infer_on_a_full_disk_exits_2_in_one_line(recording, tmp_path):  # noqa: F811 - the imported fixture
     """Every file size limited to 8 KB (RLIMIT_FSIZE: the kernel refuses the write in C, where
     HDF5 writes, as a full disk does; no root needed): the first netCDF (a few tens of KB) cannot
     be written. Before, HDF5's half-written file printed "Exception ignored" tracebacks and the
@@ -194,7 +185,7 @@ def test_infer_on_a_full_disk_exits_2_in_one_line(reaches, tmp_path):
     from tests.test_infer_cli import MODEL, NOISE
 
     out = tmp_path / "infer"
-    proc = _run_limited(["infer", "--observations", str(reaches), *MODEL, *NOISE, "--methods", "naive",
+    proc = _run_limited(["infer", "--observations", str(recording), *MODEL, *NOISE, "--methods", "naive",
                          "--out", str(out)], 8192)
     _assert_one_clean_line(proc, f"{out}/estimates/naive.nc: File too large (EFBIG)")
     assert not list((out / "estimates").glob(".*.tmp"))  # no half-written file left behind
@@ -211,7 +202,7 @@ def test_compare_on_a_full_disk_exits_2_in_one_line(tmp_path):
 
 
 @pytest.mark.slow
-def test_infer_on_a_real_full_filesystem_exits_2_naming_the_file(reaches, tmp_path):
+def test_infer_on_a_real_full_filesystem_exits_2_naming_the_file(recording, tmp_path):  # noqa: F811 - the imported fixture
     """The reporter's case itself, ENOSPC from a 300 KB tmpfs (needs root to mount, as on CI)."""
     import os
     import subprocess
@@ -227,7 +218,7 @@ def test_infer_on_a_real_full_filesystem_exits_2_naming_the_file(reaches, tmp_pa
     if mounted.returncode != 0:
         pytest.skip(f"mount -t tmpfs refused here: {mounted.stderr.decode().strip()}")
     try:
-        proc = subprocess.run([sys.executable, "-m", "camo_sbi", "infer", "--observations", str(reaches), *MODEL,
+        proc = subprocess.run([sys.executable, "-m", "camo_sbi", "infer", "--observations", str(recording), *MODEL,
                                *NOISE, "--methods", "naive", "--out", str(full / "o")],
                               capture_output=True, text=True, timeout=600)
         _assert_one_clean_line(proc, "No space left on device (ENOSPC)")
