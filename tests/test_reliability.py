@@ -224,3 +224,45 @@ def test_infer_on_a_real_full_filesystem_exits_2_naming_the_file(recording, tmp_
         _assert_one_clean_line(proc, "No space left on device (ENOSPC)")
     finally:
         subprocess.run(["umount", str(full)], check=True)
+
+
+# ----------------------------------------------------------------------------- planted links
+
+@pytest.mark.parametrize("planted", ["cells", "posteriors/camo.nc", "run.lock", "manifest.json"])
+def test_a_run_folder_with_a_planted_link_is_refused_before_anything_is_written(planted, tmp_path):
+    from camo_sbi.experiments.rundir import RunDirectory
+
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "precious").write_text("keep me")
+    link = out / planted
+    link.parent.mkdir(parents=True)
+    link.symlink_to(elsewhere if planted == "cells" else elsewhere / "precious")
+    with pytest.raises(ValueError, match=rf"^--out {out}: {link} is a symbolic link \(to '{elsewhere}.*'\); "
+                                         "a run folder holds its own files only"):
+        RunDirectory(out, "compare", {"a": 1}).open()
+    assert [p.name for p in elsewhere.iterdir()] == ["precious"] and (elsewhere / "precious").read_text() == "keep me"
+    assert not (out / "run.lock").exists() or (out / "run.lock").is_symlink()
+
+
+def test_compare_with_a_planted_cells_link_exits_2_and_writes_nothing_outside(tmp_path, capsys):
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    out.mkdir()
+    (out / "cells").symlink_to(elsewhere)
+    msg = _exit_2(["compare", "--model", "panda", "--methods", "naive", "--budgets", "20", "--seeds", "1",
+                   "--tasks", "1", "--test-goals", "2", "--no-report", "--out", str(out)], capsys)
+    assert msg.startswith(f"camo-sbi: error: --out {out}: {out / 'cells'} is a symbolic link"), msg
+    assert list(elsewhere.iterdir()) == []
+
+
+def test_out_itself_may_be_a_link(tmp_path):
+    """The user's own choice of --out (a link to a data disk) is followed; only links inside it are refused."""
+    from camo_sbi.experiments.rundir import RunDirectory
+
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "out").symlink_to(real)
+    with RunDirectory(tmp_path / "out", "compare", {"a": 1}) as run:
+        assert run.created
+    assert (real / "manifest.json").is_file()
