@@ -266,3 +266,85 @@ def test_out_itself_may_be_a_link(tmp_path):
     with RunDirectory(tmp_path / "out", "compare", {"a": 1}) as run:
         assert run.created
     assert (real / "manifest.json").is_file()
+
+
+# ----------------------------------------------------------------------------- scheduler addresses
+# loopback only: nothing here (nor any manual try) connects to another address
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]  # closed again: nothing listens there
+
+
+@pytest.fixture()
+def wrong_peers():
+    """Two loopback listeners that are not Dask schedulers: one silent, one answering like an HTTP
+    proxy (the reporter's tcp://10.255.255.1:8786 reached one: dask read "HTTP/1.1" as a frame
+    length, 3.07 EiB). Returns {name: address}."""
+    import socket
+    import threading
+
+    servers, stop = [], threading.Event()
+
+    def serve(sock, reply):
+        sock.settimeout(0.2)
+        held = []
+        while not stop.is_set():
+            try:
+                conn, _ = sock.accept()
+            except TimeoutError:
+                continue
+            held.append(conn)
+            if reply:
+                conn.sendall(reply)
+        for conn in held:
+            conn.close()
+
+    peers = {}
+    for name, reply in (("silent", b""), ("http", b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n")):
+        sock = socket.socket()
+        sock.bind(("127.0.0.1", 0))
+        sock.listen(4)
+        t = threading.Thread(target=serve, args=(sock, reply), daemon=True)
+        t.start()
+        servers.append((sock, t))
+        peers[name] = f"tcp://127.0.0.1:{sock.getsockname()[1]}"
+    yield peers
+    stop.set()
+    for sock, t in servers:
+        t.join()
+        sock.close()
+
+
+def test_a_wrong_scheduler_address_is_one_valueerror_in_bounded_time(wrong_peers, monkeypatch):
+    pytest.importorskip("distributed")
+    from camo_sbi import distributed as dist
+
+    monkeypatch.setattr(dist, "CONNECT_TIMEOUT", 1.0)
+    cases = {"refused": (f"tcp://127.0.0.1:{_free_port()}", "ConnectionRefusedError"),
+             "silent": (wrong_peers["silent"], "TimeoutError: no Dask handshake"),
+             "http": (wrong_peers["http"], "not a Dask handshake")}
+    for name, (address, why) in cases.items():
+        with pytest.raises(ValueError) as exc:
+            dist.get_client(address)
+        msg = str(exc.value)
+        assert msg.startswith(f"scheduler: cannot connect to a Dask scheduler at '{address}' within 1 s ("), msg
+        assert why in msg and "\n" not in msg, (name, msg)
+        assert address not in dist._CLIENTS
+
+
+def test_study_with_an_unreachable_scheduler_exits_2_naming_the_key(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("distributed")
+    from camo_sbi import distributed as dist
+
+    monkeypatch.setattr(dist, "CONNECT_TIMEOUT", 1.0)
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    study = tmp_path / "study.toml"
+    study.write_text(STUDY.replace("no-report = true\n", f'no-report = true\nscheduler = "{address}"\n'))
+    msg = _exit_2(["run", str(study), "--out", str(tmp_path / "out")], capsys)
+    assert msg.startswith(f"camo-sbi: error: {study}: [[model]] 1 (panda): --scheduler: cannot connect to a Dask "
+                          f"scheduler at '{address}'"), msg
+    assert not (tmp_path / "out" / "panda").exists()  # refused before the entry's run folder

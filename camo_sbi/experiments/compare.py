@@ -330,7 +330,7 @@ def _figures(df, out: Path, formats) -> list[Path]:
 
 
 def main(args) -> int:
-    from camo_sbi.distributed import parse_scheduler
+    from camo_sbi.distributed import connect_early, parse_scheduler
     from camo_sbi.evaluation import catalog
     from camo_sbi.evaluation.claims import binding_line
     from camo_sbi.experiments.grid import pending, run_grid
@@ -340,6 +340,13 @@ def main(args) -> int:
     formats = figure_formats(args)
     corner = corner_limits(args)
     finished = _finished_grid(args)  # a re-run: nothing to compute, no model to build
+    scheduler = getattr(args, "scheduler", None)
+    try:
+        parse_scheduler(scheduler)
+        if finished is None:
+            connect_early(scheduler)  # an unreachable address: refused before anything is built
+    except ValueError as exc:
+        raise ValueError(f"--{exc}") from exc
     if finished is None:
         args = _with_estimator(args)
     cells = finished if finished is not None else grid_cells(args)
@@ -351,11 +358,6 @@ def main(args) -> int:
         announce_simulation_time(sim, sum(c.budget * c.tasks for c in cells), what="compare")
     if args.workers < 1:
         raise ValueError("--workers: must be >= 1")
-    scheduler = getattr(args, "scheduler", None)
-    try:
-        parse_scheduler(scheduler)
-    except ValueError as exc:
-        raise ValueError(f"--{exc}") from exc
     out = Path(args.out)
     overrides = {c.method: json.loads(c.extras["config"]) for c in cells if "config" in c.extras}
     # without --config the settings are those of runs made before the flag existed
