@@ -27,7 +27,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
         os.replace(tmp, path)
     except OSError as exc:  # a full disk: the error names the file being written (one CLI line)
         Path(tmp).unlink(missing_ok=True)
-        if exc.filename is None:
+        if exc.filename is None and exc.errno is not None:
             raise OSError(exc.errno, exc.strerror, str(path)) from exc
         raise
     except BaseException:

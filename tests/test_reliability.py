@@ -348,3 +348,16 @@ def test_study_with_an_unreachable_scheduler_exits_2_naming_the_key(tmp_path, ca
     assert msg.startswith(f"camo-sbi: error: {study}: [[model]] 1 (panda): --scheduler: cannot connect to a Dask "
                           f"scheduler at '{address}'"), msg
     assert not (tmp_path / "out" / "panda").exists()  # refused before the entry's run folder
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["robustness", "--seeds", str(10**18)], "--seeds"),
+    (["calibrate", "--subjects", str(10**18)], "--subjects"),
+    (["reproduce", "panda", "--runs", str(10**18)], "--runs"),
+    (["reproduce", "hrc", "--tasks", str(10**11)], "--tasks"),
+])
+def test_every_grid_command_bounds_its_counts(argv, flag, tmp_path, capsys):
+    """The other commands with counts refuse them the same way, before their run folder exists."""
+    msg = _exit_2([*argv, "--out", str(tmp_path / "o")], capsys)
+    assert msg.startswith(f"camo-sbi: error: {flag}: ") and "is too large" in msg, msg
+    assert not (tmp_path / "o").exists()
