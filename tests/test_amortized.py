@@ -351,7 +351,8 @@ RESIGNED = [
 ]
 
 
-@pytest.mark.parametrize("key, value, message", RESIGNED, ids=[f"{k}={'...' if callable(v) else repr(v)}"[:40] for k, v, _ in RESIGNED])
+@pytest.mark.parametrize("key, value, message", RESIGNED, ids=[f"{k}={'...' if callable(v) else 'deleted' if v is _DELETE else repr(v)}"[:40]
+                              for k, v, _ in RESIGNED])
 def test_a_resigned_estimator_with_edited_metadata_is_refused_naming_the_key(paths, key, value, message):
     blob = torch.load(paths["set"], weights_only=True)
     data = _resigned(blob, value if callable(value) else _set(key, value))
