@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
+from camo_sbi import _memory
+from camo_sbi._memory import size_text as _size
 from camo_sbi._validation import check_positive_int, renamed_fields
 from camo_sbi.simulators.base import Trajectories
 
@@ -104,22 +104,6 @@ def charge(simulator, n: int) -> None:
 
 # --------------------------------------------------------------------------- what a budget costs
 
-def _physical_memory() -> int:
-    """Bytes of physical memory of this machine (0 when unknown)."""
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        return 0
-
-
-def _size(n: float) -> str:
-    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
-        if n < 1024 or unit == "PB":
-            return f"{n:.3g} {unit}"
-        n /= 1024
-    return f"{n:.3g} PB"  # pragma: no cover
-
-
 def _duration(s: float) -> str:
     if s < 120:
         return f"{s:.3g} s"
@@ -139,7 +123,7 @@ def check_budget_fits(budget: int, *, n_joints: int, flag: str, memory_bytes: in
     """
     budget = check_positive_int(budget, flag.lstrip("-"))
     need = budget * (2 * int(n_joints) + 1) * 8
-    avail = _physical_memory() if memory_bytes is None else int(memory_bytes)
+    avail = _memory.physical_memory() if memory_bytes is None else int(memory_bytes)
     if avail and need > avail:
         raise ValueError(f"{flag}: {budget} simulations per task need at least {_size(need)} of memory (their "
                          f"parameters and one number each), this machine has {_size(avail)}; use a smaller {flag}")

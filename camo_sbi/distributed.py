@@ -17,13 +17,18 @@ from __future__ import annotations
 
 import atexit
 import re
+import socket
+import struct
+import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
+from urllib.parse import urlsplit
 
-__all__ = ["DEFAULT_RETRIES", "dask_client", "get_client", "map_ordered", "map_unordered", "parse_scheduler",
+__all__ = ["CONNECT_TIMEOUT", "DEFAULT_RETRIES", "connect_early", "dask_client", "get_client", "map_ordered", "map_unordered", "parse_scheduler",
            "run_chunks", "worker_count"]
 
 DEFAULT_RETRIES = 2
+CONNECT_TIMEOUT = 10.0  # seconds to reach a scheduler address before giving up
 
 _LOCAL = re.compile(r"^local:(\d+)$")
 _ADDRESS = re.compile(r"^[a-z][a-z0-9+.-]*://\S+$", re.IGNORECASE)
@@ -58,6 +63,35 @@ def _import_distributed():
     return distributed
 
 
+_MAX_HANDSHAKE = 2**24  # bytes: a scheduler's handshake message is a few hundred
+
+
+def _probe_tcp(address: str) -> None:
+    """For a ``tcp://`` address, check within CONNECT_TIMEOUT that a Dask scheduler answers
+    before handing the address to dask, whose handshake read neither times out on a silent peer
+    nor bounds the length it allocates. On connection a scheduler writes its handshake first,
+    framed as dask's messages are: an 8-byte length (native order, ``struct`` "Q"), then that many
+    bytes; anything else (a refusal, silence, a closed connection, an HTTP reply) is an OSError."""
+    url = urlsplit(address)
+    if url.scheme.lower() != "tcp" or not url.hostname:
+        return  # tls://, ucx://, ...: dask's own connect (and its timeout) alone
+    deadline = time.monotonic() + CONNECT_TIMEOUT
+    with socket.create_connection((url.hostname, url.port or 8786), timeout=CONNECT_TIMEOUT) as sock:
+        header = b""
+        while len(header) < 8:
+            sock.settimeout(max(deadline - time.monotonic(), 0.01))
+            try:
+                chunk = sock.recv(8 - len(header))
+            except TimeoutError:
+                raise TimeoutError(f"no Dask handshake from {address} within {CONNECT_TIMEOUT:g} s") from None
+            if not chunk:
+                raise ConnectionError(f"{address} closed the connection without a Dask handshake")
+            header += chunk
+    (n,) = struct.unpack("Q", header)
+    if not 0 < n <= _MAX_HANDSHAKE:
+        raise ConnectionError(f"{address} answered {header!r}, not a Dask handshake")
+
+
 def _start(spec: str):
     kind, value = parse_scheduler(spec)
     distributed = _import_distributed()
@@ -66,7 +100,17 @@ def _start(spec: str):
         cluster = distributed.LocalCluster(n_workers=value, threads_per_worker=1, processes=True,
                                            dashboard_address=None)
         return distributed.Client(cluster), cluster
-    return distributed.Client(value), None
+    try:
+        _probe_tcp(value)
+        return distributed.Client(value, timeout=CONNECT_TIMEOUT), None
+    except Exception as exc:  # noqa: BLE001 - a wrong peer surfaces from dask's comm layer in many ways
+        # nothing listening: OSError after the timeout; something else listening (an HTTP proxy on
+        # the route): dask read its reply as a frame length (MemoryError "3.07 EiB"), a silent one
+        # made it wait forever. All are the address's fault: one line naming it.
+        detail = (str(exc).splitlines() or [""])[0][:200]
+        raise ValueError(f"scheduler: cannot connect to a Dask scheduler at {value!r} within {CONNECT_TIMEOUT:g} s "
+                         f"({type(exc).__name__}{': ' + detail if detail else ''}); is `dask scheduler` running "
+                         f"there?") from None
 
 
 def _close(client, cluster) -> None:
@@ -112,6 +156,15 @@ def get_client(spec: str | None):
     if key not in _CLIENTS:
         _CLIENTS[key] = _start(key)
     return _CLIENTS[key][0]
+
+
+def connect_early(spec: str | None) -> None:
+    """Connect now to a scheduler *address* (`get_client`: the client is reused by the run), so an
+    unreachable or wrong address is refused before a run folder or a cell is touched; ``local:N``
+    and in-process start later, as before. ValueError naming ``scheduler`` otherwise."""
+    parsed = parse_scheduler(spec)
+    if parsed is not None and parsed[0] == "address":
+        get_client(spec)
 
 
 @atexit.register

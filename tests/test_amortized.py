@@ -278,19 +278,94 @@ def test_a_damaged_or_incomplete_estimator_file_is_refused_by_name(paths, tmp_pa
         load_estimator(save("old.pt", old))
 
 
-def test_infer_with_a_byte_flipped_estimator_exits_2_naming_the_file(paths, tmp_path, capsys):
+def _compare_refuses(estimator, tmp_path, capsys) -> str:
+    """compare with this estimator file exits 2 with one line naming it, running no cell."""
     from camo_sbi.experiments.cli import main
 
-    flipped = tmp_path / "flipped.pt"
-    flipped.write_bytes(_flip(paths["set"].read_bytes()))
     out = tmp_path / "run"
     with pytest.raises(SystemExit) as exc:
-        main(["compare", "--model", "panda", "--methods", "npe-amortized", "--amortized", str(flipped),
+        main(["compare", "--model", "panda", "--methods", "npe-amortized", "--amortized", str(estimator),
               "--budgets", "20", "--seeds", "1", "--tasks", "2", "--no-report", "--out", str(out)])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("camo-sbi: error: --amortized: estimator: ") and str(flipped) in err[0]
+    assert len(err) == 1 and err[0].startswith("camo-sbi: error: --amortized: estimator: ") and str(estimator) in err[0]
     assert not (out / "cells").exists()
+    return err[0]
+
+
+def test_infer_with_a_byte_flipped_estimator_exits_2_naming_the_file(paths, tmp_path, capsys):
+    flipped = tmp_path / "flipped.pt"
+    flipped.write_bytes(_flip(paths["set"].read_bytes()))
+    _compare_refuses(flipped, tmp_path, capsys)
+
+
+def _resigned(blob: dict, edit) -> bytes:
+    """The file with its metadata edited by ``edit(meta)`` and correctly re-signed (a consistent
+    sha256): only the metadata checks stand between it and the loader."""
+    import copy
+    import io
+    import json
+
+    meta = copy.deepcopy(json.loads(blob["metadata"]))
+    edit(meta)
+    meta["sha256"] = amortized.payload_sha256(meta, blob["state_dict"])
+    buf = io.BytesIO()
+    torch.save({**blob, "metadata": json.dumps(meta)}, buf)
+    return buf.getvalue()
+
+
+def _set(path: str, value):
+    def edit(meta):
+        *parents, last = path.split(".")
+        node = meta
+        for p in parents:
+            node = node[p]
+        if value is _DELETE:
+            del node[last]
+        else:
+            node[last] = value
+    return edit
+
+
+_DELETE = object()
+# issue 36: each ended in a traceback, n_kept = 1e7 after taking 5.2 GB
+RESIGNED = [
+    ("settings", _DELETE, r"settings: missing"),
+    ("prior", _DELETE, r"prior: missing"),
+    ("seed", "abc", r"seed: expected an integer"),
+    ("settings.hidden_features", 1e6, r"settings: hidden_features: expected an integer"),
+    ("settings.hidden_features", 10**6, r"settings.hidden_features: 1000000 is larger than the \d+ weights"),
+    ("features.joint.n_kept", 1e7, r"features.joint.n_kept: 10000000.0 is not the \d+ features"),
+    ("features.joint.n_kept", 10**7, r"features.joint.n_kept: 10000000 is not"),
+    ("settings.max_set", 10**9, r"settings: simulations: the set form needs at least 10000000000"),
+    ("settings", lambda m: m["settings"].update(max_set=10**9, simulations=10**12),
+     r"settings.max_set: 1000000000 reaches in a set, at most 10000"),
+    ("settings.num_transforms", 10**9, r"settings.num_transforms: 1000000000 is larger"),
+    ("settings.noise", _DELETE, r"settings: missing 'noise'"),
+    ("settings.spaces", ["joint", "joint"], r"settings: spaces: expected one or more distinct"),
+    ("prior.low", [0.0] * 3, r"prior.low: expected a non-empty list of an even number"),
+    ("prior.high", [float("nan")] * 4, r"prior.high: expected .* finite numbers"),
+    ("fingerprint.start", ["x"], r"fingerprint.start: expected 2 finite numbers"),
+    ("training.joint", {}, r"training.joint: expected a table of epochs"),
+    ("model", 7, r"model: expected a string, got int"),
+]
+
+
+@pytest.mark.parametrize("key, value, message", RESIGNED, ids=[f"{k}={'...' if callable(v) else 'deleted' if v is _DELETE else repr(v)}"[:40]
+                              for k, v, _ in RESIGNED])
+def test_a_resigned_estimator_with_edited_metadata_is_refused_naming_the_key(paths, key, value, message):
+    blob = torch.load(paths["set"], weights_only=True)
+    data = _resigned(blob, value if callable(value) else _set(key, value))
+    with pytest.raises(ValueError, match=f"^estimator: 'edited.pt''s metadata: {message}"):
+        amortized_estimator.from_bytes(data, "'edited.pt'")
+    amortized_estimator.from_bytes(_resigned(blob, lambda m: None), "'same.pt'")  # re-signing alone is fine
+
+
+def test_compare_with_a_resigned_estimator_exits_2_in_one_line(paths, tmp_path, capsys):
+    blob = torch.load(paths["set"], weights_only=True)
+    edited = tmp_path / "edited.pt"
+    edited.write_bytes(_resigned(blob, _set("features.joint.n_kept", 10**7)))
+    assert "features.joint.n_kept" in _compare_refuses(edited, tmp_path, capsys)
 
 
 def test_set_form_refuses_more_reaches_than_it_was_trained_on(paths):

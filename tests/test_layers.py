@@ -30,7 +30,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "camo_sbi"
 
 LAYERS = {
-    "_validation": 0, "_io": 0, "_files": 0, "_threads": 0.5,
+    "_validation": 0, "_io": 0, "_files": 0, "_memory": 0, "_threads": 0.5,
     "simulators": 1,
     "priors": 2, "budget": 2,
     "task": 3, "distributed": 3,
@@ -166,6 +166,7 @@ def test_the_graph_is_not_vacuous():
 #: third-party libraries reached through one adapter module each (README, Architecture)
 ADAPTERS = {
     "arviz": {"camo_sbi.diagnostics.arviz_io"},
+    "xarray": {"camo_sbi.diagnostics.arviz_io"},  # arviz's data model, used only to write netCDF in memory
     "pyabc": {"camo_sbi.inference.abc_smc"},
     "sbi": {"camo_sbi.inference.sbi_adapter"},
     "ezc3d": {"camo_sbi.io.c3d"},

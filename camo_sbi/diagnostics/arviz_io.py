@@ -45,10 +45,10 @@ divide 0 by 0 in r_hat and mcse_sd: numpy warns there, in arviz's code.
 from __future__ import annotations
 
 import contextlib
+import io
 import logging
 import numbers
 import os
-import tempfile
 import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -56,9 +56,11 @@ from pathlib import Path
 import arviz as az
 import numpy as np
 import pandas as pd
+import xarray as xr
 from matplotlib.figure import Figure
 from scipy.stats import wasserstein_distance
 
+from camo_sbi._io import atomic_write_bytes
 from camo_sbi._validation import check_positive_int, numpy_generator
 from camo_sbi.diagnostics.files import ESTIMATE_DIR, POSTERIOR_DIR
 from camo_sbi.diagnostics.style import (
@@ -86,6 +88,7 @@ __all__ = [
     "to_inference_data",
     "save_netcdf",
     "load_netcdf",
+    "netcdf_bytes",
     "summary",
     "truth_position",
     "posterior_width",
@@ -568,25 +571,37 @@ def observed_arrays(task) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
 # --------------------------------------------------------------------------- netCDF
 
 
+def netcdf_bytes(idata: az.InferenceData) -> bytes:
+    """``idata`` as the bytes of the netCDF (HDF5) file arviz's ``to_netcdf`` writes: every group
+    through h5netcdf into memory, zlib-compressed as arviz compresses (numbers and bytes)."""
+    _check_idata(idata)
+    buf = io.BytesIO()
+    mode = "w"
+    if idata.attrs:
+        xr.Dataset(attrs=dict(idata.attrs)).to_netcdf(buf, mode=mode, engine="h5netcdf", group="/")
+        mode = "a"
+    for group in idata.groups():
+        data = idata[group]
+        encoding = {name: {"zlib": True} for name, v in data.variables.items() if v.dtype.kind in "biufcS"}
+        data.to_netcdf(buf, mode=mode, group=group, engine="h5netcdf", encoding=encoding)
+        mode = "a"
+    return buf.getvalue()
+
+
 def save_netcdf(idata: az.InferenceData, path) -> Path:
-    """Write ``idata`` to ``path`` atomically (temp file in the same directory + os.replace)."""
+    """Write ``idata`` to ``path`` atomically (temp file in the same directory + os.replace).
+
+    The HDF5 image is built in memory (`netcdf_bytes`) and written as plain bytes: a full disk
+    is one OSError (ENOSPC) from the write, never an HDF5 file left half-open on disk, whose
+    failing flushes at exit printed "Exception ignored" tracebacks and crashed the interpreter
+    (exit 139)."""
     _check_idata(idata)
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path: expected str or PathLike, got {type(path).__name__}")
     path = Path(path)
     if not path.parent.is_dir():
         raise ValueError(f"path: directory {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        idata.to_netcdf(tmp, engine="h5netcdf")
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
-        raise
-    return path
+    return atomic_write_bytes(path, netcdf_bytes(idata))
 
 
 def load_netcdf(path) -> az.InferenceData:

@@ -122,6 +122,11 @@ def grid_cells(args) -> list:
     if getattr(args, "limits", None) is not None:
         raise ValueError("--limits: calibrate draws its subjects' limits from the prior; give no --limits")
     model = model_from_args(args)
+    from camo_sbi._memory import check_grid_fits
+
+    # counts this machine cannot hold (subjects are this grid's seeds): refused before a cell is built
+    check_grid_fits(seeds=args.subjects, cells_per_seed=len(methods), tasks=args.tasks, test_goals=1,
+                    workers=args.workers, names={"seeds": "--subjects", "tasks": "--tasks", "workers": "--workers"})
     # the model in the key: its name as "model"; a built-in model with its defaults keeps the cell
     # keys it always had, any other adds its settings as "model_settings"
     model_key = (("model", model.name),) + (() if model.is_default else

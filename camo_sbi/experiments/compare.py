@@ -61,6 +61,24 @@ def grid_methods(text: str) -> list[str]:
     return methods + [b for b in names(baseline=True) if b not in methods]
 
 
+FLAGS = {"seeds": "--seeds", "tasks": "--tasks", "test_goals": "--test-goals", "workers": "--workers"}
+
+
+def check_grid_size(args, *, subjects: int = 1, sim=None, names: dict | None = None) -> int:
+    """Refuse counts (--seeds, --tasks, --test-goals, --workers) whose grid cannot fit in memory
+    (`camo_sbi._memory.check_grid_fits`, a lower bound), before anything is built. Without ``sim``
+    the model's size is taken as its least (one joint, one point per reach): the check a study
+    makes of all its entries up front. ``names``: how the counts are spelt to the user."""
+    from camo_sbi._memory import check_grid_fits
+
+    cells_per_seed = subjects * len(grid_methods(args.methods)) * len(_parse_list(args.budgets, "budgets", int))
+    size = {} if sim is None else {"n_joints": sim.n_joints,
+                                   "max_steps": getattr(getattr(sim, "config", None), "max_steps", 1)}
+    return check_grid_fits(seeds=args.seeds, cells_per_seed=cells_per_seed, tasks=args.tasks,
+                           test_goals=args.test_goals, workers=getattr(args, "workers", 1) or 1,
+                           names=names or FLAGS, **size)
+
+
 def grid_cells(args, *, build: bool = True) -> list:
     """Every grid cell as a `Cell` (picklable; its identity is its key).
 
@@ -77,8 +95,9 @@ def grid_cells(args, *, build: bool = True) -> list:
         raise ValueError("--seeds/--tasks/--test-goals: must be >= 1")
     model = model_from_args(args, build=build)
     subjects = subject_list(model, args.subjects)
+    sim = model.build() if build else None
+    check_grid_size(args, subjects=len(subjects), sim=sim)  # before a cell or a task is built
     if build:
-        sim = model.build()
         for s in subjects:
             subject_limits(model, sim, s)
     # the model in the key: its name as "task"; a built-in model with its defaults keeps the cell
@@ -311,7 +330,7 @@ def _figures(df, out: Path, formats) -> list[Path]:
 
 
 def main(args) -> int:
-    from camo_sbi.distributed import parse_scheduler
+    from camo_sbi.distributed import connect_early, parse_scheduler
     from camo_sbi.evaluation import catalog
     from camo_sbi.evaluation.claims import binding_line
     from camo_sbi.experiments.grid import pending, run_grid
@@ -321,6 +340,13 @@ def main(args) -> int:
     formats = figure_formats(args)
     corner = corner_limits(args)
     finished = _finished_grid(args)  # a re-run: nothing to compute, no model to build
+    scheduler = getattr(args, "scheduler", None)
+    try:
+        parse_scheduler(scheduler)
+        if finished is None:
+            connect_early(scheduler)  # an unreachable address: refused before anything is built
+    except ValueError as exc:
+        raise ValueError(f"--{exc}") from exc
     if finished is None:
         args = _with_estimator(args)
     cells = finished if finished is not None else grid_cells(args)
@@ -332,11 +358,6 @@ def main(args) -> int:
         announce_simulation_time(sim, sum(c.budget * c.tasks for c in cells), what="compare")
     if args.workers < 1:
         raise ValueError("--workers: must be >= 1")
-    scheduler = getattr(args, "scheduler", None)
-    try:
-        parse_scheduler(scheduler)
-    except ValueError as exc:
-        raise ValueError(f"--{exc}") from exc
     out = Path(args.out)
     overrides = {c.method: json.loads(c.extras["config"]) for c in cells if "config" in c.extras}
     # without --config the settings are those of runs made before the flag existed

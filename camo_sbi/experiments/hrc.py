@@ -422,6 +422,12 @@ def main(args) -> int:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
     t0 = time.perf_counter()
     sim = human()
+    from camo_sbi._memory import check_grid_fits
+
+    # counts this machine cannot hold: refused before any work (as compare's)
+    check_grid_fits(seeds=args.runs, cells_per_seed=len(args.priors), tasks=args.tasks, test_goals=args.test_trials,
+                    n_joints=sim.n_joints, max_steps=getattr(getattr(sim, "config", None), "max_steps", 1),
+                    names={"seeds": "--runs", "tasks": "--tasks", "test_goals": "--test-trials"})
     out = Path(args.out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
     # --scene-png only adds pictures: not a setting of the results

@@ -439,6 +439,12 @@ def main(args) -> int:
     subjects = subject_list(model, given, default_all=True)
     for s in subjects:
         subject_limits(model, sim, s)  # validates names before any work
+    from camo_sbi._memory import check_grid_fits
+
+    # counts this machine cannot hold: refused before any work (as compare's); --samples is the budget
+    check_grid_fits(seeds=args.runs, cells_per_seed=len(subjects), tasks=args.tasks, test_goals=args.test_goals,
+                    n_joints=sim.n_joints, max_steps=getattr(getattr(sim, "config", None), "max_steps", 1),
+                    names={"seeds": "--runs", "tasks": "--tasks", "test_goals": "--test-goals"})
     out = Path(args.out)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
     # a built-in model with its defaults keeps the cell keys it always had

@@ -170,6 +170,13 @@ def grid_cells(args, methods: list[str], conditions: list[str]) -> list:
     sim = model.build()
     subject = subject_list(model, args.subjects)[0]
     subject_limits(model, sim, subject)
+    from camo_sbi._memory import check_grid_fits
+
+    # counts this machine cannot hold: refused before a cell is built (as compare's)
+    check_grid_fits(seeds=args.seeds, cells_per_seed=len(conditions), tasks=args.tasks, test_goals=args.test_goals,
+                    workers=args.workers, n_joints=sim.n_joints,
+                    max_steps=getattr(getattr(sim, "config", None), "max_steps", 1),
+                    names={"seeds": "--seeds", "tasks": "--tasks", "test_goals": "--test-goals", "workers": "--workers"})
     # the model in the key: its name as "task" and its settings as "model" (always)
     model_key = (("task", model.name), ("model", str(model.key())))
     cells = []

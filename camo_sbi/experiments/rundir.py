@@ -40,7 +40,7 @@ try:
 except ImportError:  # not POSIX: no locking
     fcntl = None
 
-__all__ = ["MANIFEST", "RUNTIME_OPTIONS", "RunDirectory", "remove_stale_tmp", "run_settings"]
+__all__ = ["MANIFEST", "RUNTIME_OPTIONS", "RunDirectory", "refuse_links", "remove_stale_tmp", "run_settings"]
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +136,7 @@ class RunDirectory:
         if self.path.exists() and not self.path.is_dir():
             raise ValueError(f"--out {self.path}: exists and is not a directory")
         self.path.mkdir(parents=True, exist_ok=True)
+        refuse_links(self.path)  # before the lock file is opened: nothing here may point elsewhere
         self._acquire()
         try:
             self._check_manifest()
@@ -161,7 +162,7 @@ class RunDirectory:
     # ------------------------------------------------------------------ lock
 
     def _acquire(self) -> None:
-        fd = os.open(self.path / LOCK, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        fd = os.open(self.path / LOCK, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | getattr(os, "O_NOFOLLOW", 0), 0o644)
         try:
             if fcntl is not None:
                 try:
@@ -252,6 +253,19 @@ class RunDirectory:
         p = self.path / CONFIG
         if not (p.is_file() and p.read_text() == text):
             atomic_write_text(p, text)
+
+
+def refuse_links(out: Path) -> None:
+    """ValueError naming the first symbolic link under the run folder ``out`` (``out`` itself may
+    be one: the user chose it). A planted ``OUT/cells`` or ``OUT/posteriors`` link would make
+    the run write its files wherever it points, outside --out; a run folder holds its own files
+    only, so a link in it is refused, not followed."""
+    for root, dirs, files in os.walk(out):  # never descends through a link (followlinks=False)
+        for name in sorted(dirs + files):
+            p = Path(root) / name
+            if p.is_symlink():
+                raise ValueError(f"--out {out}: {p} is a symbolic link (to {os.readlink(p)!r}); a run folder "
+                                 f"holds its own files only: remove the link or use a new --out")
 
 
 def remove_stale_tmp(out: Path) -> int:

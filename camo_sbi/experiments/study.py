@@ -13,7 +13,8 @@ the equivalent ``camo-sbi compare`` command line); each entry's compare manifest
 ``study`` (the file and the entry's name) next to its settings. Re-running the same study skips
 every finished cell (each grid resumes like ``compare``); a study whose settings changed is
 refused per entry, like a re-run of ``compare`` with other settings. ``OUT/results.csv`` is the
-concatenation of the entries' tables (their ``task`` column names the model).
+concatenation of the entries' tables, each row led by an ``entry`` column (the entry's name, unique
+in the file, also ignoring case; the ``task`` column names the model, which two entries may share).
 ``--dry-run`` prints the compare command lines and runs nothing.
 """
 
@@ -124,9 +125,10 @@ def compare_argvs(study: dict, path: Path, out: Path) -> list[tuple[str, list[st
         merged = {**base, **{k: v for k, v in entry.items() if k != "name"}}
         name = str(entry.get("name") or merged.get("model") or Path(str(merged.get("urdf", f"model{i}"))).stem)
         where = f"{path}: [[model]] {i} ({name})"
-        if name in seen or not name or "/" in name or name.startswith("."):
-            raise ValueError(f"{where}: name {name!r} must be unique and a plain directory name")
-        seen.add(name)
+        if name.casefold() in seen or not name or "/" in name or "\\" in name or name.startswith("."):
+            raise ValueError(f"{where}: name {name!r} must be unique (also ignoring case) and a plain "
+                             f"directory name")
+        seen.add(name.casefold())
         if "config" in entry or "out" in entry:
             raise ValueError(f"{where}: 'config' and 'out' belong to the study, not to an entry")
         argv = []
@@ -150,6 +152,25 @@ def compare_argvs(study: dict, path: Path, out: Path) -> list[tuple[str, list[st
     return entries
 
 
+def _check_sizes(entries: list[tuple[str, list[str]]], path: Path) -> None:
+    """Every entry's counts (seeds, tasks, test-goals, workers) against this machine's memory,
+    before the first entry runs (`compare.check_grid_size`; its own check follows per entry with
+    the model's real size): ValueError naming the file, the entry and the key."""
+    from camo_sbi.experiments import compare
+
+    parser = _compare_parser()
+    names = {"seeds": "seeds", "tasks": "tasks", "test_goals": "test-goals", "workers": "workers"}
+    for i, (name, argv) in enumerate(entries, 1):
+        args = parser.parse_args(argv)
+        if min(args.seeds, args.tasks, args.test_goals, args.workers) < 1:
+            continue  # compare refuses these itself, naming the flag
+        subjects = len([s for s in str(args.subjects or "x").split(",") if s.strip()]) or 1
+        try:
+            compare.check_grid_size(args, subjects=subjects, names=names)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: [[model]] {i} ({name}): {exc}") from exc
+
+
 def main(args) -> int:
     from camo_sbi._io import atomic_write_text
     from camo_sbi.experiments import compare
@@ -160,6 +181,7 @@ def main(args) -> int:
     entries = compare_argvs(study, path, out)
     if args.workers is not None:
         entries = [(n, [*argv, "--workers", str(args.workers)]) for n, argv in entries]
+    _check_sizes(entries, path)
     commands = {n: "camo-sbi compare " + shlex.join(argv) for n, argv in entries}
     if args.dry_run:
         print("\n".join(commands.values()))
@@ -170,7 +192,6 @@ def main(args) -> int:
         {"file": str(path), "sha256": hashlib.sha256(text.encode()).hexdigest(), "name": study.get("name"),
          "entries": commands}, indent=2) + "\n")
     parser = _compare_parser()
-    tables = []
     for i, (name, argv) in enumerate(entries, 1):
         print(f"== study entry {i}/{len(entries)} ({name}): {commands[name]}", flush=True)
         entry_args = parser.parse_args(argv)
@@ -179,11 +200,14 @@ def main(args) -> int:
             compare.main(entry_args)
         except ValueError as exc:
             raise ValueError(f"{path}: [[model]] {i} ({name}): {exc}") from exc
-        tables.append(out / name / "results.csv")
     import pandas as pd
 
-    table = pd.concat([pd.read_csv(t) for t in tables], ignore_index=True)
+    # the entry's name first in every row: two entries on one model (other seed, other height)
+    # share every other column, and only the entry tells their rows apart
+    table = pd.concat([pd.read_csv(out / name / "results.csv").assign(entry=name) for name, _ in entries],
+                      ignore_index=True)
+    table = table[["entry", *(c for c in table.columns if c != "entry")]]
     atomic_write_text(out / "results.csv", table.to_csv(index=False))
-    print(f"study: {out / 'results.csv'} ({len(table)} rows from {len(tables)} grids); "
+    print(f"study: {out / 'results.csv'} ({len(table)} rows from {len(entries)} grids); "
           f"reports: {', '.join(str(out / n / 'report.html') for n, _ in entries)}")
     return 0

@@ -16,6 +16,7 @@ import dataclasses
 import hashlib
 import io
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,7 +44,7 @@ from camo_sbi.inference.npe import check_training_settings
 from camo_sbi.inference.npe_posterior import NpePosterior
 from camo_sbi.task import SPACES, NoiseModel
 
-__all__ = ["FAST_SET_TRAINING", "FORMAT", "FORMS", "AmortizedEstimator", "TrainConfig", "from_bytes",
+__all__ = ["FAST_SET_TRAINING", "FORMAT", "FORMS", "AmortizedEstimator", "TrainConfig", "check_metadata", "from_bytes",
            "load_estimator", "payload_sha256"]
 
 FORMAT = "camo_sbi.amortized/2"  # /2: the metadata carries the payload's sha256
@@ -383,6 +384,92 @@ def payload_sha256(metadata: dict, state: dict) -> str:
     return h.hexdigest()
 
 
+_MAX_SET = 10_000  # reaches in one set: far above any recording, small enough to allocate
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def check_metadata(meta: dict, state: dict, name: str = "estimator") -> TrainConfig:
+    """The settings of an estimator file's metadata, after checking its schema, types and sizes
+    against the weights it holds, before anything is built (a re-signed, edited file cannot make
+    the loader allocate what its weights do not: a flow of ``hidden_features`` units has at least
+    ``hidden_features**2`` weights, one of ``n_kept`` inputs at least ``n_kept``). ValueError naming
+    the file and the metadata key otherwise."""
+
+    def bad(key: str, what: str) -> ValueError:
+        return ValueError(f"estimator: {name}'s metadata: {key}: {what} (the file was edited or is not "
+                          f"camo_sbi's; retrain it with `camo-sbi amortize`)")
+
+    types = {"model": (str, "a string"), "fingerprint": (dict, "a table"), "prior": (dict, "a table"),
+             "settings": (dict, "a table"), "features": (dict, "a table"), "training": (dict, "a table")}
+    for key, (kind, text) in types.items():
+        if key not in meta:
+            raise bad(key, "missing")
+        if not isinstance(meta[key], kind):
+            raise bad(key, f"expected {text}, got {type(meta[key]).__name__}")
+    for key in ("seed", "training_simulations"):
+        v = meta.get(key)
+        if not _is_int(v) or not 0 <= v < 2**63:
+            raise bad(key, f"expected an integer in [0, 2**63), got {v!r}")
+    if not _is_number(meta.get("training_time")):
+        raise bad("training_time", f"expected a number, got {meta.get('training_time')!r}")
+    weights = sum(int(t.numel()) for t in state.values() if isinstance(t, torch.Tensor))
+    prior = meta["prior"]
+    for key in ("low", "high"):
+        v = prior.get(key)
+        if not isinstance(v, list) or not v or len(v) % 2 or not all(_is_number(x) for x in v):
+            raise bad(f"prior.{key}", "expected a non-empty list of an even number of finite numbers")
+    if len(prior["low"]) != len(prior["high"]) or any(lo > hi for lo, hi in zip(prior["low"], prior["high"],
+                                                                                strict=True)):
+        raise bad("prior", "low and high differ in length or low > high")
+    n_free = sum(1 for lo, hi in zip(prior["low"], prior["high"], strict=True) if hi > lo)
+    if not 1 <= n_free <= weights:
+        raise bad("prior", f"{n_free} free parameters for {weights} weights")
+    start = meta["fingerprint"].get("start")
+    if not isinstance(start, list) or 2 * len(start) != len(prior["low"]) or not all(_is_number(x) for x in start):
+        raise bad("fingerprint.start", f"expected {len(prior['low']) // 2} finite numbers")
+    try:
+        settings = TrainConfig.from_json(meta["settings"])
+    except (TypeError, ValueError, KeyError, AttributeError) as exc:
+        what = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise bad("settings", what) from None
+    sizes = {"num_transforms": settings.num_transforms, "embedding_hidden": settings.embedding_hidden,
+             "embedding_dim": settings.embedding_dim or 1, "hidden_features": settings.hidden_features ** 2}
+    for key, need in sizes.items():
+        if need > weights:
+            raise bad(f"settings.{key}", f"{getattr(settings, key)} is larger than the {weights} weights the file "
+                                         f"holds allow")
+    if settings.max_set > _MAX_SET:
+        raise bad("settings.max_set", f"{settings.max_set} reaches in a set, at most {_MAX_SET}")
+    extra = sorted(set(meta["training"]) - set(settings.spaces))
+    if extra:
+        raise bad("training", f"space {extra[0]!r} is not one of settings.spaces {list(settings.spaces)}")
+    for space in settings.spaces:
+        f = meta["features"].get(space)
+        if not isinstance(f, dict):
+            raise bad(f"features.{space}", "missing")
+        keep, n_kept = f.get("keep"), f.get("n_kept")
+        if not isinstance(keep, list) or not keep or not all(isinstance(k, bool) for k in keep):
+            raise bad(f"features.{space}.keep", "expected a non-empty list of true/false")
+        if not _is_int(n_kept) or n_kept != sum(keep) or not 1 <= n_kept <= weights:
+            raise bad(f"features.{space}.n_kept", f"{n_kept!r} is not the {sum(keep)} features its keep list "
+                                                  f"keeps (at most {weights}, the weights the file holds)")
+        if settings.n_points > len(keep):
+            raise bad("settings.n_points", f"{settings.n_points} points but {len(keep)} features")
+        info = meta["training"].get(space)
+        need = {"epochs": _is_int, "stopped": lambda v: isinstance(v, str), "time_train": _is_number,
+                "best_validation_loss": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)}
+        if not isinstance(info, dict) or any(k not in info or not ok(info[k]) for k, ok in need.items()):
+            raise bad(f"training.{space}", f"expected a table of {', '.join(need)}")
+    return settings
+
+
 def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
     """Rebuild an estimator from `AmortizedEstimator.to_bytes` (``torch.load(weights_only=True)``).
 
@@ -417,7 +504,7 @@ def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
     if not isinstance(stored, str) or stored != payload_sha256(meta, blob["state_dict"]):
         raise ValueError(f"estimator: {name} fails its sha256 check (stored {str(stored)[:12]}..., the payload "
                          f"differs): the file is damaged or was edited; retrain it or restore a copy")
-    settings = TrainConfig.from_json(meta["settings"])
+    settings = check_metadata(meta, blob["state_dict"], name)
     if settings.form == "set" and meta.get("set_embedding") != SET_EMBEDDING:
         raise ValueError(f"estimator: {name} is a set-form estimator with set embedding "
                          f"{meta.get('set_embedding', 'the first, experimental DeepSet')!r}, this version reads "
