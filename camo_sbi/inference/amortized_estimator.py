@@ -57,7 +57,7 @@ _BOX_TOL = 1e-9
 # for both. FAST_SET_TRAINING is the faster set-form alternative of
 # benchmarks/bench_amortized_train.py (`camo-sbi amortize --fast`): it reaches the default's
 # validation loss several times sooner but is more over-confident, so it is NOT the default
-# (the numbers: README, "Measured performance"); on the per-reach MAF toy of
+# (the numbers: docs/performance.md); on the per-reach MAF toy of
 # tests/test_amortized.py it moved an upper limit 5.6 posterior sd off.
 _OPTIMISER_DEFAULTS = {
     "set": {"training_batch_size": 512, "learning_rate": 1e-3, "lr_schedule": "constant", "max_epochs": 40},
@@ -78,8 +78,8 @@ class TrainConfig:
             reaches of each of simulations // max_set limit vectors; inference is one flow
             sample) or "per-reach" (one flow q(theta | one reach), combined over a person's
             reaches by the i.i.d. rule and sampled by `AmortizedConfig.combine`). The set form
-            is the default because it calibrates and the per-reach product does not (README,
-            "Amortized inference"; docs/studies/amortized_measurements.md).
+            is the default because it calibrates and the per-reach product does not (docs/user-guide/amortized.md;
+            docs/studies/amortized_measurements.md).
         max_set: the largest set of reaches the "set" form is trained on (and accepts).
         spaces: observation spaces to train a flow for ("joint", "cartesian" or both; the
             same simulations serve every space).
@@ -100,10 +100,10 @@ class TrainConfig:
             ``lr_schedule`` "cosine" lowers the rate along a half cosine over ``max_epochs``,
             "constant" keeps it). Left None, training_batch_size, learning_rate, lr_schedule
             and max_epochs take the form's defaults (`_OPTIMISER_DEFAULTS`: 512 reaches, 1e-3,
-            constant, 40 epochs for both forms; training times: README "Amortized inference").
+            constant, 40 epochs for both forms; training times: docs/user-guide/amortized.md).
             ``FAST_SET_TRAINING`` (2048, 3e-3, cosine, 30 epochs)
             reaches the same validation loss sooner but calibrates worse
-            (`benchmarks/bench_amortized_train.py`, README "Measured performance"), so it is
+            (`benchmarks/bench_amortized_train.py`, docs/performance.md), so it is
             an option (`amortize --fast`), not the default.
             `dataclasses.replace` keeps resolved values: replace ``form`` on a config built
             with the other form's defaults and they stay.
