@@ -24,7 +24,6 @@ import pytest
 
 from camo_sbi import _plugins
 from camo_sbi.inference import registry
-from camo_sbi.simulators import registry as models
 
 ROOT = Path(__file__).resolve().parents[1]
 CAMO_SBI = Path(sys.executable).with_name("camo-sbi")
