@@ -339,18 +339,6 @@ def _check_amortized(plan: list, notes: list[str], task, obs, overrides: dict, p
     return kept
 
 
-def _method_config(name: str, space: str | None, budget: int, workdir: Path, overrides: dict | None) -> dict:
-    from camo_sbi.experiments.method_configs import method_config
-    from camo_sbi.inference.registry import capabilities
-
-    cfg = method_config(name, budget=budget, overrides=overrides)
-    if space is not None:
-        cfg.setdefault("space", space)
-    if capabilities(name).workdir:
-        cfg.setdefault("workdir", str(workdir / name))
-    return cfg
-
-
 def _limits_html(table, sim) -> Markup:
     """The limits figure (model range, estimates, 90% intervals, "not exercised") and the wide table."""
     import numpy as np
@@ -671,6 +659,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
     import camo_sbi
     from camo_sbi._validation import derive_seed
     from camo_sbi.diagnostics.arviz_io import observed_arrays, save_in_run, to_inference_data
+    from camo_sbi.experiments.method_configs import method_config
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import save_recordings
     from camo_sbi.task import Observation, predict
@@ -680,7 +669,8 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
     bar = tqdm(plan, desc="infer", unit="method")
     for name, space in bar:
         bar.set_postfix_str(name)
-        cfg = _method_config(name, space, args.budget, out / "work", overrides.get(name))
+        cfg = method_config(name, budget=args.budget, space=space, workdir=out / "work" / name,
+                            overrides=overrides.get(name))
         res = run_method(name, task, budget=args.budget, seed=args.seed, config=cfg)
         results[name] = res
         idata = to_inference_data(res, sim.joint_names, prior=task.prior, seed=derive_seed(args.seed, "posterior-file"),
