@@ -432,9 +432,26 @@ def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
         try:
             flow.load_state_dict(state, strict=True)
         except RuntimeError as exc:
-            raise ValueError(f"estimator: {name}'s {space} weights do not fit its metadata ({exc})") from exc
+            raise ValueError(f"estimator: {name}'s {space} weights do not fit the flow its metadata describes: "
+                             f"{_layout_versions(meta)}; retrain it with `camo-sbi amortize` under this version "
+                             f"({str(exc).splitlines()[0]})") from exc
         flows[space] = flow
     return AmortizedEstimator(meta, flows)
+
+
+def _layout_versions(meta: dict) -> str:
+    """Which sbi wrote a file and which weight layouts this version reads (without importing sbi:
+    `sbi_adapter.NsfReader` exists so that loading does not)."""
+    from importlib import metadata as dist
+
+    lo, hi = sbi_adapter.SBI_SUPPORTED
+    written = (meta.get("versions") or {}).get("sbi", "an unrecorded version")
+    try:
+        installed = dist.version("sbi")
+    except dist.PackageNotFoundError:
+        installed = "not installed"
+    return (f"the file was written with sbi {written}; this camo_sbi reads the flow layout of sbi "
+            f">= {lo[0]}.{lo[1]}, < {hi[0]}.{hi[1]} (installed: sbi {installed})")
 
 
 _CACHE: dict[tuple, AmortizedEstimator] = {}
