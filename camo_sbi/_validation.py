@@ -67,7 +67,7 @@ def check_choice(x, choices, name: str):
     return x
 
 
-#: The one name of the mode, whatever a method used to call it (README "Vocabulary").
+#: The one name of the mode, whatever a method used to call it (docs/architecture.md, "Vocabulary").
 _OLD_MODE_NAMES = ("argmax", "best", "map")
 
 

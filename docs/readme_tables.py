@@ -1,5 +1,6 @@
-"""Print the README's result tables (markdown) from run directories, so every number in
-the README comes from a `results.csv` / `claims.csv` a command wrote.
+"""Print the result tables of the documentation (docs/results/, markdown) from run directories,
+so every number there comes from a `results.csv` / `claims.csv` a command wrote (the site's
+`<!-- table: KIND DIR -->` directive prints them at build time, docs/site_hooks.py).
 
     python docs/readme_tables.py manipulator DIR     # reproduce panda (paper or toolkit setting)
     python docs/readme_tables.py paper-pair DIR DIR2 # two --setting paper runs side by side

@@ -235,6 +235,27 @@ def test_a_loaded_nsf_is_the_sbi_flow_draw_for_draw_without_importing_sbi(paths)
     assert res.stdout.strip() == "[]"
 
 
+def test_a_file_of_an_unknown_weight_layout_names_the_sbi_versions(paths):
+    """An NSF file whose weights do not fit the layout `NsfReader` (and this sbi) reads, here a
+    consistent file (valid checksum) whose layer names an imagined sbi 0.99 renamed, is a
+    ValueError naming the sbi that wrote it and the versions this camo_sbi reads."""
+    import io
+    import json
+    from importlib import metadata as dist
+
+    blob = torch.load(paths["set"], weights_only=True)
+    meta = json.loads(blob["metadata"])
+    state = {k.replace("._transforms.", "._layers."): v for k, v in blob["state_dict"].items()}
+    meta["versions"] = {**meta["versions"], "sbi": "0.99.0"}
+    meta["sha256"] = amortized.payload_sha256(meta, state)
+    buf = io.BytesIO()
+    torch.save(blob | {"metadata": json.dumps(meta), "state_dict": state}, buf)
+    with pytest.raises(ValueError, match=r"^estimator: .*joint weights do not fit .*written with sbi 0\.99\.0; "
+                                         r"this camo_sbi reads the flow layout of sbi >= 0\.25, < 0\.28 "
+                                         rf"\(installed: sbi {dist.version('sbi')}\); retrain"):
+        amortized_estimator.from_bytes(buf.getvalue())
+
+
 def _flip(data: bytes, n: int = 200) -> bytes:
     mid = len(data) // 2
     return data[:mid] + bytes(b ^ 0xFF for b in data[mid : mid + n]) + data[mid + n :]

@@ -71,6 +71,21 @@ def _metric_sets(df, keys):
     return df.groupby(keys).metric.apply(set)
 
 
+@pytest.mark.slow  # two spawned worker processes, each importing torch and compiling its kernels
+def test_reproduce_panda_with_two_workers_gives_the_same_table(repro, tmp_path):
+    """The runs are grid cells (`run_grid`): --workers 2 writes the same cells, the same table
+    (timings aside) and the same claims as in-process."""
+    out, ref = repro
+    assert _run([*REPRO, "--workers", "2"], tmp_path / "w2") == 0
+    two = pd.read_csv(tmp_path / "w2" / "results.csv")
+    assert sorted(p.name for p in (tmp_path / "w2" / "cells").iterdir()) == \
+        sorted(p.name for p in (out / "cells").iterdir())
+    keep = lambda df: df[~df.metric.isin(TIMINGS)].reset_index(drop=True)  # noqa: E731
+    pd.testing.assert_frame_equal(keep(two), keep(ref), check_exact=True)
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "w2" / "claims.csv"), pd.read_csv(out / "claims.csv"),
+                                  check_exact=True)
+
+
 def test_reproduce_writes_every_row_once(repro):
     out, df = repro
     assert list(df.columns) == ["run", "model", "subject", "method", "n_tasks", "metric", "value", "status"]

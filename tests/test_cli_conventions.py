@@ -412,11 +412,11 @@ def test_bad_study_file_exits_2_naming_file_and_key(edit, needle, tmp_path, caps
     assert not (tmp_path / "out" / "panda" / "cells").exists()
 
 
-def test_the_readme_study_example_is_a_valid_study(capsys, tmp_path):
+def test_the_documented_study_example_is_a_valid_study(capsys, tmp_path):
     from camo_sbi.experiments.study import EXAMPLE, compare_argvs, load_study
 
     path = ROOT / "docs" / "study_example.toml"
-    assert path.read_text().split("\n", 1)[1] in (ROOT / "README.md").read_text()  # the README shows this file
+    assert path.read_text().split("\n", 1)[1] in (ROOT / "docs" / "commands" / "index.md").read_text()  # shown there
     assert main(["run", str(path), "--dry-run"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 2 and all(line.startswith("camo-sbi compare --methods camo,camo-hull") for line in lines)

@@ -8,7 +8,7 @@ import pickle
 import pandas as pd
 import pytest
 
-from camo_sbi.experiments import calibrate, compare, robustness
+from camo_sbi.experiments import calibrate, compare, hrc, manipulator, robustness
 from camo_sbi.experiments.grid import Cell, run_grid
 from camo_sbi.experiments.models import ModelSpec
 from camo_sbi.experiments.store import ResultStore
@@ -39,6 +39,16 @@ GOLDEN = [
      ['base_seed=0__body_scale=free__budget=1000__condition=clean__methods=camo-js-oracle__model=-kind-panda-__seed=0__subject=shoulder_restricted__task=pand__af9f3739', 'base_seed=0__body_scale=free__budget=1000__condition=taller-5-__methods=camo-js-oracle__model=-kind-panda-__seed=0__subject=shoulder_restricted__task=__25f083a9', 'base_seed=0__body_scale=free__budget=1000__condition=clean__methods=camo-js-oracle__model=-kind-panda-__seed=1__subject=shoulder_restricted__task=pand__76881afd', 'base_seed=0__body_scale=free__budget=1000__condition=taller-5-__methods=camo-js-oracle__model=-kind-panda-__seed=1__subject=shoulder_restricted__task=__e897ad63']),
     ('robustness', ['--model', 'human', '--height', '1.8', '--methods', 'naive', '--seeds', '1'],
      ['base_seed=0__budget=1000__condition=clean__methods=naive__model=-kind-human-height_m-1.8-__seed=0__subject=frozen_shoulder__task=human__tasks=5__test___4b1fdcb3', 'base_seed=0__budget=1000__condition=noise-1deg-5mm__methods=naive__model=-kind-human-height_m-1.8-__seed=0__subject=frozen_shoulder__task=human__tasks__ff4da55b', 'base_seed=0__budget=1000__condition=noise-3deg-15mm__methods=naive__model=-kind-human-height_m-1.8-__seed=0__subject=frozen_shoulder__task=human__task__d91d1c83', 'base_seed=0__budget=1000__condition=rate-x3__methods=naive__model=-kind-human-height_m-1.8-__seed=0__subject=frozen_shoulder__task=human__tasks=5__tes__2d0c408d', 'base_seed=0__budget=1000__condition=taller-5-__methods=naive__model=-kind-human-height_m-1.8-__seed=0__subject=frozen_shoulder__task=human__tasks=5__t__0c09abb7', 'base_seed=0__budget=1000__condition=shorter-5-__methods=naive__model=-kind-human-height_m-1.8-__seed=0__subject=frozen_shoulder__task=human__tasks=5____808c9811']),
+    # reproduce panda and reproduce hrc (issue 37: onto the grid runner): the keys main's loops
+    # computed at e6dcb27 (the cell file names of those runs), so their run folders resume
+    ('reproduce panda', ['--runs', '3', '--tasks', '2', '--test-goals', '3', '--samples', '100'],
+     ['bandwidth=None__bandwidth_mode=None__epsilon=None__horizon=None__keep_best=None__methods=-camo-js-camo-cs-camo-hull-camo-seq-naive-nominal-oracle-__mo__3be2aa2c', 'bandwidth=None__bandwidth_mode=None__epsilon=None__horizon=None__keep_best=None__methods=-camo-js-camo-cs-camo-hull-camo-seq-naive-nominal-oracle-__mo__da113f39', 'bandwidth=None__bandwidth_mode=None__epsilon=None__horizon=None__keep_best=None__methods=-camo-js-camo-cs-camo-hull-camo-seq-naive-nominal-oracle-__mo__1dd8a0ad']),
+    ('reproduce panda', ['--setting', 'paper', '--runs', '2', '--tasks', '2', '--test-goals', '3', '--samples', '100'],
+     ['bandwidth=None__bandwidth_mode=None__epsilon=None__horizon=21__keep_best=None__methods=-camo-seq-camo-seq-cs-camo-js-camo-cs-camo-hull-naive-nominal-o__6bc935ae', 'bandwidth=None__bandwidth_mode=None__epsilon=None__horizon=21__keep_best=None__methods=-camo-seq-camo-seq-cs-camo-js-camo-cs-camo-hull-naive-nominal-o__b8a84c73']),
+    ('reproduce panda', ['--setting', 'informative', '--design', 'active', '--runs', '2', '--tasks', '3', '--test-goals', '4', '--samples', '100', '--methods', 'camo-seq'],
+     ['bandwidth=None__bandwidth_mode=None__design=active__design_method=camo-seq__epsilon=None__horizon=None__keep_best=None__methods=-camo-seq-naive-nomina__e290101f', 'bandwidth=None__bandwidth_mode=None__design=active__design_method=camo-seq__epsilon=None__horizon=None__keep_best=None__methods=-camo-seq-naive-nomina__d9744b80']),
+    ('reproduce hrc', ['--runs', '2', '--tasks', '2', '--test-trials', '2', '--samples', '200', '--keep-best', '50'],
+     ['bandwidth=0.2__epsilon=None__fix_torso=False__keep_best=50__no_hull=False__observe=reach__priors=-strong-weak-__run=0__samples=200__seed=0__space=join__2bf447ad', 'bandwidth=0.2__epsilon=None__fix_torso=False__keep_best=50__no_hull=False__observe=reach__priors=-strong-weak-__run=1__samples=200__seed=0__space=join__123a70eb']),
 ]
 
 
@@ -49,6 +59,14 @@ def _parse(mod, argv):
 
 
 def _keys(command, argv):
+    if command == "reproduce panda":
+        args = _parse(manipulator, argv)
+        manipulator._check(args)
+        return [c.key for c in manipulator.grid_cells(args, *manipulator.model_and_subjects(args))]
+    if command == "reproduce hrc":
+        args = _parse(hrc, argv)
+        args.priors = hrc._parse_priors(args.priors)
+        return [c.key for c in hrc.grid_cells(args)]
     if command == "compare":
         return [c.key for c in compare.grid_cells(_parse(compare, argv), build=False)]
     if command == "calibrate":
@@ -103,9 +121,12 @@ def test_cell_is_frozen_checked_and_pickles_with_its_key():
     back = pickle.loads(pickle.dumps(cell))
     assert back == cell and back.key == cell.key and dict(back.extras) == {"k": 0}
     assert cell.key == "budget=10__k=0__method=a__seed=0__subject=s__task=toy__tasks=1__" + cell.key[-8:]
+    renamed = Cell(model=PANDA, subject="s", seed=0, budget=10, tasks=1, extras={"k": 0}, budget_key="samples")
+    assert renamed.key_fields() == {"subject": "s", "seed": 0, "samples": 10, "tasks": 1, "k": 0}
     for kw, name in [({"model": "panda"}, "model"), ({"seed": -1}, "seed"), ({"budget": 0}, "budget"),
                      ({"tasks": True}, "tasks"), ({"method": 3}, "method"), ({"extras": [1]}, "extras"),
-                     ({"extras": {"seed": 1}}, "extras")]:
+                     ({"extras": {"seed": 1}}, "extras"), ({"budget_key": ""}, "budget_key"),
+                     ({"extras": {"samples": 1}, "budget_key": "samples"}, "extras")]:
         with pytest.raises((TypeError, ValueError), match=f"^{name}: "):
             Cell(**{**dict(model=PANDA, subject="s", seed=0, budget=1, tasks=1), **kw})
 

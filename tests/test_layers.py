@@ -3,7 +3,7 @@
 Every import statement in the package counts: module level, inside functions (the
 registry's lazy loaders) and under ``if TYPE_CHECKING:``. Layers, bottom to top:
 
-    0  _validation, _io                  (argument checks, atomic writes)
+    0  _validation, _io, _plugins        (argument checks, atomic writes, entry points)
     0.5 _threads                         (the shared thread runner of the numba kernels)
     1  simulators                        (the batched simulators)
     2  priors, budget                    (the box prior, the simulation counter)
@@ -30,7 +30,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "camo_sbi"
 
 LAYERS = {
-    "_validation": 0, "_io": 0, "_files": 0, "_memory": 0, "_threads": 0.5,
+    "_validation": 0, "_io": 0, "_files": 0, "_memory": 0, "_plugins": 0, "_threads": 0.5,
     "simulators": 1,
     "priors": 2, "budget": 2,
     "task": 3, "distributed": 3,

@@ -261,7 +261,8 @@ def c2st(samples_a, samples_b, seed, *, n_folds: int = 5, classifier: str = "rf"
     The larger set is subsampled (seeded) to the size of the smaller so 0.5 is the chance level.
 
     Args:
-        samples_a, samples_b: (N_a, D), (N_b, D) equally weighted samples (resample first if weighted).
+        samples_a: (N_a, D) equally weighted samples (resample first if weighted).
+        samples_b: (N_b, D), the same.
         seed: int or numpy Generator (subsampling and the classifier's seed).
         classifier: "rf" or "mlp".
         max_samples: optional cap on samples per set.

@@ -160,11 +160,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--flow", default=None, help="nsf (default: neural spline flow) or maf")
     p.add_argument("--fast", action="store_true",
                    help="the faster optimiser settings (2048 reaches a batch, 3e-3 on a cosine schedule, 30 "
-                        "epochs): the same validation loss in 2.8x less CPU time on 50k Panda simulations, "
-                        "calibration measured in the README's performance section")
+                        "epochs); their speed-up and calibration are measured in the documentation "
+                        "(Measured performance)")
     p.add_argument("--threads", type=int, default=None,
-                   help="torch threads while training (default: 1; with --fast on 50k Panda simulations, 2 threads "
-                        "on a quiet 2-core machine trained 1.2x faster in wall time, with the same losses)")
+                   help="torch threads while training (default: 1; what more threads gain is measured in the "
+                        "documentation, Measured performance)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
 

@@ -61,6 +61,7 @@ from camo_sbi._io import atomic_write_text
 from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
 from camo_sbi.experiments.method_configs import method_config, parse_configs
 from camo_sbi.experiments.models import add_model_arguments, model_from_args
+from camo_sbi.experiments.run_options import add_run_options
 
 # only light modules at import time: the CLI builds its parser from add_arguments (numpy, pandas,
 # torch and the diagnostics are imported by the functions that use them)
@@ -357,12 +358,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sbc-draws", type=int, default=100, help="posterior draws per SBC rank (ranks 0..L)")
     p.add_argument("--config", action="append", default=[], metavar="METHOD=JSON",
                    help='per-method config overrides, e.g. --config \'npe={"max_epochs": 50}\' (repeatable)')
-    p.add_argument("--seed", type=int, default=0, help="base seed (subjects and method seeds derive from it)")
-    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (without --scheduler)")
-    p.add_argument("--scheduler", default=None,
-                   help="run the cells on Dask: 'local:N' or a scheduler address 'tcp://host:8786'; default: "
-                        "in-process / --workers")
-    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     p.add_argument("--amortized", type=Path, default=None,
                    help="trained estimator file for npe-amortized; default: train one under OUT/work/amortized "
                         "once, before the cells, and reuse it")
@@ -373,7 +368,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sbi-diagnostics", type=int, default=500,
                    help="npe-amortized: fresh (theta, x) pairs for sbi's run_sbc / TARP (0: skip)")
     add_figure_format_argument(p)
-    p.add_argument("--out", type=Path, default=Path("runs/calibrate"))
+    add_run_options(p, out="runs/calibrate", seed_help="base seed (subjects and method seeds derive from it)")
 
 
 def main(args) -> int:

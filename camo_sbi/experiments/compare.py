@@ -15,8 +15,6 @@ import logging
 import time
 from pathlib import Path
 
-# only light modules at import time: the CLI builds its parser from add_arguments (numpy, torch,
-# pandas and the store are imported by the functions that use them)
 from camo_sbi.experiments.figure_options import (
     add_corner_argument,
     add_figure_format_argument,
@@ -30,6 +28,10 @@ from camo_sbi.experiments.models import (
     subject_limits,
     subject_list,
 )
+
+# only light modules at import time: the CLI builds its parser from add_arguments (numpy, torch,
+# pandas and the store are imported by the functions that use them)
+from camo_sbi.experiments.run_options import add_run_options
 
 __all__ = ["add_arguments", "grid_cells", "main", "run_cell"]
 
@@ -274,11 +276,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--subjects", default=None, help="comma-separated subject profiles (default: the first; "
                                                      "with --limits the file is the subject)")
     p.add_argument("--space", choices=("joint", "cartesian"), default="joint")
-    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (without --scheduler)")
-    p.add_argument("--scheduler", default=None,
-                   help="run the cells on Dask: 'local:N' (a LocalCluster with N worker processes) or "
-                        "a scheduler address 'tcp://host:8786'; default: in-process / --workers")
-    p.add_argument("--seed", type=int, default=0, help="base seed")
     p.add_argument("--amortized", type=Path, default=None,
                    help="trained estimator file for amortized methods (npe-amortized); default: train one "
                         "under OUT/work/amortized once, before the cells, and reuse it")
@@ -290,8 +287,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     add_figure_format_argument(p)
     add_corner_argument(p)
-    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
-    p.add_argument("--out", type=Path, default=Path("runs/compare"))
+    add_run_options(p, out="runs/compare")
 
 
 def _finished_grid(args) -> list | None:

@@ -1,7 +1,7 @@
 """The one grid runner of the experiment commands: a typed `Cell` and `run_grid`.
 
-compare, calibrate and robustness describe their grids as `Cell` objects and hand them to
-`run_grid`, which
+compare, calibrate, robustness and ``reproduce panda`` describe their grids as `Cell` objects
+and hand them to `run_grid`, which
 
 * skips the cells already finished in the `ResultStore` (an interrupted or repeated run resumes);
 * runs the others in-process (``workers=1``), in spawned worker processes that die with the
@@ -22,7 +22,8 @@ fields, exactly as each command computed it before this module existed, so run f
 by older versions resume. The key fields are the shared fields (``subject``, ``seed``,
 ``budget``, ``tasks`` and ``method`` when set), the command-specific ``extras`` and
 ``model_key``, the entries through which a command names its model in the key (these differ
-between commands for historical reasons and are kept as they were).
+between commands for historical reasons and are kept as they were; so does the budget's name
+in the key, ``budget_key``: ``reproduce panda`` has always called it ``samples``).
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ class Cell:
         method: the method the cell runs, or None for a cell running several (``extras``).
         extras: command-specific key fields (read-only mapping; values as they enter the key).
         model_key: ``(name, value)`` entries naming the model in the key.
+        budget_key: the name of ``budget`` in the key ("budget"; ``reproduce panda``: "samples").
         key: `cell_key` of every key field (computed, not passed).
     """
 
@@ -71,6 +73,7 @@ class Cell:
     method: str | None = None
     extras: Mapping[str, Any] = field(default_factory=dict)
     model_key: tuple[tuple[str, str], ...] = ()
+    budget_key: str = "budget"
     key: str = field(init=False, compare=False)
 
     def __post_init__(self):
@@ -93,7 +96,9 @@ class Cell:
             model_key = tuple((str(k), str(v)) for k, v in self.model_key)
         except (TypeError, ValueError):
             raise TypeError("model_key: expected (name, value) pairs") from None
-        names = [*(k for k in _SHARED if k != "method" or self.method is not None), *extras, *(k for k, _ in model_key)]
+        if not isinstance(self.budget_key, str) or not self.budget_key:
+            raise TypeError(f"budget_key: expected a non-empty str, got {self.budget_key!r}")
+        names = [*self._shared(), *extras, *(k for k, _ in model_key)]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"extras: key field(s) {dup} given twice (shared fields, extras and model_key)")
@@ -103,9 +108,13 @@ class Cell:
         object.__setattr__(self, "model_key", model_key)
         object.__setattr__(self, "key", cell_key(self.key_fields()))
 
+    def _shared(self) -> dict[str, str]:
+        """{name in the key: attribute} of the shared fields this cell keys on."""
+        return {(self.budget_key if k == "budget" else k): k for k in _SHARED if k != "method" or self.method is not None}
+
     def key_fields(self) -> dict[str, Any]:
         """The fields the key is computed from (`store.cell_key`)."""
-        shared = {k: getattr(self, k) for k in _SHARED if k != "method" or self.method is not None}
+        shared = {name: getattr(self, k) for name, k in self._shared().items()}
         return {**shared, **self.extras, **dict(self.model_key)}
 
     @property

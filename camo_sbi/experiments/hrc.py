@@ -48,19 +48,23 @@ blocks) and person_fraction (method truth: the person's share of the test blocks
 ``claims.csv`` (`camo_sbi.evaluation.claims.hrc_claims`); the figure ``fig5_allocation.png``;
 ``scene_run00.png`` (with ``--scene-png``, one per run): the first test trial under the
 final strong-prior allocation of camo-hull (camo-js with ``--no-hull``).
+
+The runs are the cells of the one grid runner (`camo_sbi.experiments.grid.run_grid`, `grid_cells`
+and `run_cell`): in-process, in ``--workers N`` processes or on a Dask ``--scheduler``, each opening
+its own scene (a run depends on its seeds only, never on the runs before it).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tqdm import tqdm
-
 from camo_sbi._io import atomic_write_text
 from camo_sbi.experiments.figure_options import add_figure_format_argument, figure_formats
+from camo_sbi.experiments.run_options import add_run_options
 
 # only light modules at import time: the CLI builds its parser from add_arguments (numpy, torch,
 # pybullet's scene and the methods are imported by the functions that use them)
@@ -74,11 +78,13 @@ __all__ = [
     "add_arguments",
     "add_render_arguments",
     "collect_run",
+    "grid_cells",
     "main",
     "make_figure",
     "make_prior",
     "run_methods",
     "render_main",
+    "run_cell",
     "run_one",
 ]
 
@@ -371,10 +377,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="ground-truth impairment profile (e.g. frozen_shoulder, elbow_flexion_contracture)")
     p.add_argument("--scene-png", action="store_true",
                    help="save a scene picture for every run (the first run's is always saved)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     add_figure_format_argument(p)
-    p.add_argument("--out", type=Path, default=Path("runs/reproduce_hrc"))
+    add_run_options(p, out="runs/reproduce_hrc", seed_help="base seed (the scene's layout, each run's trials and "
+                                                           "methods derive from it)")
 
 
 def _parse_priors(text) -> list[str]:
@@ -408,17 +413,52 @@ def _render_run(scene, extras, path: Path) -> None:
                  region_theta=extras["true_theta"], title=title)
 
 
-def main(args) -> int:
-    from camo_sbi.experiments.rundir import RunDirectory, run_settings
-    from camo_sbi.experiments.store import cell_key
+def grid_cells(args) -> list:
+    """One `Cell` per run (``args`` checked by `main`), keyed as each run always was (``run`` and
+    the settings that change its rows), so a run folder made before the grid runner resumes."""
+    from camo_sbi.experiments.grid import Cell
+    from camo_sbi.experiments.models import ModelSpec
+
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
+    keyed = [k for k in _CELL_SETTINGS if k not in ("subject", "seed", "tasks", "samples")]
+    return [Cell(model=ModelSpec(kind="human"), subject=args.subject, seed=args.seed, budget=args.samples,
+                 tasks=args.tasks, extras={"run": run, **{k: settings[k] for k in keyed}}, budget_key="samples")
+            for run in range(args.runs)]
+
+
+def _cell_args(cell) -> argparse.Namespace:
+    return argparse.Namespace(**{**dict(cell.extras), "subject": cell.subject, "seed": cell.seed,
+                                 "tasks": cell.tasks, "samples": cell.budget})
+
+
+def _scene_png(out, run: int) -> Path:
+    return Path(out) / f"scene_run{run:02d}.png"
+
+
+def run_cell(cell, out: str, *, scene_png: bool = False) -> list[dict]:
+    """One run (a `Cell` of `grid_cells`) in any process, in a scene of its own; draws the run's
+    scene picture for run 0 (and every run with ``scene_png``). Returns the run's rows."""
     from camo_sbi.scenarios.block_stacking import BlockStackingScene
-    from camo_sbi.simulators import human
+
+    args = _cell_args(cell)
+    run = args.run
+    sim = cell.model.build()
+    with BlockStackingScene(sim, seed=cell.seed) as scene:
+        rows, extras = run_one(scene, sim, cell.subject, run, args)
+        if scene_png or run == 0:  # the first run's scene is always drawn
+            _render_run(scene, extras, _scene_png(out, run))
+    return rows
+
+
+def main(args) -> int:
+    from camo_sbi.experiments.grid import run_grid
+    from camo_sbi.experiments.rundir import RunDirectory, run_settings
 
     args.priors = _parse_priors(args.priors)
     formats = figure_formats(args)
     _check_subject(args.subject)
-    for name in ("runs", "tasks", "test_trials", "samples", "keep_best"):
-        if getattr(args, name) < 1:
+    for name in ("runs", "tasks", "test_trials", "samples", "keep_best", "workers"):
+        if getattr(args, name, 1) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
     t0 = time.perf_counter()
     sim = human()
@@ -429,25 +469,19 @@ def main(args) -> int:
                     n_joints=sim.n_joints, max_steps=getattr(getattr(sim, "config", None), "max_steps", 1),
                     names={"seeds": "--runs", "tasks": "--tasks", "test_goals": "--test-trials"})
     out = Path(args.out)
-    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
+    cells = grid_cells(args)
     # --scene-png only adds pictures: not a setting of the results
     with RunDirectory(out, "reproduce hrc", run_settings(args, ignore=("scene_png",)),
                       wait=getattr(args, "wait", False)) as rundir:
         store = rundir.store
-        keys = []
-        with BlockStackingScene(sim, seed=args.seed) as scene:
-            for run in tqdm(range(args.runs), desc=f"reproduce hrc ({args.subject})", unit="run"):
-                key = cell_key({"run": run, **{k: settings[k] for k in _CELL_SETTINGS}})
-                keys.append(key)
-                png = out / f"scene_run{run:02d}.png"
-                want_png = args.scene_png or run == 0  # the first run's scene is always drawn
-                if store.done(key) and (not want_png or png.exists()):
-                    continue
-                rows, extras = run_one(scene, sim, args.subject, run, args)
-                store.put(key, rows)  # deterministic: a recomputed run rewrites identical rows
-                if want_png:
-                    _render_run(scene, extras, png)
-        df = store.write_table(keys=keys)
+        scene_png = bool(getattr(args, "scene_png", False))
+        fn = functools.partial(run_cell, scene_png=True) if scene_png else run_cell
+        run_grid(fn, cells, store, workers=getattr(args, "workers", 1), scheduler=getattr(args, "scheduler", None),
+                 progress=f"reproduce hrc ({args.subject})")
+        for cell in cells:  # a finished run whose picture is missing (an older run folder): run it again to draw
+            if (scene_png or cell.extras["run"] == 0) and not _scene_png(out, cell.extras["run"]).exists():
+                store.put(cell.key, fn(cell, str(out)))  # deterministic: the same rows again
+        df = store.write_table(keys=[c.key for c in cells])
         fig = make_figure(df, out, formats)
         from camo_sbi.evaluation.claims import binding_line, hrc_claims
 

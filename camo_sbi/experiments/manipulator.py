@@ -46,6 +46,10 @@ when the restriction is relaxed to the nominal limits (`scenarios.reaching.bindi
 
 Each run writes ``claims.csv`` (`camo_sbi.evaluation.claims`): every paper claim tested with
 paired tests across runs against naive and against nominal, Holm-corrected.
+
+The runs are the cells of the one grid runner (`camo_sbi.experiments.grid.run_grid`, `grid_cells`
+and `run_cell`): in-process, in ``--workers N`` processes or on a Dask ``--scheduler``; every
+input of a run (its seeds included) is in its cell, so any number of workers gives the same table.
 """
 
 from __future__ import annotations
@@ -55,8 +59,6 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-
-from tqdm import tqdm
 
 # only light modules at import time: the CLI builds its parser from add_arguments (the store,
 # Dask and the methods are imported by the functions that use them)
@@ -68,10 +70,11 @@ from camo_sbi.experiments.models import (
     subject_limits,
     subject_list,
 )
+from camo_sbi.experiments.run_options import add_run_options
 from camo_sbi.simulators.registry import ONE_JOINT, get_model
 
-__all__ = ["AUTHORS_LENGTH_UNIT", "SETTINGS", "Setting", "add_arguments", "main", "make_figures", "method_config",
-           "run_one"]
+__all__ = ["AUTHORS_LENGTH_UNIT", "SETTINGS", "Setting", "add_arguments", "grid_cells", "main", "make_figures",
+           "method_config", "run_cell", "run_one"]
 
 
 @dataclass(frozen=True)
@@ -149,16 +152,9 @@ def _setting(args) -> Setting:
     return SETTINGS[getattr(args, "setting", "toolkit")]
 
 
-# Not `method_configs.method_config`: the reproduction's configs are the paper setting's CAMO
-# options (and their command-line overrides), not the grid commands' budget/space/workdir rules.
-def method_config(name: str, args) -> dict | None:
-    """The config a run gives method ``name``: the setting's CAMO options (command-line values
-    override them) for the CAMO family, else the method's defaults."""
-    from camo_sbi.inference.registry import get_method
-
-    spec = get_method(name)
-    if "camo" not in (name, spec.base) and spec.load().config is not get_method("camo").load().config:
-        return None  # camo-touched: its own method on CAMO's config
+def camo_options(args) -> dict:
+    """The setting's CAMO options with the command line's values over them; the epsilon stays
+    per observation space (`method_configs.method_config` picks each method's) unless given."""
     st = _setting(args)
     cfg = dict(st.camo)
     for key in ("keep_best", "bandwidth", "bandwidth_mode", "sampling", "epsilon"):
@@ -166,11 +162,16 @@ def method_config(name: str, args) -> dict | None:
         if value is not None:
             cfg[key] = value
     if getattr(args, "epsilon", None) is None and st.epsilon:
-        cfg["epsilon"] = st.epsilon[spec.defaults.get("space", cfg.get("space", "joint"))]
-        if spec.defaults.get("proposal") == "sequential-js":  # the JS chain of camo-seq-cs
-            cfg["js_epsilon"] = st.epsilon["joint"]
-    cfg["scheduler"] = getattr(args, "scheduler", None)
+        cfg["epsilon"] = dict(st.epsilon)
     return cfg
+
+
+def method_config(name: str, args) -> dict:
+    """The config a run gives method ``name`` (`method_configs.method_config` with the setting's
+    CAMO options)."""
+    from camo_sbi.experiments.method_configs import method_config as config
+
+    return config(name, camo=camo_options(args))
 
 
 def _simulator(args, model=None):
@@ -362,13 +363,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--methods", default=None, help="comma-separated registered methods (default: the setting's)")
     p.add_argument("--subjects", default=None, help="comma-separated ground-truth profiles (default: the setting's; "
                                                      "with --urdf the --limits file is the subject)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--scheduler", default=None,
-                   help="run CAMO's candidate chunks on Dask: 'local:N' or 'tcp://host:8786' "
-                        "(same numbers as in-process)")
-    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     add_figure_format_argument(p)
-    p.add_argument("--out", type=Path, default=Path("runs/reproduce_panda"))
+    add_run_options(p, out="runs/reproduce_panda", seed_help="base seed (each run's goals and methods derive from it)")
 
 
 def _check(args) -> None:
@@ -386,8 +382,8 @@ def _check(args) -> None:
             raise ValueError(f"--methods: {exc}") from exc
     # the trivial answers are in every table
     args.methods = list(methods) + [b for b in names(baseline=True) if b not in methods]
-    for name in ("runs", "tasks", "test_goals", "samples"):
-        if getattr(args, name) < 1:
+    for name in ("runs", "tasks", "test_goals", "samples", "workers"):
+        if getattr(args, name, 1) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
     design = getattr(args, "design", "random")
     if design == "active" and args.setting != "informative":
@@ -413,21 +409,9 @@ def _check(args) -> None:
         raise ValueError(f"--{exc}") from exc
 
 
-def main(args) -> int:
-    from camo_sbi.diagnostics.numbers import summary_table
-    from camo_sbi.distributed import dask_client
-    from camo_sbi.evaluation import catalog
-    from camo_sbi.evaluation.claims import binding_line, informative_claims, manipulator_claims
-    from camo_sbi.experiments.rundir import RunDirectory, run_settings
-    from camo_sbi.experiments.store import cell_key
-
-    if not hasattr(args, "setting"):
-        args.setting = "toolkit"
-    if not hasattr(args, "design"):
-        args.design = "random"
-    _check(args)
-    formats = figure_formats(args)
-    t0 = time.perf_counter()
+def model_and_subjects(args) -> tuple:
+    """The `ModelSpec` and the subjects cycled over the runs (``args`` checked by `_check`); the
+    subjects' names are checked against the model before any work."""
     st = _setting(args)
     model = model_from_args(args)
     sim = _simulator(args, model)
@@ -445,29 +429,70 @@ def main(args) -> int:
     check_grid_fits(seeds=args.runs, cells_per_seed=len(subjects), tasks=args.tasks, test_goals=args.test_goals,
                     n_joints=sim.n_joints, max_steps=getattr(getattr(sim, "config", None), "max_steps", 1),
                     names={"seeds": "--runs", "tasks": "--tasks", "test_goals": "--test-goals"})
-    out = Path(args.out)
+    return model, subjects
+
+
+def grid_cells(args, model, subjects: list[str]) -> list:
+    """One `Cell` per run (``args`` checked by `_check`): run r observes ``subjects[r % len]``.
+
+    The cell key is the one each run always had (``run``, ``subject``, the settings that change a
+    run's rows, the design's and the paper design's version), so a run folder made before the
+    grid runner resumes.
+    """
+    from camo_sbi.experiments.grid import Cell
+
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "func"}
     # a built-in model with its defaults keeps the cell keys it always had
-    settings["model"] = model.name if model.is_default else json.dumps(model.key(), sort_keys=True)
+    model_key = (("model", model.name if model.is_default else json.dumps(model.key(), sort_keys=True)),)
+    keyed = [k for k in _CELL_SETTINGS if k not in ("model", "tasks", "samples", "seed")]
+    cells = []
+    for run in range(args.runs):
+        extras = {"run": run, **{k: settings[k] for k in keyed}}
+        if args.design != "random":  # random keeps the cell keys it always had
+            extras["design"] = args.design
+            extras["design_method"] = args.design_method
+        if args.setting == "paper":
+            extras["paper_design"] = PAPER_DESIGN
+        cells.append(Cell(model=model, subject=subjects[run % len(subjects)], seed=args.seed, budget=args.samples,
+                          tasks=args.tasks, extras=extras, model_key=model_key, budget_key="samples"))
+    return cells
+
+
+def run_cell(cell, out: str) -> list[dict]:
+    """One run (a `Cell` of `grid_cells`) in any process: the simulator rebuilt from the cell's
+    model and setting, every method on its subject; returns the run's tidy rows."""
+    x = dict(cell.extras)
+    args = argparse.Namespace(**{**x, "tasks": cell.tasks, "samples": cell.budget, "seed": cell.seed,
+                                    "design": x.get("design", "random"), "design_method": x.get("design_method"),
+                                    "scheduler": None})
+    return run_one(_simulator(args, cell.model), cell.model, cell.subject, x["run"], args)
+
+
+def main(args) -> int:
+    from camo_sbi.diagnostics.numbers import summary_table
+    from camo_sbi.evaluation import catalog
+    from camo_sbi.evaluation.claims import binding_line, informative_claims, manipulator_claims
+    from camo_sbi.experiments.grid import run_grid
+    from camo_sbi.experiments.rundir import RunDirectory, run_settings
+
+    if not hasattr(args, "setting"):
+        args.setting = "toolkit"
+    if not hasattr(args, "design"):
+        args.design = "random"
+    _check(args)
+    formats = figure_formats(args)
+    t0 = time.perf_counter()
+    model, subjects = model_and_subjects(args)
+    out = Path(args.out)
+    cells = grid_cells(args, model, subjects)
+    settings_model = cells[0].model_key[0][1]
     paper = {"paper_design": PAPER_DESIGN} if args.setting == "paper" else {}
-    keys = []
-    with RunDirectory(out, "reproduce panda", run_settings(args, subjects=subjects, model=settings["model"], **paper),
+    with RunDirectory(out, "reproduce panda", run_settings(args, subjects=subjects, model=settings_model, **paper),
                       wait=getattr(args, "wait", False)) as rundir:
         store = rundir.store
-        with dask_client(getattr(args, "scheduler", None)):  # CAMO's configs reuse this client
-            for run in tqdm(range(args.runs), desc=f"reproduce {model.name} ({args.setting})", unit="run"):
-                subject = subjects[run % len(subjects)]
-                cell = {"run": run, "subject": subject, **{k: settings[k] for k in _CELL_SETTINGS}}
-                if args.design != "random":  # random keeps the cell keys it always had
-                    cell["design"] = args.design
-                    cell["design_method"] = args.design_method
-                if args.setting == "paper":
-                    cell["paper_design"] = PAPER_DESIGN
-                key = cell_key(cell)
-                keys.append(key)
-                if store.done(key):
-                    continue
-                store.put(key, run_one(sim, model, subject, run, args))
+        run_grid(run_cell, cells, store, workers=getattr(args, "workers", 1), scheduler=getattr(args, "scheduler", None),
+                 progress=f"reproduce {model.name} ({args.setting})")
+        keys = [c.key for c in cells]
         df = store.write_table(keys=keys)
         figs = make_figures(df, out, formats)
         claims = (informative_claims(df, setting=args.setting) if args.setting == "informative"

@@ -1,14 +1,12 @@
 """The config a grid cell runs a method with, and ``--config METHOD=JSON``, in one place.
 
-`method_config` serves compare, calibrate and robustness: each passes what it decides (the
-per-task budget whose declared defaults apply, the observation space, a work directory, the
-trained estimator file, the user's overrides) and gets the dict the method runs with, so the
-rule "which config field comes from where" lives here rather than in each command.
+`method_config` serves every command (compare, calibrate, robustness, infer and ``reproduce
+panda``): each passes what it decides (the per-task budget whose declared defaults apply, the
+observation space, a work directory, the trained estimator file, a setting's CAMO options, the
+user's overrides) and gets the dict the method runs with, so the rule "which config field comes
+from where" lives here rather than in each command.
 `parse_configs` reads the repeatable ``--config`` option (compare, calibrate, infer) and
 validates it against each method's config class.
-
-(The manipulator reproduction keeps its own ``method_config``: its configs are the paper
-settings' CAMO options, not these rules.)
 """
 
 from __future__ import annotations
@@ -19,7 +17,7 @@ __all__ = ["method_config", "parse_configs"]
 
 
 def method_config(method: str, *, budget: int | None = None, space: str | None = None, workdir=None,
-                  estimator_path: str | None = None, overrides: dict | None = None) -> dict:
+                  estimator_path: str | None = None, camo: dict | None = None, overrides: dict | None = None) -> dict:
     """The config dict a grid cell runs ``method`` with, built in this order:
 
     * ``budget``: the values the method declares for this per-task budget
@@ -27,6 +25,10 @@ def method_config(method: str, *, budget: int | None = None, space: str | None =
     * ``space``: for a method that chooses its observation space and whose variant does not fix it;
     * ``workdir``: for a method that writes artefacts (`Capabilities.workdir`), as a str;
     * ``estimator_path``: for an amortized method (the trained estimator file);
+    * ``camo``: a setting's CAMO options (``reproduce panda``), for a method that runs on CAMO's
+      config class (the CAMO variants and camo-touched); an ``epsilon`` given per observation
+      space (``{"joint": ..., "cartesian": ...}``) takes the method's space, and the sequential
+      JS proposals (camo-seq-cs) also get the joint one as ``js_epsilon``;
     * ``overrides``: the user's ``--config`` values, last. An ``estimator_path`` among them that
       differs from ``estimator_path`` is refused (ValueError): which of the two a cell used
       differed between commands.
@@ -49,6 +51,13 @@ def method_config(method: str, *, budget: int | None = None, space: str | None =
         if str(other) != cfg["estimator_path"]:
             raise ValueError(f"overrides: {method}: estimator_path {other!r} differs from the estimator file "
                              f"{cfg['estimator_path']!r} (--amortized); give one of them")
+    if camo is not None and spec.load().config is get_method("camo").load().config:
+        cfg.update(camo)
+        if isinstance(cfg.get("epsilon"), dict):
+            per_space = cfg["epsilon"]
+            cfg["epsilon"] = per_space[spec.defaults.get("space", cfg.get("space", "joint"))]
+            if spec.defaults.get("proposal") == "sequential-js":  # the JS chain of camo-seq-cs
+                cfg["js_epsilon"] = per_space["joint"]
     return {**cfg, **(overrides or {})}
 
 

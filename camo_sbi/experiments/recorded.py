@@ -47,8 +47,8 @@ if TYPE_CHECKING:
 
     from camo_sbi.diagnostics.pages import Markup
 
-__all__ = ["CALIBRATION_VERDICTS", "add_infer_arguments", "add_recording_arguments", "add_simulate_arguments",
-           "calibration_verdict", "infer_main", "limits_table", "load_from_args", "simulate_main",
+__all__ = ["add_infer_arguments", "add_recording_arguments", "add_simulate_arguments",
+           "infer_main", "limits_table", "load_from_args", "simulate_main",
            "simulate_recordings", "wide_limits", "write_starts"]
 
 PPC_DRAWS = 50
@@ -169,26 +169,6 @@ def simulate_main(args) -> int:
 # ----------------------------------------------------------------------------- infer
 
 
-CALIBRATION_VERDICTS = {
-    # README "Calibration (50 synthetic subjects per model)": camo-sbi calibrate, docs/calibration/*/summary.txt
-    "panda": {"npe": "calibrated", "camo-hull": "over-confident", "camo": "over-confident",
-              "abc-smc": "strongly over-confident", "naive": "a point estimate, not a posterior"},
-    "human": {"npe": "calibrated", "camo": "mildly over-confident", "camo-hull": "over-confident",
-              "abc-smc": "strongly over-confident", "naive": "a point estimate, not a posterior"},
-}
-"""The calibration verdicts the README reports (coverage of 50 synthetic subjects per model)."""
-
-
-def calibration_verdict(method: str, model: str) -> str:
-    """The README's calibration verdict for ``method`` on ``model`` (or on the models measured)."""
-    if method in ("nominal", "oracle"):
-        return "a point (no posterior)"
-    if model in CALIBRATION_VERDICTS:
-        return CALIBRATION_VERDICTS[model].get(method, "not calibrated")
-    seen = [f"{m}: {v[method]}" for m, v in CALIBRATION_VERDICTS.items() if method in v]
-    return f"not calibrated on this model ({'; '.join(seen)})" if seen else "not calibrated"
-
-
 def limits_table(results: dict, sim, task=None):
     """One row per method, joint and bound: estimate [rad], [deg], posterior median [deg], the 90%
     central interval [deg], identifiability, exercised, the calibration verdict and the status.
@@ -211,6 +191,7 @@ def limits_table(results: dict, sim, task=None):
     import numpy as np
     import pandas as pd
 
+    from camo_sbi.diagnostics.verdicts import calibration_verdict
     from camo_sbi.inference.result import weighted_quantile
     from camo_sbi.io.recordings import BOUND_SLACK, K_SIGMA
 
@@ -231,7 +212,7 @@ def limits_table(results: dict, sim, task=None):
         w = res.normalized_weights()
         lo, med, hi = weighted_quantile(res.samples, w, [a, 0.5, 1.0 - a])  # one sort per coordinate
         point = res.samples.shape[0] <= 1
-        verdict = calibration_verdict(name, model)
+        verdict = calibration_verdict(name, model)  # measured: camo_sbi.diagnostics.verdicts
         for j, joint in enumerate(sim.joint_names):
             for b, bound in enumerate(("lower", "upper")):
                 k = 2 * j + b
@@ -356,18 +337,6 @@ def _check_amortized(plan: list, notes: list[str], task, obs, overrides: dict, p
             continue
         kept.append((name, space))
     return kept
-
-
-def _method_config(name: str, space: str | None, budget: int, workdir: Path, overrides: dict | None) -> dict:
-    from camo_sbi.experiments.method_configs import method_config
-    from camo_sbi.inference.registry import capabilities
-
-    cfg = method_config(name, budget=budget, overrides=overrides)
-    if space is not None:
-        cfg.setdefault("space", space)
-    if capabilities(name).workdir:
-        cfg.setdefault("workdir", str(workdir / name))
-    return cfg
 
 
 def _limits_html(table, sim) -> Markup:
@@ -691,6 +660,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
     import camo_sbi
     from camo_sbi._validation import derive_seed
     from camo_sbi.diagnostics.arviz_io import observed_arrays, save_in_run, to_inference_data
+    from camo_sbi.experiments.method_configs import method_config
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import save_recordings
     from camo_sbi.task import Observation, predict
@@ -700,7 +670,8 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
     bar = tqdm(plan, desc="infer", unit="method")
     for name, space in bar:
         bar.set_postfix_str(name)
-        cfg = _method_config(name, space, args.budget, out / "work", overrides.get(name))
+        cfg = method_config(name, budget=args.budget, space=space, workdir=out / "work" / name,
+                            overrides=overrides.get(name))
         res = run_method(name, task, budget=args.budget, seed=args.seed, config=cfg)
         results[name] = res
         idata = to_inference_data(res, sim.joint_names, prior=task.prior, seed=derive_seed(args.seed, "posterior-file"),

@@ -45,6 +45,7 @@ from camo_sbi.experiments.models import (
     subject_limits,
     subject_list,
 )
+from camo_sbi.experiments.run_options import add_run_options
 
 # only light modules at import time: the CLI builds its parser from add_arguments (numpy, pandas,
 # torch and the task are imported by the functions that use them)
@@ -293,14 +294,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
                    help="free: estimate the observed body's segment-length scale s from its joint and end-effector "
                         "recordings (io.recordings.estimate_body_scale) and infer and predict on model.scaled(s)")
-    p.add_argument("--seed", type=int, default=0, help="base seed")
-    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (without --scheduler)")
-    p.add_argument("--scheduler", default=None,
-                   help="run the cells on Dask: 'local:N' or a scheduler address 'tcp://host:8786'; default: "
-                        "in-process / --workers")
-    p.add_argument("--wait", action="store_true", help="if another run holds --out, wait for it instead of stopping")
     add_figure_format_argument(p)
-    p.add_argument("--out", type=Path, default=Path("runs/robustness"))
+    add_run_options(p, out="runs/robustness")
 
 
 def main(args) -> int:

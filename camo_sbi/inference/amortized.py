@@ -65,7 +65,7 @@ registry warns about every fallback.
 
 Why the set form is the default, and what each form and sampler measured (calibration,
 time per person, the per-reach samplers' failure to converge): `docs/studies/amortized_measurements.md`
-and the README's "Amortized inference" section.
+and docs/user-guide/amortized.md.
 
 Modules: this one holds the inference settings, `train`, `run` and the sbi diagnostics;
 `amortized_estimator` the training settings (`TrainConfig`), the estimator object and its file

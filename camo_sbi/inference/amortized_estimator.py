@@ -58,7 +58,7 @@ _BOX_TOL = 1e-9
 # for both. FAST_SET_TRAINING is the faster set-form alternative of
 # benchmarks/bench_amortized_train.py (`camo-sbi amortize --fast`): it reaches the default's
 # validation loss several times sooner but is more over-confident, so it is NOT the default
-# (the numbers: README, "Measured performance"); on the per-reach MAF toy of
+# (the numbers: docs/performance.md); on the per-reach MAF toy of
 # tests/test_amortized.py it moved an upper limit 5.6 posterior sd off.
 _OPTIMISER_DEFAULTS = {
     "set": {"training_batch_size": 512, "learning_rate": 1e-3, "lr_schedule": "constant", "max_epochs": 40},
@@ -79,8 +79,8 @@ class TrainConfig:
             reaches of each of simulations // max_set limit vectors; inference is one flow
             sample) or "per-reach" (one flow q(theta | one reach), combined over a person's
             reaches by the i.i.d. rule and sampled by `AmortizedConfig.combine`). The set form
-            is the default because it calibrates and the per-reach product does not (README,
-            "Amortized inference"; docs/studies/amortized_measurements.md).
+            is the default because it calibrates and the per-reach product does not (docs/user-guide/amortized.md;
+            docs/studies/amortized_measurements.md).
         max_set: the largest set of reaches the "set" form is trained on (and accepts).
         spaces: observation spaces to train a flow for ("joint", "cartesian" or both; the
             same simulations serve every space).
@@ -101,10 +101,10 @@ class TrainConfig:
             ``lr_schedule`` "cosine" lowers the rate along a half cosine over ``max_epochs``,
             "constant" keeps it). Left None, training_batch_size, learning_rate, lr_schedule
             and max_epochs take the form's defaults (`_OPTIMISER_DEFAULTS`: 512 reaches, 1e-3,
-            constant, 40 epochs for both forms; training times: README "Amortized inference").
+            constant, 40 epochs for both forms; training times: docs/user-guide/amortized.md).
             ``FAST_SET_TRAINING`` (2048, 3e-3, cosine, 30 epochs)
             reaches the same validation loss sooner but calibrates worse
-            (`benchmarks/bench_amortized_train.py`, README "Measured performance"), so it is
+            (`benchmarks/bench_amortized_train.py`, docs/performance.md), so it is
             an option (`amortize --fast`), not the default.
             `dataclasses.replace` keeps resolved values: replace ``form`` on a config built
             with the other form's defaults and they stay.
@@ -519,9 +519,26 @@ def from_bytes(data: bytes, name: str = "estimator") -> AmortizedEstimator:
         try:
             flow.load_state_dict(state, strict=True)
         except RuntimeError as exc:
-            raise ValueError(f"estimator: {name}'s {space} weights do not fit its metadata ({exc})") from exc
+            raise ValueError(f"estimator: {name}'s {space} weights do not fit the flow its metadata describes: "
+                             f"{_layout_versions(meta)}; retrain it with `camo-sbi amortize` under this version "
+                             f"({str(exc).splitlines()[0]})") from exc
         flows[space] = flow
     return AmortizedEstimator(meta, flows)
+
+
+def _layout_versions(meta: dict) -> str:
+    """Which sbi wrote a file and which weight layouts this version reads (without importing sbi:
+    `sbi_adapter.NsfReader` exists so that loading does not)."""
+    from importlib import metadata as dist
+
+    lo, hi = sbi_adapter.SBI_SUPPORTED
+    written = (meta.get("versions") or {}).get("sbi", "an unrecorded version")
+    try:
+        installed = dist.version("sbi")
+    except dist.PackageNotFoundError:
+        installed = "not installed"
+    return (f"the file was written with sbi {written}; this camo_sbi reads the flow layout of sbi "
+            f">= {lo[0]}.{lo[1]}, < {hi[0]}.{hi[1]} (installed: sbi {installed})")
 
 
 _CACHE: dict[tuple, AmortizedEstimator] = {}

@@ -62,7 +62,7 @@ from camo_sbi.inference.distances import dtw_distances, l2_distance
 from camo_sbi.inference.kde import GaussianKDE, scott_bandwidth
 from camo_sbi.inference.result import STATUS_OK, PosteriorResult, weighted_quantile
 from camo_sbi.priors import BoxPrior
-from camo_sbi.task import SPACES, NoiseModel, contain
+from camo_sbi.task import SPACES, NoiseModel, Observation, contain
 
 __all__ = ["Camo", "CamoConfig", "KdeProposal", "TaskRecord", "run", "run_sequence"]
 
@@ -263,7 +263,7 @@ class Camo:
         observations (``config.space``), valid steps only; joint_trajectory: (L, n), needed
         (only) by ``proposal="sequential-js"``.
         """
-        sim, cfg, n = self.simulator, self.config, self.simulator.n_joints
+        cfg, n = self.config, self.simulator.n_joints
         start = as_tensor(start, "start", dtype=torch.float64).cpu()
         goal = as_tensor(goal, "goal", dtype=torch.float64).cpu()
         traj = as_tensor(trajectory, "trajectory", dtype=torch.float64).cpu()
@@ -284,6 +284,12 @@ class Camo:
             if js_traj.dim() != 2 or js_traj.shape[1] != n or js_traj.shape[0] < 1:
                 raise ValueError(f"joint_trajectory: expected shape (L, {n}), got {tuple(js_traj.shape)}")
             check_finite(js_traj, "joint_trajectory")
+        return self._add(start, goal, traj, js_traj)
+
+    def _add(self, start, goal, traj, js_traj) -> TaskRecord:
+        """One observed task whose arrays are already checked: float64 CPU tensors, ``start``
+        (n,), ``goal`` (3,), ``traj`` (L, n or 3 for ``config.space``), ``js_traj`` (L, n) or None."""
+        sim, cfg = self.simulator, self.config
         idx = self.n_tasks
         hull_traj = traj if cfg.space == "joint" else js_traj
         if hull_traj is not None and (cfg.contain_observed or cfg.proposal != "prior"):
@@ -390,10 +396,17 @@ class Camo:
         return rec
 
     def observe_all(self, observations) -> Camo:
-        """Observe a sequence of `Observation` in order (in ``config.space``); returns self."""
-        for obs in observations:
-            js = obs.trajectory("joint") if self.config.proposal == "sequential-js" else None
-            self.observe(obs.start, obs.goal, obs.trajectory(self.config.space), js)
+        """Observe a sequence of `Observation` in order (in ``config.space``); returns self.
+
+        An `Observation` checked its arrays when it was made (float64, finite, shapes (n,), (3,),
+        (L, n) and (L, 3)), so they are not checked again; only its joint count against the model.
+        """
+        n = self.simulator.n_joints
+        for i, obs in enumerate(observations):
+            if not isinstance(obs, Observation) or obs.start.shape != (n,):
+                raise ValueError(f"observations: item {i} is not an Observation of {n} joints")
+            js = obs.trajectory("joint").cpu() if self.config.proposal == "sequential-js" else None
+            self._add(obs.start.cpu(), obs.goal.cpu(), obs.trajectory(self.config.space).cpu(), js)
         return self
 
     def estimate(self) -> np.ndarray:

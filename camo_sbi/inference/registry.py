@@ -137,8 +137,18 @@ def register(spec: MethodSpec) -> MethodSpec:
     return spec
 
 
+def _load_plugins() -> None:
+    """The methods other installed packages declare (entry points ``camo_sbi.methods``; once per
+    process, `camo_sbi._plugins`)."""
+    from camo_sbi import _plugins
+
+    _plugins.load("camo_sbi.methods", register, MethodSpec)
+
+
 def get_method(name: str) -> MethodSpec:
     """The registered method called ``name`` (ValueError listing the known names)."""
+    if isinstance(name, str) and name not in _REGISTRY:
+        _load_plugins()
     if not isinstance(name, str) or name not in _REGISTRY:
         raise ValueError(f"method: unknown method {name!r}; known: {', '.join(_REGISTRY)}")
     return _REGISTRY[name]
@@ -151,6 +161,7 @@ def names(*, baseline: bool | None = None, **required: Any) -> list[str]:
     capability value (``names(simulates=True)``, ``names(space="cartesian")`` keeps methods
     that can use Cartesian observations or need none).
     """
+    _load_plugins()
     space = required.pop("space", None)
     out = []
     for name, spec in _REGISTRY.items():

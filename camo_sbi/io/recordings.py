@@ -58,7 +58,7 @@ the controller's step: the recorder's rate R (recorded samples per controller st
 estimated from the whole file (`estimate_rate`) and, unless it is 1, each reach is
 linearly interpolated in normalised time to round((L - 1) / R) + 1 samples (``"time"``,
 the default), or re-walked along its path with the controller's step law
-(``"arclength"``). See the README for the measurement behind the default.
+(``"arclength"``). See docs/user-guide/your-robot.md for the measurement behind the default.
 """
 
 from __future__ import annotations
@@ -579,8 +579,8 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         (out-of-reach goals, a systematic ee offset) and ``info``.
 
     Raises:
-        ValueError starting with the file name (or the flag) and naming the column and the CSV
-        line (the header is line 1), NPZ row or C3D frame, for every malformed file.
+        ValueError: starting with the file name (or the flag) and naming the column and the CSV
+            line (the header is line 1), NPZ row or C3D frame, for every malformed file.
     """
     noise = NoiseModel() if noise is None else noise
     if not isinstance(noise, NoiseModel):
@@ -615,7 +615,7 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
 
         if bvh_map is None:
             raise ValueError(f"--bvh-map: a BVH file ({path}) needs the mapping from its channels to the model's "
-                             f"joints (see the README: From a motion-capture session)")
+                             f"joints (see docs/user-guide/motion-capture.md)")
         if not path.is_file():
             raise ValueError(f"{path}: no such file")
         d = read_bvh(path, load_bvh_map(bvh_map, list(simulator.joint_names)))

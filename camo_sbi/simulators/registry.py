@@ -30,7 +30,8 @@ Worker processes (``--workers N``, a Dask scheduler) are fresh interpreters: the
 models registered when this module is imported there. A model registered at run time (a
 script, a notebook, a test) runs in-process (``--workers 1``), or is registered by a module
 its workers import too; a worker that meets an unknown model stops with ``model: unknown body
-model``, never builds another body.
+model``, never builds another body. A model another installed package declares (entry point
+``camo_sbi.models``, `camo_sbi._plugins`) is read by every process, workers included.
 """
 
 from __future__ import annotations
@@ -180,15 +181,26 @@ def unregister_model(name: str) -> ModelDef:
     return _MODELS.pop(name)
 
 
+def _load_plugins() -> None:
+    """The body models other installed packages declare (entry points ``camo_sbi.models``; once
+    per process, `camo_sbi._plugins`)."""
+    from camo_sbi import _plugins
+
+    _plugins.load("camo_sbi.models", register_model, ModelDef)
+
+
 def get_model(name: str) -> ModelDef:
     """The registered model called ``name`` (ValueError naming ``model`` and the known names)."""
+    if isinstance(name, str) and name not in _MODELS:
+        _load_plugins()
     if not isinstance(name, str) or name not in _MODELS:
         raise ValueError(f"model: unknown body model {name!r}; known: {', '.join(_MODELS)}")
     return _MODELS[name]
 
 
 def model_names() -> tuple[str, ...]:
-    """The registered model names, in registration order."""
+    """The registered model names, in registration order (built-in, then plug-ins)."""
+    _load_plugins()
     return tuple(_MODELS)
 
 

@@ -33,11 +33,15 @@ class KinematicSimulator:
     """Batched reaching simulator for one serial chain (implements `base.Simulator`).
 
     Attributes:
-        joint_names: list of n actuated joints, base to tip.  n_joints: n.
-        bounds: (n, 2) float64 URDF limits.  start: (n,) float64 default start posture.
-        urdf: URDF text.  end_effector: link name.  config: `ControllerConfig`.
-        backend: "auto", "torch" or "numba".  chain: the parsed `KinematicChain`
-        (``chain.spec`` is the plain `ChainSpec`).
+        joint_names: list of n actuated joints, base to tip.
+        n_joints: n.
+        bounds: (n, 2) float64 URDF limits.
+        start: (n,) float64 default start posture.
+        urdf: URDF text.
+        end_effector: link name.
+        config: `ControllerConfig`.
+        backend: "auto", "torch" or "numba".
+        chain: the parsed `KinematicChain` (``chain.spec`` is the plain `ChainSpec`).
     """
 
     def __init__(self, chain: KinematicChain, start=None, *, config: ControllerConfig | None = None,
@@ -156,7 +160,7 @@ class KinematicSimulator:
             theta: (B, 2n) or (2n,) limits [lo_1, hi_1, ..., lo_n, hi_n], float32/float64.
             goal: (3,) or (B, 3) Cartesian goal in the base frame (m).
             start: None (``self.start``), (n,) or (B, n); must lie inside theta's limits.
-            A batch dimension of 1 broadcasts against the others.
+                A batch dimension of 1 broadcasts against the others.
 
         Returns:
             `Trajectories` q (B, T, n), ee (B, T, 3), length (B,) int64, reached (B,) bool,
