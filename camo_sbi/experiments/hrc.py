@@ -461,6 +461,8 @@ def main(args) -> int:
         if getattr(args, name, 1) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
     t0 = time.perf_counter()
+    from camo_sbi.simulators import human
+
     sim = human()
     from camo_sbi._memory import check_grid_fits
 
