@@ -74,6 +74,8 @@ class ExactConfig:
     Attributes:
         space: the observation space whose recorded values the likelihood reads ("joint" or
             "cartesian"; the same space the other methods of a comparison read).
+        coordinates: where the SMC moves: "box" (theta's free coordinates, `BoxBase`) or
+            "logit" (the logit of the position in the prior box, `PriorBase`).
         particles: SMC particles (the posterior draws returned, weighted).
         moves: Metropolis-Hastings moves per SMC stage.
         max_stages: tempering stages before the run is declared failed (status "fallback").
@@ -82,6 +84,7 @@ class ExactConfig:
     """
 
     space: str = "joint"
+    coordinates: str = "box"
     particles: int = 1000
     moves: int = 5
     max_stages: int = 300
@@ -90,6 +93,7 @@ class ExactConfig:
 
     def __post_init__(self):
         check_choice(self.space, SPACES, "space")
+        check_choice(self.coordinates, ("box", "logit"), "coordinates")
         check_positive_int(self.particles, "particles", minimum=16)
         check_positive_int(self.moves, "moves")
         check_positive_int(self.max_stages, "max_stages")
@@ -179,6 +183,33 @@ def log_posterior(task, theta, observations=None, *, space: str = "joint") -> to
     return lp
 
 
+class BoxBase:
+    """The uniform prior box itself, in theta's free coordinates: the SMC's base, with
+    ``draw(n, generator)``, ``log_prob(z)`` (0 inside the box, -inf outside: the constant
+    log-volume is dropped) and ``theta(z)``. Moves stay linear in theta, so a posterior
+    concentrated along a line of theta (a joint's mid-range pinned by the controller's
+    centring term, its width free) stays a line; moves leaving the box are rejected."""
+
+    def __init__(self, prior):
+        self.prior = prior
+        self.lo = prior.low[prior.free_mask]
+        self.width = (prior.high - prior.low)[prior.free_mask]
+
+    @property
+    def dim(self) -> int:
+        return int(self.lo.shape[0])
+
+    def draw(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        return self.lo + self.width * torch.rand(n, self.dim, generator=generator, dtype=torch.float64)
+
+    def log_prob(self, z: torch.Tensor) -> torch.Tensor:
+        inside = ((z >= self.lo) & (z <= self.lo + self.width)).all(-1)
+        return torch.where(inside, 0.0, -math.inf).to(torch.float64)
+
+    def theta(self, z: torch.Tensor) -> torch.Tensor:
+        return self.prior.expand(z)
+
+
 class PriorBase:
     """The uniform prior box in logit coordinates z of its free coordinates (a standard logistic
     per coordinate): the SMC's base, with ``draw(n, generator)``, ``log_prob(z)`` and
@@ -213,13 +244,18 @@ def sample_posterior(task, observations, *, seed, config: ExactConfig | None = N
     torch.Generator. Returns `samplers.WeightedDraws` with ``samples`` (N, 2n) theta.
     """
     config = ExactConfig() if config is None else config
-    base = PriorBase(task.prior)
+    base = (BoxBase if config.coordinates == "box" else PriorBase)(task.prior)
     if base.dim == 0:
         raise ValueError("task.prior: every coordinate is fixed; nothing to infer")
     obs = tuple(observations)
 
     def target(z):
-        return base.log_prob(z) + log_likelihood(task.simulator, base.theta(z), obs, task.noise, space=config.space)
+        lp = base.log_prob(z)
+        inside = torch.isfinite(lp)
+        if bool(inside.any()):  # rows outside the box are not simulated
+            lp[inside] = lp[inside] + log_likelihood(task.simulator, base.theta(z[inside]), obs, task.noise,
+                                                     space=config.space)
+        return lp
 
     with torch_threads(1):  # small tensors: torch's thread pool only adds contention
         draws = samplers.smc(target, base, seed=seed, particles=config.particles, moves=config.moves,
