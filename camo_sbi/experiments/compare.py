@@ -323,7 +323,10 @@ def main(args) -> int:
     if getattr(args, "reference", None) is not None:  # the benchmark set fixes the grid: its own command path
         from camo_sbi.experiments.reference import compare_main
 
-        return compare_main(args)
+        budgets = _parse_list(args.budgets, "budgets", int)
+        if any(b < 1 for b in budgets):
+            raise ValueError("--budgets: every budget must be >= 1")
+        return compare_main(args, grid_methods(args.methods), budgets)
     t0 = time.perf_counter()
     formats = figure_formats(args)
     corner = corner_limits(args)

@@ -50,7 +50,12 @@ import time
 from pathlib import Path
 
 from camo_sbi._io import atomic_write_bytes, atomic_write_text
-from camo_sbi.experiments.models import add_model_arguments, model_from_args, subject_limits, subject_list
+from camo_sbi.experiments.models import (
+    add_model_arguments,
+    model_from_args,
+    subject_limits,
+    subject_list,
+)
 
 __all__ = ["CHECK_C2ST", "add_arguments", "compare_main", "load_observation", "main", "reference_task",
            "run_compare_cell", "run_reference_cell", "setting_simulator"]
@@ -338,7 +343,7 @@ def main(args) -> int:
     bad = [e for e in prov["observations"] if not e["check_ok"]]
     for e in prov["observations"]:
         print(f"observation {e['observation']:3d} ({e['subject']}): C2ST between two runs {e['check_c2st']:.3f}"
-              f" {'ok' if e['check_ok'] else 'FAILED (> %.2f)' % CHECK_C2ST}")
+              f" {'ok' if e['check_ok'] else f'FAILED (> {CHECK_C2ST:.2f})'}")
     print(f"{len(cells) - len(bad)} of {len(cells)} reference posteriors pass the check; "
           f"files: {out / PROVENANCE}, {out / 'reference.csv'}, {out / 'observations'}")
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
@@ -379,11 +384,11 @@ def run_compare_cell(cell, out: str) -> list[dict]:
     return [{**base, "metric": k, "value": v} for k, v in metrics.items()]
 
 
-def compare_main(args) -> int:
-    """``compare --reference REFS``: every method on the reference set's observations (module docstring)."""
+def compare_main(args, methods: list[str], budgets: list[int]) -> int:
+    """``compare --reference REFS``: every method of ``methods`` (the baselines included) at every
+    budget of ``budgets`` (both parsed by compare) on the reference set's observations (module docstring)."""
     from camo_sbi.diagnostics.numbers import summary_table
     from camo_sbi.distributed import parse_scheduler
-    from camo_sbi.experiments.compare import _parse_list, grid_methods
     from camo_sbi.experiments.grid import Cell, pending, run_grid
     from camo_sbi.experiments.method_configs import parse_configs
     from camo_sbi.experiments.models import ModelSpec
@@ -400,10 +405,6 @@ def compare_main(args) -> int:
         raise ValueError(f"--reference: {refs / PROVENANCE} is not readable JSON ({exc})") from None
     if prov.get("format") != FORMAT:
         raise ValueError(f"--reference: {refs / PROVENANCE} has format {prov.get('format')!r}, expected {FORMAT}")
-    methods = grid_methods(args.methods)
-    budgets = _parse_list(args.budgets, "budgets", int)
-    if any(b < 1 for b in budgets):
-        raise ValueError("--budgets: every budget must be >= 1")
     if any(capabilities(m).amortized for m in methods):
         raise ValueError("--methods: amortized methods are not wired into compare --reference yet")
     try:

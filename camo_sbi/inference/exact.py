@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -64,6 +64,7 @@ __all__ = ["LABEL", "ExactConfig", "PriorBase", "log_likelihood", "log_posterior
 LABEL = "not simulation-based: the exact likelihood's posterior (the Bayes limit with these data)"
 """How tables, the report and ``--help`` describe ``exact-likelihood``."""
 
+_MCMC_KEEP = 4  # sweeps of the MCMC's second half kept (spread evenly): draws = 4 x chains
 _CHUNK = 8192  # theta rows per simulate call (memory: rows x T x n float64 per reach)
 
 
@@ -78,6 +79,12 @@ class ExactConfig:
             "logit" (the logit of the position in the prior box, `PriorBase`).
         particles: SMC particles (the posterior draws returned, weighted).
         moves: Metropolis-Hastings moves per SMC stage.
+        mcmc_steps: after the SMC, a population MCMC (`samplers.mcmc`: random-walk and
+            differential-evolution moves, which travel along a long narrow ridge) of this many
+            sweeps, one chain per particle started at the SMC's particles resampled by weight;
+            the draws are the chains' states at 4 sweeps spread over the second half (the
+            first is burn-in), equally weighted (4 x particles draws). 0: the SMC's weighted
+            particles as they are.
         max_stages: tempering stages before the run is declared failed (status "fallback").
         target_ess: the ESS fraction kept between stages.
         min_ess: the samplers' one fallback rule (`samplers.WeightedDraws.status`).
@@ -87,6 +94,7 @@ class ExactConfig:
     coordinates: str = "box"
     particles: int = 1000
     moves: int = 5
+    mcmc_steps: int = 0
     max_stages: int = 300
     target_ess: float = 0.5
     min_ess: float = 100.0
@@ -96,6 +104,7 @@ class ExactConfig:
         check_choice(self.coordinates, ("box", "logit"), "coordinates")
         check_positive_int(self.particles, "particles", minimum=16)
         check_positive_int(self.moves, "moves")
+        check_positive_int(self.mcmc_steps, "mcmc_steps", minimum=0)
         check_positive_int(self.max_stages, "max_stages")
         check_positive_float(self.target_ess, "target_ess")
         if not self.target_ess < 1:
@@ -257,9 +266,17 @@ def sample_posterior(task, observations, *, seed, config: ExactConfig | None = N
                                                      space=config.space)
         return lp
 
+    gen = torch.Generator().manual_seed(int(seed)) if not isinstance(seed, torch.Generator) else seed
     with torch_threads(1):  # small tensors: torch's thread pool only adds contention
-        draws = samplers.smc(target, base, seed=seed, particles=config.particles, moves=config.moves,
+        draws = samplers.smc(target, base, seed=gen, particles=config.particles, moves=config.moves,
                              max_stages=config.max_stages, target_ess=config.target_ess)
+        if config.mcmc_steps and draws.failure is None:
+            idx = torch.multinomial(draws.weights, config.particles, replacement=True, generator=gen)
+            chains = config.particles + config.particles % 2
+            mc = samplers.mcmc(target, draws.samples[idx], _MCMC_KEEP * chains, seed=gen, chains=chains,
+                               steps=config.mcmc_steps, burn_in=config.mcmc_steps // 2, de_fraction=0.5)
+            draws = replace(mc, diagnostics={**mc.diagnostics, "betas": draws.diagnostics["betas"],
+                                             "smc_acceptance": draws.diagnostics["acceptance"]})
     return draws.mapped(base.theta(draws.samples), draws.log_density)
 
 
