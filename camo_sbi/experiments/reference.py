@@ -14,7 +14,8 @@ exact (the known start posture every reach leaves from): the data are drawn from
 model the exact likelihood assumes.
 
 Its reference posterior: `exact.sample_posterior` (tempered SMC on the exact likelihood,
-``--draws`` particles, ``--moves`` moves per stage) run twice with independent seeds
+``--draws`` particles, ``--moves`` moves per stage, then ``--mcmc-steps`` sweeps of population
+MCMC from its particles) run twice with independent seeds
 (``derive_seed(--seed, i, "method", r)``, r = 0, 1). The check: C2ST between the two runs'
 `calibration.distinct_draws` <= `CHECK_C2ST` (0.55). The reference draws written are half from
 each run (distinct draws). An observation whose check fails is kept, labelled
@@ -144,7 +145,7 @@ def run_reference_cell(cell, out: str) -> list[dict]:
     noise = NoiseModel(*json.loads(x["noise"]))
     task = reference_task(sim, cell.model, cell.subject, i, setting=x["setting"], tasks=cell.tasks,
                           test_goals=x["test_goals"], noise=noise, base_seed=x["base_seed"])
-    config = {"particles": cell.budget, "moves": x["moves"], "space": x["space"]}
+    config = {"particles": cell.budget, "moves": x["moves"], "space": x["space"], "mcmc_steps": x["mcmc_steps"]}
     runs = [run_method("exact-likelihood", task, budget=1, seed=derive_seed(x["base_seed"], i, "method", r),
                        config=config) for r in (0, 1)]
     rng = np.random.default_rng(derive_seed(x["base_seed"], i, "method", 2))
@@ -227,8 +228,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the observation space the exact likelihood reads")
     p.add_argument("--noise-joint-deg", type=float, default=1.0, help="observation noise on joint angles, degrees")
     p.add_argument("--noise-ee-mm", type=float, default=5.0, help="observation noise on end-effector positions, mm")
-    p.add_argument("--draws", type=int, default=2000, help="SMC particles per run (reference draws per observation)")
-    p.add_argument("--moves", type=int, default=30, help="SMC Metropolis-Hastings moves per stage")
+    p.add_argument("--draws", type=int, default=1000, help="SMC particles per run (reference draws per observation)")
+    p.add_argument("--moves", type=int, default=10, help="SMC Metropolis-Hastings moves per stage")
+    p.add_argument("--mcmc-steps", type=int, default=200,
+                   help="population-MCMC sweeps after each SMC run (0: none; see ExactConfig.mcmc_steps)")
     p.add_argument("--seed", type=int, default=0, help="base seed")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes (without --scheduler)")
     p.add_argument("--scheduler", default=None,
@@ -243,6 +246,8 @@ def _check_args(args) -> None:
 
     if getattr(args, "urdf", None) is not None:
         raise ValueError("--urdf: reference sets are built for registered models (--model)")
+    if args.mcmc_steps < 0:
+        raise ValueError("--mcmc-steps: must be >= 0")
     for name in ("observations", "tasks", "test_goals", "workers", "moves"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
@@ -267,6 +272,7 @@ def _cells(args, model, subjects) -> list:
     from camo_sbi.experiments.grid import Cell
 
     extras = {"setting": args.setting, "test_goals": args.test_goals, "space": args.space, "moves": args.moves,
+              "mcmc_steps": args.mcmc_steps,
               "noise": json.dumps([float(args.noise_joint_deg), float(args.noise_ee_mm)]), "base_seed": args.seed,
               "reference_format": FORMAT}
     return [Cell(model=model, subject=subjects[i % len(subjects)], seed=i, budget=args.draws, tasks=args.tasks,
