@@ -175,7 +175,7 @@ def test_smc_recovers_a_two_joint_grid_posterior():
         qn = clean.q[0, :L].numpy() + math.radians(3.0) * rng.normal(size=(L, 2))
         obs.append(Observation(start, goal, torch.from_numpy(qn), None))
     task = Task("arm2", "toy", sim, prior, tuple(obs), noise=noise)
-    res = run_method("exact-likelihood", task, budget=1, seed=0, config={"particles": 2000, "moves": 10})
+    res = run_method("exact-likelihood", task, budget=1, seed=0, config={"particles": 1000, "moves": 10, "mcmc_steps": 100})
     assert res.status == "ok", res.status
     draws = distinct_draws(res.samples, res.weights, 1500, 0)[:, 2:]  # no sample twice (see distinct_draws)
     grid = _grid_posterior_draws(task, 1500, np.random.default_rng(1))

@@ -93,8 +93,8 @@ class ExactConfig:
     space: str = "joint"
     coordinates: str = "box"
     particles: int = 1000
-    moves: int = 5
-    mcmc_steps: int = 0
+    moves: int = 10
+    mcmc_steps: int = 200
     max_stages: int = 300
     target_ess: float = 0.5
     min_ess: float = 100.0
