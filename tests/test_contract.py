@@ -36,7 +36,7 @@ for _name in registry.names():
 TINY_AMORTIZED = {"simulations": 400, "spaces": ("joint", "cartesian"), "max_epochs": 2, "hidden_features": 8,
                   "num_transforms": 1, "training_batch_size": 50}
 FAST["npe-amortized"] = {"n_posterior_samples": 200, "is_rounds": 1, "min_ess": 0.0}
-FAST["exact-likelihood"] = {"particles": 64, "moves": 2, "mcmc_steps": 4, "min_ess": 0.0}
+FAST["exact-likelihood"] = {"particles": 64, "moves": 2, "mcmc_steps": 20, "min_ess": 0.0}
 EXACT_NOISE = NoiseModel(joint_deg=1.0, ee_mm=5.0)  # the exact likelihood needs a noise model
 
 METHODS = registry.names()

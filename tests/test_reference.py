@@ -12,7 +12,7 @@ import pytest
 from camo_sbi.experiments.cli import main
 
 TINY = ["reference", "--model", "panda", "--setting", "informative", "--observations", "2", "--tasks", "1",
-        "--test-goals", "2", "--draws", "100", "--moves", "1", "--mcmc-steps", "4"]
+        "--test-goals", "2", "--draws", "100", "--moves", "1", "--mcmc-steps", "10"]
 
 
 @pytest.mark.parametrize(
