@@ -105,6 +105,17 @@ def test_log_posterior_is_prior_plus_likelihood_and_minus_inf_outside(arm1):
     assert lp[1] == -np.inf and lp[2] == -np.inf  # outside the box: the start is not inside [0.2, 1.0]
 
 
+def test_noise_free_task_is_a_failed_run_not_a_posterior(arm1):
+    from camo_sbi.inference.registry import run_method
+
+    goal = torch.tensor([0.0, R, 0.0], dtype=torch.float64)
+    o = Observation(torch.zeros(1, dtype=torch.float64), goal, torch.zeros(3, 1, dtype=torch.float64), None)
+    task = Task("arm1", "toy", arm1, BoxPrior(arm1.bounds, torch.tensor([0.0])), (o,))
+    with pytest.warns(RuntimeWarning, match="failed: no observation noise in the joint space"):
+        res = run_method("exact-likelihood", task, budget=1, seed=0, config={"particles": 50})
+    assert res.status.startswith("failed: ") and res.n_simulations == 0
+
+
 def test_bad_input_names_the_argument(arm1):
     goal = torch.tensor([0.0, R, 0.0], dtype=torch.float64)
     o = Observation(torch.zeros(1, dtype=torch.float64), goal, torch.zeros(3, 1, dtype=torch.float64), None)

@@ -282,8 +282,10 @@ def sample_posterior(task, observations, *, seed, config: ExactConfig | None = N
 
 
 def run(task, observations, *, budget: int, seed: int, config: ExactConfig | None = None) -> PosteriorResult:
-    """The run contract: the exact posterior's weighted SMC draws; ``budget`` is not used (the
-    registry counts the simulations without capping them: see the module docstring).
+    """The run contract: the exact posterior's draws; ``budget`` is not used (the registry counts
+    the simulations without capping them: see the module docstring). A task without noise in
+    ``config.space`` has a degenerate likelihood: the result is then "failed: ..." (prior draws,
+    no simulation), so a grid of such tasks records why instead of stopping.
 
     Estimate: the weighted coordinate-wise median. Status: `samplers.WeightedDraws.status`
     with ``config.min_ess`` (a run whose tempering did not reach the posterior is a fallback).
@@ -293,7 +295,9 @@ def run(task, observations, *, budget: int, seed: int, config: ExactConfig | Non
     t0 = time.perf_counter()
     config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
                                                                ExactConfig)
-    _sigma(task.noise, config.space)
+    if task.noise.sigma(config.space) == 0:  # a grid of noise-free tasks goes on; the rows say why
+        return _failed(task, prior, observations, seed, config, t0,
+                       f"no observation noise in the {config.space} space: the exact likelihood is degenerate")
     draws = sample_posterior(task, observations, seed=seed, config=config)
     theta, w = draws.samples.numpy(), draws.weights.numpy()
     estimate = prior.with_known(torch.from_numpy(weighted_median(theta, w))).numpy()
@@ -310,3 +314,10 @@ def run(task, observations, *, budget: int, seed: int, config: ExactConfig | Non
         density=lambda th: log_posterior(plain, th, observations, space=config.space),
     )
 
+
+def _failed(task, prior, observations, seed, config, t0, reason: str) -> PosteriorResult:
+    """A "failed: reason" result: prior draws (labelled failed, never passed off as a posterior)."""
+    theta = prior.sample(config.particles, seed).numpy()
+    return PosteriorResult(method="exact-likelihood", samples=theta, weights=None, estimate=prior.outer_theta().numpy(),
+                           n_simulations=0, wall_time=time.perf_counter() - t0, n_tasks=len(observations),
+                           extras={"label": LABEL}, status=f"failed: {reason}")
