@@ -1,4 +1,4 @@
-"""Calibration checks over many simulated subjects: coverage, SBC ranks, C2ST.
+"""Calibration checks over many simulated subjects: coverage, SBC ranks, C2ST; distances to a reference.
 
 Each check takes, for S subjects with known true limits, posterior samples
 ``samples_per_subject`` — a (S, N, D) array, a list of S arrays (N_s, D), or a list
@@ -41,6 +41,9 @@ __all__ = [
     "sbc_ranks",
     "sbc_uniformity",
     "c2st",
+    "distinct_draws",
+    "mmd",
+    "reference_distances",
     "plot_coverage",
 ]
 
@@ -284,6 +287,73 @@ def c2st(samples_a, samples_b, seed, *, n_folds: int = 5, classifier: str = "rf"
     b = b[rng.choice(b.shape[0], m, replace=False)] if b.shape[0] > m else b
     int_seed = int(seed) if isinstance(seed, numbers.Integral) else int(rng.integers(2**31 - 1))
     return sbi_adapter.c2st(a, b, seed=int_seed, n_folds=n_folds, classifier=classifier)
+
+
+def distinct_draws(samples, weights, n: int, seed) -> np.ndarray:
+    """(m, D) draws of a weighted sample without repeating a sample, m = min(n, samples with weight > 0).
+
+    A classifier two-sample test sees a sample drawn twice in both its training and test folds
+    and recognises it, so resampling WITH replacement inflates C2ST (docs/guide/reference_posteriors.md
+    shows by how much for SMC particles against a grid posterior). Drawn
+    without replacement with probabilities proportional to ``weights`` (None: equal): exact
+    for equal weights, an approximation otherwise that is close while m is well below the
+    weights' effective sample size (the ESS is reported next to every C2ST row).
+    """
+    x = _array(samples, "samples", 2)
+    n = check_positive_int(n, "n")
+    rng = numpy_generator(seed)
+    w = np.full(x.shape[0], 1.0 / x.shape[0]) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (x.shape[0],) or not np.all(np.isfinite(w)) or np.any(w < 0) or not w.sum() > 0:
+        raise ValueError(f"weights: expected {x.shape[0]} finite non-negative weights with a positive sum")
+    m = min(n, int(np.count_nonzero(w)))
+    return x[rng.choice(x.shape[0], m, replace=False, p=w / w.sum())]
+
+
+def mmd(samples_a, samples_b, seed, *, max_samples: int | None = 2000) -> float:
+    """Unbiased squared MMD between two sample sets (sbi's, Gaussian kernel, median heuristic), on
+    coordinates z-scored by ``samples_a``'s statistics (as sbi's C2ST does) so every limit
+    counts alike; each set subsampled (seeded) to at most ``max_samples`` rows (the cost is
+    quadratic)."""
+    a = _array(samples_a, "samples_a", 2)
+    b = _array(samples_b, "samples_b", 2)
+    if a.shape[1] != b.shape[1]:
+        raise ValueError(f"samples_b: dimension {b.shape[1]} differs from samples_a's {a.shape[1]}")
+    rng = numpy_generator(seed)
+    if max_samples is not None:
+        m = check_positive_int(max_samples, "max_samples", minimum=2)
+        a = a[rng.choice(a.shape[0], m, replace=False)] if a.shape[0] > m else a
+        b = b[rng.choice(b.shape[0], m, replace=False)] if b.shape[0] > m else b
+    mean, std = a.mean(0), a.std(0)
+    std = np.where(std > 0, std, 1.0)
+    import torch
+
+    return sbi_adapter.mmd(torch.from_numpy((a - mean) / std), torch.from_numpy((b - mean) / std))
+
+
+def reference_distances(result: PosteriorResult, reference, seed, *, n: int = 2000) -> dict:
+    """C2ST and MMD of ``result``'s posterior against ``reference`` draws (N, D), sbibm-style.
+
+    Both sets are `distinct_draws` (at most ``n``; the reference's are equally weighted), on
+    the coordinates that vary in the reference (known limits of a strong prior are constant
+    and carry nothing). Returns ``{"c2st", "mmd", "distinct_draws", "posterior"}``: a result
+    that is a point estimate (one sample: naive, nominal, oracle) or has fewer than 10
+    distinct draws is not a posterior: NaN distances and ``posterior`` False, never a number
+    made up for it.
+    """
+    if not isinstance(result, PosteriorResult):
+        raise TypeError(f"result: expected a PosteriorResult, got {type(result).__name__}")
+    ref = _array(reference, "reference", 2)
+    if ref.shape[1] != result.samples.shape[1]:
+        raise ValueError(f"reference: dimension {ref.shape[1]} differs from the result's {result.samples.shape[1]}")
+    rng = numpy_generator(seed)
+    draws = distinct_draws(result.samples, result.weights, n, rng)
+    distinct = int(np.unique(draws, axis=0).shape[0])
+    if result.samples.shape[0] == 1 or distinct < 10:
+        return {"c2st": float("nan"), "mmd": float("nan"), "distinct_draws": distinct, "posterior": False}
+    ref = distinct_draws(ref, None, n, rng)
+    vary = ref.std(0) > 0
+    return {"c2st": c2st(ref[:, vary], draws[:, vary], rng), "mmd": mmd(ref[:, vary], draws[:, vary], rng),
+            "distinct_draws": distinct, "posterior": True}
 
 
 # --------------------------------------------------------------------------- plot

@@ -163,6 +163,7 @@ _METHODS: dict[str, MethodStyle] = {
     "abc-smc": MethodStyle("#E69F00", "s"),       # orange
     "npe": MethodStyle("#D55E00", "^"),           # vermillion
     "npe-amortized": MethodStyle("#F0E442", "<"),  # yellow
+    "exact-likelihood": MethodStyle("#332288", "*", (0, (3, 1, 1, 1))),  # indigo: the Bayes limit, not SBI
 }
 # the baselines: greys and black, each with its own marker and dashes
 _BASELINES: dict[str, MethodStyle] = {

@@ -40,7 +40,7 @@ class Metric:
     shown in degrees, `display_unit`); ``aggregate``: how the score is reduced to one
     value (module docstring); ``headline``: plotted in the figures; ``group``: what it
     measures ("prediction", "reachability", "posterior_predictive", "limits", "interval",
-    "cost", "design", "task", "allocation"); ``lower_is_better``: False for scores and shares where
+    "reference", "cost", "design", "task", "allocation"); ``lower_is_better``: False for scores and shares where
     more is better; ``reference``: a value drawn as a line in figures (a nominal level),
     or None; ``claims``: tags of the claims that test it (`camo_sbi.evaluation.claims`);
     ``score``: the scoring function, None for a metric a command records itself.
@@ -195,6 +195,13 @@ METRICS: list[Metric] = [
        score=_per_joint_limit_error),
     _M("coverage90", "coverage of the 90% interval", "", "value", headline=True, group="interval",
        lower_is_better=False, reference=0.9, score=_coverage),
+    # against a reference posterior (compare --reference; recorded by the command, sbibm's metrics)
+    _M("c2st", "C2ST accuracy against the reference posterior", "", "value", group="reference", reference=0.5),
+    _M("mmd", "squared MMD to the reference posterior", "", "value", group="reference", reference=0.0),
+    _M("posterior_distinct_draws", "distinct posterior draws compared with the reference", "", "value",
+       group="reference", lower_is_better=False),
+    _M("reference_check_c2st", "C2ST between the reference's two runs", "", "value", group="reference",
+       reference=0.5),
     # cost
     _M("n_simulations", "simulations used", "", "value", group="cost", score=_result_attr("n_simulations")),
     _M("wall_time", "wall time", "s", "value", group="cost", score=_result_attr("wall_time")),

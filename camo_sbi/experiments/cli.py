@@ -135,6 +135,11 @@ COMMANDS = (
             "compare:main", ("methods", "subjects"),
             (_TINY, "camo-sbi compare --model human --methods camo,camo-hull,abc-smc,npe --budgets 500,2000 "
                     "--seeds 3 --tasks 5 --workers 2 --out runs/human")),
+    Command("reference", "build (or verify) reference posteriors of a fixed benchmark set of observations",
+            "reference:add_arguments", "reference:main", ("subjects",),
+            ("camo-sbi reference --model panda --setting informative --observations 10 --out refs/panda-informative",
+             "camo-sbi compare --reference refs/panda-informative --methods camo-seq,npe,exact-likelihood "
+             "--budgets 1000,10000 --out runs/vs-reference")),
     Command("run", "run a whole comparison described in a study file (TOML)", "study:add_arguments",
             "study:main", ("methods", "subjects"),
             ("camo-sbi run study.toml", "camo-sbi run docs/study_example.toml --json")),

@@ -284,6 +284,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", action="append", default=[], metavar="METHOD=JSON",
                    help='per-method config overrides, e.g. --config \'npe-amortized={"combine": "smc"}\' '
                         '(repeatable)')
+    p.add_argument("--reference", type=Path, default=None,
+                   help="a reference set (camo-sbi reference): run every method on its observations and add C2ST "
+                        "and MMD against its reference posteriors (the set fixes model, subjects and tasks)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     add_figure_format_argument(p)
     add_corner_argument(p)
@@ -332,6 +335,13 @@ def main(args) -> int:
     from camo_sbi.experiments.grid import pending, run_grid
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
 
+    if getattr(args, "reference", None) is not None:  # the benchmark set fixes the grid: its own command path
+        from camo_sbi.experiments.reference import compare_main
+
+        budgets = _parse_list(args.budgets, "budgets", int)
+        if any(b < 1 for b in budgets):
+            raise ValueError("--budgets: every budget must be >= 1")
+        return compare_main(args, grid_methods(args.methods), budgets)
     t0 = time.perf_counter()
     formats = figure_formats(args)
     corner = corner_limits(args)

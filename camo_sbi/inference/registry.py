@@ -76,6 +76,10 @@ class Capabilities:
         also_reads: observation spaces read besides the scored one (camo-seq-cs: the joint
             postures for its proposals, as the authors' CS); data without them is refused,
             naming ``space``.
+        exact: not simulation-based: evaluates the exact likelihood of the noise model
+            (exact-likelihood, the Bayes limit with the data). Its simulations are counted
+            (``n_simulations``) but not capped by the budget: it is exempt from the budget
+            comparisons, and tables label it so.
     """
 
     spaces: tuple[str, ...] = ("joint", "cartesian")
@@ -87,6 +91,7 @@ class Capabilities:
     amortized: bool = False
     baseline: bool = False
     also_reads: tuple[str, ...] = ()
+    exact: bool = False
 
 
 @dataclass(frozen=True)
@@ -257,6 +262,11 @@ def _prepare(name, task, observations, budget, seed, config):
     return spec, impl, cfg, observations, budget, seed
 
 
+def _cap(spec: MethodSpec, budget: int, n_tasks: int) -> int | None:
+    """The run's simulation cap: ``budget`` per task, or None (counted, uncapped) for an exact method."""
+    return None if spec.capabilities.exact else budget * n_tasks
+
+
 def _warn_status(name: str, result: PosteriorResult) -> None:
     from camo_sbi.inference.result import STATUS_OK
 
@@ -316,13 +326,14 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
                config=None) -> PosteriorResult:
     """Run method ``name`` on ``observations`` (default: all of the task's) under a counted budget.
 
-    The simulator is wrapped in a `CountingSimulator` capped at ``budget * len(observations)``;
+    The simulator is wrapped in a `CountingSimulator` capped at ``budget * len(observations)``
+    (uncapped, still counted, for a method with `Capabilities.exact`);
     the result's ``method``, ``n_simulations``, ``wall_time``, ``compile_time`` and ``n_tasks``
     are set here (``wall_time`` excludes the numba compilation measured as ``compile_time``).
     A result whose status is not "ok" is warned about (RuntimeWarning).
     """
     spec, impl, cfg, observations, budget, seed = _prepare(name, task, observations, budget, seed, config)
-    counted, counter = task.with_budget(budget * len(observations))
+    counted, counter = task.with_budget(_cap(spec, budget, len(observations)))
     with _CompileClock() as jit:
         t0 = time.perf_counter()
         result = impl.run(counted, observations, budget=budget, seed=seed, config=cfg)
@@ -347,7 +358,7 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
     if not spec.capabilities.continual or impl.run_sequence is None:
         return [run_method(name, task, observations[: k + 1], budget=budget, seed=seed, config=cfg)
                 for k in range(len(observations))]
-    counted, counter = task.with_budget(budget * len(observations))
+    counted, counter = task.with_budget(_cap(spec, budget, len(observations)))
     out = []
     with _CompileClock() as jit:
         t0 = time.perf_counter()
@@ -421,6 +432,12 @@ def _npe_amortized() -> Implementation:
     return Implementation(amortized.run, amortized.AmortizedConfig)
 
 
+def _exact() -> Implementation:
+    from camo_sbi.inference import exact
+
+    return Implementation(exact.run, exact.ExactConfig)
+
+
 _CAMO = Capabilities(continual=True)
 _BASELINE = Capabilities(spaces=(), continual=True, simulates=False, posterior=False, baseline=True)
 
@@ -459,3 +476,6 @@ register(MethodSpec("npe-amortized", "amortized NPE (sbi): one flow per body mod
 register(MethodSpec("camo-touched", "camo-seq with the touched bounds (a joint seen resting at its extreme while "
                     "the arm moves) set to their observed values (issue 23; not in the paper)", _touched,
                     replace(_CAMO, spaces=("joint",)), defaults={"space": "joint", "proposal": "sequential"}))
+register(MethodSpec("exact-likelihood", "NOT simulation-based: tempered SMC on the exact likelihood of the noise "
+                    "model, the Bayes limit with these data (simulations counted, exempt from the budget)", _exact,
+                    Capabilities(exact=True)))

@@ -35,6 +35,7 @@ __all__ = [
     "SBI_SUPPORTED",
     "build_flow",
     "c2st",
+    "mmd",
     "check_sbc",
     "check_sbi_version",
     "check_tarp",
@@ -319,6 +320,17 @@ def c2st(a: torch.Tensor, b: torch.Tensor, *, seed: int, n_folds: int = 5, class
     acc = sbi_c2st(torch.as_tensor(a, dtype=torch.float32), torch.as_tensor(b, dtype=torch.float32),
                    seed=int(seed), n_folds=n_folds, classifier=classifier)
     return float(acc)
+
+
+def mmd(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Unbiased squared maximum-mean discrepancy, ``sbi.utils.metrics.unbiased_mmd_squared`` (Gaussian
+    kernel, median-heuristic length scale; 0: the same distribution). Needs at least 2 rows each."""
+    check_sbi_version()
+    from sbi.utils.metrics import unbiased_mmd_squared
+
+    if a.shape[0] < 2 or b.shape[0] < 2:
+        raise ValueError(f"a: the unbiased MMD needs at least 2 samples per set, got {a.shape[0]} and {b.shape[0]}")
+    return float(unbiased_mmd_squared(torch.as_tensor(a, dtype=torch.float64), torch.as_tensor(b, dtype=torch.float64)))
 
 
 def _on_posterior(fn, thetas, xs, posterior, num_posterior_samples: int, seed: int):
