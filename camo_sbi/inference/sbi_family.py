@@ -27,8 +27,9 @@ module does the rest, the same way for all five and the same way per-task NPE (`
    result equals `run` on the first k tasks.
 
 A sampler that cannot produce draws at all (every importance weight zero, e.g. an FMPE or NPSE
-density that is NaN everywhere) is not an exception that stops a grid: the result is
-``failed: ...`` with the prior's centre as its estimate, as CAMO and ABC-SMC do.
+density that is NaN everywhere; sbi's ODE solver raising on a diverged vector field) is not an
+exception that stops a grid: the result is ``failed: ...`` with the prior's centre as its
+estimate, as CAMO and ABC-SMC do. Too few effective draws is a ``fallback`` (the samplers' rule).
 """
 
 from __future__ import annotations
@@ -285,8 +286,11 @@ def _result(task, kind: str, method: str, estimators, x_obs, infos, config, seed
             draws = posterior.sample_is(config.n_posterior_samples, _seed_int(seed, 2) % (2**32),
                                         is_rounds=config.is_rounds, defensive_fraction=config.defensive_fraction)
             density = posterior.log_prob
-    except RuntimeError as exc:  # no usable draw at all (e.g. a density NaN everywhere): recorded, never raised
-        return _failed(task, str(exc).splitlines()[0], method, infos, t_start)
+    except (RuntimeError, AssertionError, FloatingPointError) as exc:
+        # no usable draw at all (a density NaN everywhere; an ODE solver giving up on a diverged
+        # vector field): recorded as failed, never raised into a grid
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        return _failed(task, why, method, infos, t_start)
     extras = {"ess": draws.ess, "sampler": draws.sampler, "sampler_diagnostics": dict(draws.diagnostics),
               "tasks": list(infos), "time_simulate": sum(t["time_simulate"] for t in infos),
               "time_train": sum(t["time_train"] for t in infos), "time_sample": time.perf_counter() - t0}
