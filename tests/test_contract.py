@@ -29,6 +29,15 @@ FAST = {
     "npe": {"max_epochs": 3, "num_transforms": 1, "hidden_features": 8, "training_batch_size": 20,
             "n_posterior_samples": 200, "is_rounds": 1},
 }
+_TINY_SBI = {"max_epochs": 3, "hidden_features": 8, "training_batch_size": 20, "n_posterior_samples": 200}
+FAST.update({
+    "nle": {**_TINY_SBI, "num_transforms": 1},
+    "nre": _TINY_SBI,
+    "fmpe": {**_TINY_SBI, "num_layers": 2, "is_rounds": 1},
+    "npse": {**_TINY_SBI, "num_layers": 2, "is_rounds": 0, "n_posterior_samples": 32, "ode_atol": 1e-2,
+             "ode_rtol": 1e-1},
+    "tsnpe": {**_TINY_SBI, "num_transforms": 1, "is_rounds": 2, "rounds": 2, "support_samples": 500},
+})
 for _name in registry.names():
     if "camo" in (_name, get_method(_name).base):
         FAST[_name] = {"keep_best": 10}

@@ -138,6 +138,20 @@ def test_a_sampler_failure_is_a_fallback_whatever_the_ess():
         _draws([1.0] * 10).status(-1.0)
 
 
+def test_a_target_zero_everywhere_is_never_an_ok_sample():
+    """A log target that is -inf (or NaN) at every draw: importance sampling raises (no usable
+    weight) and SMC reports it did not reach the target, instead of equal weights and "ok" (before
+    the fix, ``nan_to_num`` turned -inf log-weights into -1.8e308, finite and all equal)."""
+    def nowhere(z):
+        return torch.full((z.shape[0],), -math.inf, dtype=torch.float64)
+
+    with pytest.raises(RuntimeError, match="^importance: every importance weight is zero"):
+        samplers.importance(nowhere, two_component_mixture(), 200, seed=0, rounds=2)
+    base = Gaussian.from_covariance(torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+    draws = samplers.smc(nowhere, base, seed=0, particles=64, max_stages=3)
+    assert draws.ess == 0.0 and draws.status(0).startswith("fallback: SMC did not reach the target")
+
+
 @pytest.mark.parametrize("sampler", ["is", "mcmc", "smc"])
 def test_same_seed_same_draws_and_the_global_rng_untouched(sampler):
     kw = {"mcmc": {"steps": 40, "burn_in": 20}, "smc": {"particles": 256}, "is": {}}[sampler]

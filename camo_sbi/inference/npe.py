@@ -65,7 +65,7 @@ from camo_sbi.inference.result import PosteriorResult, weighted_median
 from camo_sbi.priors import BoxPrior
 from camo_sbi.task import SPACES, NoiseModel, contain
 
-__all__ = ["NpeConfig", "check_training_settings", "fit", "point_estimate", "run", "run_sequence"]
+__all__ = ["NpeConfig", "check_sampling_settings", "check_training_settings", "fit", "point_estimate", "run", "run_sequence"]
 
 _MODELS = ("maf", "nsf")
 _EMBEDDINGS = ("none", "mlp")
@@ -151,25 +151,31 @@ class NpeConfig:
         check_choice(self.theta_transform, TRANSFORMS, "theta_transform")
         check_training_settings(self)
         check_positive_int(self.n_posterior_samples, "n_posterior_samples", minimum=2)
-        check_positive_int(self.is_rounds, "is_rounds", minimum=0)
-        check_positive_float(self.defensive_fraction, "defensive_fraction")
-        if self.defensive_fraction >= 1:
-            raise ValueError(f"defensive_fraction: must be in (0, 1), got {self.defensive_fraction}")
-        check_point_estimate(self.point_estimate, _POINT_ESTIMATES)
-        check_positive_float(self.min_ess, "min_ess", allow_zero=True)
-        check_positive_int(self.chunk_size, "chunk_size")
-        check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
+        check_sampling_settings(self)
         if self.workdir is not None and not isinstance(self.workdir, (str, os.PathLike)):
             raise TypeError(f"workdir: expected a path or None, got {type(self.workdir).__name__}")
-        if self.n_threads is not None:
-            check_positive_int(self.n_threads, "n_threads")
-        if not isinstance(self.device, str):
-            raise TypeError(f"device: expected a str, got {type(self.device).__name__}")
-        try:
-            torch.device(self.device)
-        except RuntimeError as exc:
-            raise ValueError(f"device: {exc}") from exc
-        parse_scheduler(self.scheduler)
+
+
+def check_sampling_settings(config) -> None:
+    """Check a config's ``is_rounds``, ``defensive_fraction`` (< 1), ``point_estimate``, ``min_ess``,
+    ``chunk_size``, ``sim_dtype``, ``n_threads``, ``device`` and ``scheduler`` (errors name the field)."""
+    check_positive_int(config.is_rounds, "is_rounds", minimum=0)
+    check_positive_float(config.defensive_fraction, "defensive_fraction")
+    if config.defensive_fraction >= 1:
+        raise ValueError(f"defensive_fraction: must be in (0, 1), got {config.defensive_fraction}")
+    check_point_estimate(config.point_estimate, _POINT_ESTIMATES)
+    check_positive_float(config.min_ess, "min_ess", allow_zero=True)
+    check_positive_int(config.chunk_size, "chunk_size")
+    check_choice(config.sim_dtype, _DTYPES, "sim_dtype")
+    if config.n_threads is not None:
+        check_positive_int(config.n_threads, "n_threads")
+    if not isinstance(config.device, str):
+        raise TypeError(f"device: expected a str, got {type(config.device).__name__}")
+    try:
+        torch.device(config.device)
+    except RuntimeError as exc:
+        raise ValueError(f"device: {exc}") from exc
+    parse_scheduler(config.scheduler)
 
 
 def check_training_settings(config) -> None:

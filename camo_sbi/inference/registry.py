@@ -438,6 +438,36 @@ def _exact() -> Implementation:
     return Implementation(exact.run, exact.ExactConfig)
 
 
+def _nle() -> Implementation:
+    from camo_sbi.inference import nle
+
+    return Implementation(nle.run, nle.NleConfig, nle.run_sequence)
+
+
+def _nre() -> Implementation:
+    from camo_sbi.inference import nre
+
+    return Implementation(nre.run, nre.NreConfig, nre.run_sequence)
+
+
+def _fmpe() -> Implementation:
+    from camo_sbi.inference import fmpe
+
+    return Implementation(fmpe.run, fmpe.FmpeConfig, fmpe.run_sequence)
+
+
+def _npse() -> Implementation:
+    from camo_sbi.inference import npse
+
+    return Implementation(npse.run, npse.NpseConfig, npse.run_sequence)
+
+
+def _tsnpe() -> Implementation:
+    from camo_sbi.inference import tsnpe
+
+    return Implementation(tsnpe.run, tsnpe.TsnpeConfig, tsnpe.run_sequence)
+
+
 _CAMO = Capabilities(continual=True)
 _BASELINE = Capabilities(spaces=(), continual=True, simulates=False, posterior=False, baseline=True)
 
@@ -479,3 +509,13 @@ register(MethodSpec("camo-touched", "camo-seq with the touched bounds (a joint s
 register(MethodSpec("exact-likelihood", "NOT simulation-based: tempered SMC on the exact likelihood of the noise "
                     "model, the Bayes limit with these data (simulations counted, exempt from the budget)", _exact,
                     Capabilities(exact=True)))
+register(MethodSpec("nle", "neural likelihood estimation (sbi NLE_A), one likelihood per task, summed, sampled by "
+                    "tempered SMC", _nle, Capabilities(continual=True)))
+register(MethodSpec("nre", "neural ratio estimation (sbi NRE_C), one ratio per task, summed, sampled by tempered SMC",
+                    _nre, Capabilities(continual=True)))
+register(MethodSpec("fmpe", "flow-matching posterior estimation (sbi FMPE), one posterior per task, combined as "
+                    "npe's flows", _fmpe, Capabilities(continual=True)))
+register(MethodSpec("npse", "neural posterior score estimation (sbi NPSE, ODE density), one posterior per task, "
+                    "combined as npe's flows", _npse, Capabilities(continual=True)))
+register(MethodSpec("tsnpe", "truncated sequential NPE (sbi NPE_C + RestrictedPrior, 3 rounds per task), "
+                    "combined as npe's flows", _tsnpe, Capabilities(continual=True)))

@@ -263,7 +263,7 @@ def importance(log_target, proposal: Mixture, n: int, *, seed, rounds: int = 2,
             log_def = torch.logsumexp(lq + log_mix[:, None], dim=0)
             log_r = torch.logaddexp(log_def, math.log(n_gauss / n) + gauss.log_prob(z))
         log_t = log_target(z)
-        log_w = torch.nan_to_num(log_t - log_r, nan=-math.inf)
+        log_w = torch.nan_to_num(log_t - log_r, nan=-math.inf, neginf=-math.inf)  # -inf stays -inf (not -1.8e308)
         if not bool(torch.isfinite(log_w).any()):
             ess_rounds.append(0.0)
             continue
@@ -421,7 +421,7 @@ def smc(log_target, base, *, seed, particles: int = 512, inflate: float = 2.0, t
     log_w = torch.zeros(particles, dtype=torch.float64)
     reached = False
     for stage in range(max_stages):
-        delta = torch.nan_to_num(lt - log_r, nan=-math.inf, posinf=-math.inf)
+        delta = torch.nan_to_num(lt - log_r, nan=-math.inf, posinf=-math.inf, neginf=-math.inf)
         delta = torch.where(torch.isfinite(log_r), delta, torch.full_like(delta, -math.inf))
 
         def ess_at(b, log_w=log_w, beta=beta, delta=delta):

@@ -3,6 +3,7 @@
     build_flow(kind, n_inputs, n_conditions, ...)          a conditional flow q(input | condition)
     train_npe(theta, x, ...)                               sbi's NPE trainer (per-task NPE)
     fit_density_estimator(estimator, inputs, conditions)   our seeded loop over ``estimator.loss``
+    train_nle / train_nre / train_vector_field / train_tsnpe  sbi's NLE_A, NRE_C, FMPE / NPSE, NPE_C truncated
     c2st(a, b, ...)                                        sbi.utils.metrics.c2st
     run_sbc / check_sbc / run_tarp / check_tarp            sbi.diagnostics on an amortized posterior
 
@@ -33,6 +34,8 @@ from camo_sbi._validation import check_choice, check_positive_float, check_posit
 __all__ = [
     "FLOW_KINDS",
     "SBI_SUPPORTED",
+    "VECTOR_FIELDS",
+    "VectorFieldDensity",
     "build_flow",
     "c2st",
     "mmd",
@@ -40,10 +43,17 @@ __all__ = [
     "check_sbi_version",
     "check_tarp",
     "fit_density_estimator",
+    "logistic_prior",
+    "nle_log_likelihood",
+    "nre_log_ratio",
     "run_sbc",
     "run_tarp",
     "sbi_version",
+    "train_nle",
     "train_npe",
+    "train_nre",
+    "train_tsnpe",
+    "train_vector_field",
 ]
 
 SBI_SUPPORTED = ((0, 25), (0, 28))
@@ -606,3 +616,230 @@ class NsfReader(nn.Module):
         c = condition.expand(b, condition.shape[-1]).unsqueeze(0).expand(s, b, -1).reshape(s * b, -1)
         noise, lad = self._cascade(x, c, inverse=False)
         return (self._base_log_prob(noise) + lad).reshape(s, b)
+
+
+# ----------------------------------------------------------------------------------- sbi's other families
+# NLE, NRE-C, FMPE, NPSE and truncated sequential NPE (TSNPE), each trained through its sbi trainer
+# (``sbi.inference.NLE_A / NRE_C / FMPE / NPSE / NPE_C``: ``append_simulations``, ``train``,
+# ``build_posterior``), on conditions already in the prior box's logit coordinates z.
+
+VECTOR_FIELDS = ("fmpe", "npse")
+_U_EPS = 1e-6  # as flow_space: logit coordinates of (eps, 1 - eps)
+
+
+def logistic_prior(n: int):
+    """The uniform prior of the box in its logit coordinates z: n independent standard logistics,
+    as the torch ``Distribution`` sbi's trainers and posteriors take (``sample``/``log_prob``)."""
+    from torch.distributions import Independent, SigmoidTransform, TransformedDistribution, Uniform
+
+    n = check_positive_int(n, "n")
+    base = Uniform(torch.full((n,), _U_EPS), torch.full((n,), 1.0 - _U_EPS), validate_args=False)
+    return Independent(TransformedDistribution(base, [SigmoidTransform().inv], validate_args=False), 1,
+                       validate_args=False)
+
+
+def _train(make_trainer, theta: torch.Tensor, x: torch.Tensor, seed: int, **train_kwargs):
+    """Build an sbi trainer (seeded, inside ``fork_rng``), append (theta, x), train; (trainer,
+    estimator, info with ``epochs``, ``best_validation_loss``, ``time_train``)."""
+    check_sbi_version()
+    t0 = time.perf_counter()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        with _quiet():
+            trainer = make_trainer()
+            trainer.append_simulations(torch.as_tensor(theta).float(), torch.as_tensor(x).float())
+            estimator = trainer.train(show_train_summary=False, **train_kwargs)
+    summary = trainer.summary
+    info = {"epochs": int(summary["epochs_trained"][-1]),
+            "best_validation_loss": float(summary["best_validation_loss"][-1]),
+            "time_train": time.perf_counter() - t0}
+    return trainer, estimator, info
+
+
+def _training(training_batch_size, learning_rate, validation_fraction, stop_after_epochs, max_epochs) -> dict:
+    return {"training_batch_size": training_batch_size, "learning_rate": learning_rate,
+            "validation_fraction": validation_fraction, "stop_after_epochs": stop_after_epochs,
+            "max_num_epochs": max_epochs}
+
+
+def train_nle(theta: torch.Tensor, x: torch.Tensor, *, seed: int, density_estimator: str = "maf",
+              hidden_features: int = 50, num_transforms: int = 5, training_batch_size: int = 100,
+              learning_rate: float = 1e-3, validation_fraction: float = 0.1, stop_after_epochs: int = 20,
+              max_epochs: int = 200, device: str = "cpu") -> tuple[nn.Module, dict]:
+    """sbi NLE (``NLE_A``): a conditional flow q(x | theta), z-scored inside. Returns (estimator on
+    the CPU in eval mode, info); evaluate it with `nle_log_likelihood`. Global torch RNG untouched."""
+    check_choice(density_estimator, FLOW_KINDS, "density_estimator")
+    from sbi.inference import NLE_A
+    from sbi.neural_nets import likelihood_nn
+
+    def make():
+        net = likelihood_nn(model=density_estimator, hidden_features=hidden_features, num_transforms=num_transforms)
+        return NLE_A(prior=None, density_estimator=net, device=device, show_progress_bars=False,
+                     tracker=_NullTracker())
+
+    _, est, info = _train(make, theta, x, seed, **_training(training_batch_size, learning_rate, validation_fraction,
+                                                            stop_after_epochs, max_epochs))
+    return est.to("cpu").eval(), info
+
+
+@torch.no_grad()
+def nle_log_likelihood(estimator: nn.Module, x_obs: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """(N,) float64 log q(x_obs | theta_j) of a `train_nle` estimator for theta (N, d), x_obs (F,)."""
+    theta = torch.as_tensor(theta, dtype=torch.float32)
+    x = torch.as_tensor(x_obs, dtype=torch.float32).reshape(1, 1, -1).expand(1, theta.shape[0], -1)
+    return estimator.log_prob(x, condition=theta).reshape(-1).double()
+
+
+def train_nre(theta: torch.Tensor, x: torch.Tensor, *, seed: int, classifier: str = "resnet",
+              hidden_features: int = 50, num_classes: int = 5, gamma: float = 1.0,
+              training_batch_size: int = 200, learning_rate: float = 5e-4, validation_fraction: float = 0.1,
+              stop_after_epochs: int = 20, max_epochs: int = 200, device: str = "cpu") -> tuple[nn.Module, dict]:
+    """sbi NRE-C (``NRE_C``, Miller et al. 2022): a classifier whose logit estimates
+    log p(x | theta) / p(x) up to a constant, z-scored inside, ``num_classes`` contrastive classes,
+    ``gamma`` the odds of the joint class. Returns (estimator, info); evaluate with `nre_log_ratio`."""
+    check_choice(classifier, ("linear", "mlp", "resnet"), "classifier")
+    check_positive_int(num_classes, "num_classes")
+    check_positive_float(gamma, "gamma")
+    from sbi.inference import NRE_C
+    from sbi.neural_nets import classifier_nn
+
+    def make():
+        return NRE_C(prior=None, classifier=classifier_nn(model=classifier, hidden_features=hidden_features),
+                     device=device, show_progress_bars=False, tracker=_NullTracker())
+
+    _, est, info = _train(make, theta, x, seed, num_classes=num_classes, gamma=gamma,
+                          **_training(training_batch_size, learning_rate, validation_fraction, stop_after_epochs,
+                                      max_epochs))
+    return est.to("cpu").eval(), info
+
+
+@torch.no_grad()
+def nre_log_ratio(estimator: nn.Module, x_obs: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """(N,) float64 unnormalised log ratio of a `train_nre` estimator for theta (N, d), x_obs (F,)."""
+    theta = torch.as_tensor(theta, dtype=torch.float32)
+    x = torch.as_tensor(x_obs, dtype=torch.float32).reshape(1, -1).expand(theta.shape[0], -1)
+    return estimator.unnormalized_log_ratio(theta, x).reshape(-1).double()
+
+
+class VectorFieldDensity:
+    """A trained FMPE or NPSE posterior q(theta | x) (sbi's ``VectorFieldPosterior``) seen as a flow:
+    ``log_prob(input, condition)`` (probability-flow ODE, sbi's ``posterior.log_prob``) and
+    ``sample(sample_shape, condition)`` (ODE sampling: the draws come from the very density that
+    ``log_prob`` evaluates, so importance weights built on both are consistent). ``ode_kwargs``:
+    the ODE solver's ``atol``, ``rtol`` and ``exact`` (trace), passed to sbi."""
+
+    def __init__(self, posterior, dim: int, ode_kwargs: dict):
+        self.posterior, self.dim, self.ode_kwargs = posterior, int(dim), dict(ode_kwargs)
+
+    def eval(self):
+        return self
+
+    def log_prob(self, input: torch.Tensor, condition: torch.Tensor) -> torch.Tensor:  # noqa: A002 - sbi's name
+        theta = torch.as_tensor(input, dtype=torch.float32).reshape(-1, self.dim)
+        with _quiet():
+            return self.posterior.log_prob(theta, x=torch.as_tensor(condition, dtype=torch.float32).reshape(1, -1),
+                                           ode_kwargs=self.ode_kwargs).reshape(-1)
+
+    @torch.no_grad()
+    def sample(self, sample_shape, condition: torch.Tensor) -> torch.Tensor:
+        with _quiet():
+            return self.posterior.sample(sample_shape, x=torch.as_tensor(condition, dtype=torch.float32).reshape(1, -1),
+                                         show_progress_bars=False)
+
+
+def train_vector_field(kind: str, theta: torch.Tensor, x: torch.Tensor, *, seed: int, hidden_features: int = 64,
+                       num_layers: int = 3, sde_type: str = "ve", training_batch_size: int = 200,
+                       learning_rate: float = 5e-4, validation_fraction: float = 0.1, stop_after_epochs: int = 20,
+                       max_epochs: int = 200, atol: float = 1e-4, rtol: float = 1e-3, exact: bool = True,
+                       device: str = "cpu") -> tuple[VectorFieldDensity, dict]:
+    """sbi FMPE (flow matching) or NPSE (score matching, ``sde_type`` "ve", "vp" or "subvp") of
+    q(theta | x) with an MLP vector field, under the logistic prior of ``theta``'s logit
+    coordinates (`logistic_prior`). Returns (`VectorFieldDensity`, info)."""
+    check_choice(kind, VECTOR_FIELDS, "kind")
+    check_choice(sde_type, ("ve", "vp", "subvp"), "sde_type")
+    from sbi.inference import FMPE, NPSE
+    from sbi.neural_nets import posterior_flow_nn, posterior_score_nn
+
+    prior = logistic_prior(int(theta.shape[1]))
+
+    def make():
+        common = {"model": "mlp", "hidden_features": hidden_features, "num_layers": num_layers}
+        if kind == "fmpe":
+            return FMPE(prior=prior, vf_estimator=posterior_flow_nn(**common), device=device,
+                        show_progress_bars=False, tracker=_NullTracker())
+        return NPSE(prior=prior, vf_estimator=posterior_score_nn(sde_type=sde_type, **common), sde_type=sde_type,
+                    device=device, show_progress_bars=False, tracker=_NullTracker())
+
+    trainer, est, info = _train(make, theta, x, seed, **_training(training_batch_size, learning_rate,
+                                                                  validation_fraction, stop_after_epochs, max_epochs))
+    with _quiet():
+        posterior = trainer.build_posterior(est.to("cpu").eval(), prior=prior, sample_with="ode")
+    return VectorFieldDensity(posterior, theta.shape[1], {"atol": atol, "rtol": rtol, "exact": exact}), info
+
+
+def train_tsnpe(theta: torch.Tensor, x: torch.Tensor, x_obs: torch.Tensor, simulate, *, rounds: int,
+                round_size: int, seed: int, quantile: float = 1e-4, support_samples: int = 10000,
+                min_acceptance: float = 1e-3, density_estimator: str = "maf", hidden_features: int = 50,
+                num_transforms: int = 5, training_batch_size: int = 100, learning_rate: float = 1e-3,
+                validation_fraction: float = 0.1, stop_after_epochs: int = 20, max_epochs: int = 200,
+                device: str = "cpu") -> tuple[nn.Module, dict]:
+    """Truncated sequential NPE (Deistler et al. 2022) with sbi's ``NPE_C``, ``get_density_thresholder``
+    and ``RestrictedPrior``, in the logit coordinates (logistic prior, `logistic_prior`).
+
+    Round 0 trains on the caller's prior draws (``theta``, ``x``). Each of the ``rounds`` - 1 later
+    rounds truncates the prior to the current posterior's highest-density region holding all but
+    ``quantile`` of its mass (threshold estimated from ``support_samples`` posterior draws), draws
+    ``round_size`` parameters from it, gets their summaries from ``simulate(theta (m, d)) -> x (m, F)``
+    (the caller simulates and counts) and retrains on everything so far (``force_first_round_loss``:
+    proposals that are the prior truncated need no correction). Drawing from the truncated prior is by
+    rejection from the prior while its acceptance (measured on ``support_samples`` prior draws) is at
+    least ``min_acceptance``; below that by sampling-importance-resampling from the posterior (bounded
+    time, never a hang). Returns (the last round's estimator q(theta | x), info: per-round ``epochs``,
+    ``acceptance``, ``truncation``)."""
+    rounds = check_positive_int(rounds, "rounds")
+    round_size = check_positive_int(round_size, "round_size", minimum=2)
+    check_positive_float(quantile, "quantile")
+    support_samples = check_positive_int(support_samples, "support_samples", minimum=100)
+    if not callable(simulate):
+        raise TypeError(f"simulate: expected a callable, got {type(simulate).__name__}")
+    check_sbi_version()
+    from sbi.inference import NPE_C
+    from sbi.neural_nets import posterior_nn
+    from sbi.utils import RestrictedPrior, get_density_thresholder
+
+    t0 = time.perf_counter()
+    prior = logistic_prior(int(theta.shape[1]))
+    x_obs = torch.as_tensor(x_obs, dtype=torch.float32).reshape(1, -1)
+    train_kwargs = _training(training_batch_size, learning_rate, validation_fraction, stop_after_epochs, max_epochs)
+    rounds_info = []
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        with _quiet():
+            net = posterior_nn(model=density_estimator, hidden_features=hidden_features, num_transforms=num_transforms,
+                               z_score_theta="independent", z_score_x="independent")
+            trainer = NPE_C(prior=prior, density_estimator=net, device=device, show_progress_bars=False,
+                            tracker=_NullTracker())
+            trainer.append_simulations(torch.as_tensor(theta).float(), torch.as_tensor(x).float())
+            estimator = trainer.train(show_train_summary=False, **train_kwargs)
+        rounds_info.append({"round": 0, "n": int(theta.shape[0]), "truncation": "prior"})
+        for r in range(1, rounds):
+            with _quiet(), contextlib.redirect_stderr(io.StringIO()):  # sbi's sampling progress bars
+                posterior = trainer.build_posterior(estimator, prior=prior).set_default_x(x_obs)
+                inside = get_density_thresholder(posterior, quantile=quantile,
+                                                 num_samples_to_estimate_support=support_samples)
+                acceptance = float(inside(prior.sample((support_samples,))).float().mean())
+                how = "rejection" if acceptance >= min_acceptance else "sir"
+                restricted = RestrictedPrior(prior, inside, posterior=posterior, sample_with=how)
+                draws = restricted.sample((round_size,), show_progress_bars=False, print_rejected_frac=False,
+                                          oversampling_factor=32)
+            x_new = torch.as_tensor(simulate(draws.double()))
+            with _quiet():
+                trainer.append_simulations(draws.float(), x_new.float())
+                estimator = trainer.train(show_train_summary=False, force_first_round_loss=True, **train_kwargs)
+            rounds_info.append({"round": r, "n": int(draws.shape[0]), "truncation": how,
+                                "prior_acceptance": acceptance})
+    summary = trainer.summary
+    info = {"epochs": [int(e) for e in summary["epochs_trained"]],
+            "best_validation_loss": float(summary["best_validation_loss"][-1]),
+            "rounds": rounds_info, "time_train": time.perf_counter() - t0}
+    return estimator.to("cpu").eval(), info
