@@ -40,8 +40,10 @@ def load_bvh_map(path, joint_names, flag: str = "--bvh-map") -> dict:
     for j in joint_names:
         e = data["joints"].get(j)
         if not isinstance(e, dict) or not isinstance(e.get("bvh"), str):
+            missing = [k for k in joint_names if not isinstance(data["joints"].get(k), dict)]
             raise ValueError(f"{flag} {path}: joint {j!r} is missing (every model joint needs "
-                             f'{{"bvh": NAME, "channel": "Xrotation|Yrotation|Zrotation"}})')
+                             f'{{"bvh": NAME, "channel": "Xrotation|Yrotation|Zrotation"}}; the model\'s joints, '
+                             f"in order: {', '.join(joint_names)}; missing: {', '.join(missing)})")
         if e.get("channel") not in _AXES:
             raise ValueError(f"{flag} {path}: joint {j!r}: channel {e.get('channel')!r} is not one of {', '.join(_AXES)}")
         sign, off = e.get("sign", 1), e.get("offset_deg", 0.0)

@@ -725,7 +725,7 @@ def load_goals(path, simulator, *, degrees: bool = False, noise: NoiseModel | No
     missing = [j for j in names if j not in table.columns]
     if has_q and missing:
         raise ValueError(f"{table.path}: column {missing[0]!r} is missing (give every joint of the start "
-                         f"posture or none)")
+                         f"posture or none; the model's joints: {', '.join(names)})")
     for c, a in table.columns.items():
         bad = np.flatnonzero(~np.isfinite(a))
         if bad.size:
