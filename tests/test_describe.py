@@ -29,7 +29,7 @@ def test_describe_human_prints_table_and_writes_figure(tmp_path, capsys):
     assert "RIGHT arm" in out and "'right_hand_tip'" in out
     assert "joint order (the columns of a recording, --start, --limits): " + ", ".join(JOINT_NAMES) in out
     for pos, neg in JOINT_SIGNS.values():
-        assert pos in out
+        assert pos in out and neg in out
     t = pd.read_csv(tmp_path / "human_joints.csv")
     assert list(t["joint"]) == list(JOINT_NAMES)
     assert list(t["axis_base_frame"]) == ["+y", "+z", "-y", "-x", "+z", "-y", "+z", "+x", "-y"]

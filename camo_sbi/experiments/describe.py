@@ -80,7 +80,6 @@ def _signs(kind: str) -> dict:
 def joint_table(sim, kind: str = "urdf"):
     """One row per actuated joint, base to tip (a pandas DataFrame; see the module docstring)."""
     import numpy as np
-
     import pandas as pd
 
     spec = sim.spec
@@ -111,7 +110,6 @@ def joint_table(sim, kind: str = "urdf"):
 
 def describe_frames(sim, kind: str = "urdf") -> list[str]:
     """Lines naming the base frame, the model, the end effector and where it lies."""
-    import numpy as np
 
     spec = sim.spec
     _, tip0 = _zero_frames(spec)

@@ -189,19 +189,37 @@ def calibration_verdict(method: str, model: str) -> str:
     return f"not calibrated on this model ({'; '.join(seen)})" if seen else "not calibrated"
 
 
+EXERCISED_MARGIN_DEG = 2.0
+"""`limits_table`: a bound is exercised when a recorded angle came within this margin (plus the noise
+allowance, `K_SIGMA` sigma) of the bound's estimate (prismatic joints: `EXERCISED_MARGIN_M`)."""
+EXERCISED_MARGIN_M = 0.005
+OBSERVED_RANGE_METHODS = ("naive",)
+"""Methods whose estimate is the observed extreme itself: exercised by construction, so their
+``exercised`` is left empty (the observed range is the range used in the task, never a limit)."""
+
+
 def limits_table(results: dict, sim, task=None):
-    """One row per method, joint and bound: estimate [rad], [deg], posterior median [deg], the 90%
-    central interval [deg], identifiability, exercised, the calibration verdict and the status.
+    """One row per method, joint and bound: estimate [rad], [deg], the joint's observed range
+    [deg], posterior median [deg], the 90% central interval [deg], identifiability, exercised,
+    the calibration verdict and the status.
 
     Point methods (one sample) have both interval ends and the median at the estimate, and no
     identifiability. Prismatic joints: ``estimate_rad`` holds metres and the degree columns are
     empty. With ``task`` (its prior and observations):
 
+    * ``observed_min_deg``, ``observed_max_deg``: the joint's recorded range over every reach
+      (empty without joint columns), beside every method's estimate.
     * ``identifiability``: the 90% interval's width over the prior's 90% width for this bound
       (1: the data taught nothing; a bound fixed by the prior: empty).
-    * ``reaches_at_bound``: reaches whose observed joint angle comes within the noise allowance
-      (`K_SIGMA` sigma) of the bound's 90% interval (the estimate for point methods).
-    * ``exercised``: some reach came that close; with no joint columns (end-effector-only
+    * ``margin_deg``: `EXERCISED_MARGIN_DEG` plus the noise allowance (`K_SIGMA` sigma).
+    * ``reaches_at_bound``: reaches whose recorded extreme on this side came within
+      ``margin_deg`` of the bound's ESTIMATE (not of its interval: a wide interval that begins
+      at the observed extreme would always pass).
+    * ``exercised``: the recorded extreme on this side (the lowest angle of every reach for a
+      lower bound, the highest for an upper one) lies within ``margin_deg`` of the estimate. An
+      estimate short of the recorded extreme (the data went past it) is not exercised either. A method whose estimate is the observed
+      extreme itself (naive, `OBSERVED_RANGE_METHODS`) is exercised by construction, which says
+      nothing about a limit: its ``exercised`` is empty. With no joint columns (end-effector-only
       data, nothing to come close with) instead: the posterior narrowed the bound below
       `NARROWED` of the prior width. With joint columns narrowing alone does not count: an
       over-confident posterior (CAMO's, see ``calibration``) narrows bounds no reach touched,
@@ -233,37 +251,56 @@ def limits_table(results: dict, sim, task=None):
         point = res.samples.shape[0] <= 1
         verdict = calibration_verdict(name, model)
         for j, joint in enumerate(sim.joint_names):
+            rev = types[j] == "revolute"
+            deg = (lambda v: float(np.degrees(v))) if rev else (lambda v: float("nan"))
+            margin = (np.radians(EXERCISED_MARGIN_DEG) if rev else EXERCISED_MARGIN_M) + allow
+            seen = (deg(q_lo[:, j].min()), deg(q_hi[:, j].max())) if q_lo is not None else (float("nan"),) * 2
             for b, bound in enumerate(("lower", "upper")):
                 k = 2 * j + b
-                deg = (lambda v: float(np.degrees(v))) if types[j] == "revolute" else (lambda v: float("nan"))
                 ident = touching = float("nan")
                 exercised = None
                 if task is not None:
-                    e_lo, e_hi = float(lo[k]), float(hi[k])
-                    if point:
-                        e_lo = e_hi = float(res.estimate[k])
-                    else:
-                        ident = float((e_hi - e_lo) / prior_w[k]) if prior_w[k] > 0 else float("nan")
-                    touching = 0
+                    if not point:
+                        ident = float((hi[k] - lo[k]) / prior_w[k]) if prior_w[k] > 0 else float("nan")
+                    touching, near = 0, False
                     if q_lo is not None:
                         x = q_lo[:, j] if b == 0 else q_hi[:, j]
-                        touching = int(((x >= e_lo - allow) & (x <= e_hi + allow)).sum())
+                        gap = np.abs(x - float(res.estimate[k]))
+                        touching = int((gap <= margin).sum())
+                        extreme = x.min() if b == 0 else x.max()  # the recorded extreme on this side
+                        near = bool(abs(extreme - float(res.estimate[k])) <= margin)
                     narrowed = q_lo is None and bool(np.isfinite(ident) and ident < NARROWED)
-                    exercised = bool(touching > 0 or narrowed)
+                    exercised = bool(near or narrowed)
+                    if name in OBSERVED_RANGE_METHODS and q_lo is not None:
+                        exercised = None
                 rows.append({"method": name, "joint": joint, "bound": bound,
                              "estimate_rad": float(res.estimate[k]), "estimate_deg": deg(res.estimate[k]),
+                             "observed_min_deg": seen[0], "observed_max_deg": seen[1],
                              "median_deg": deg(res.estimate[k] if point else med[k]),
                              "lower_90_deg": deg(lo[k]), "upper_90_deg": deg(hi[k]), "identifiability": ident,
+                             "margin_deg": deg(margin) if task is not None else float("nan"),
                              "reaches_at_bound": touching, "exercised": exercised, "calibration": verdict,
                              "status": res.status})
-    return pd.DataFrame(rows, columns=["method", "joint", "bound", "estimate_rad", "estimate_deg", "median_deg",
-                                       "lower_90_deg", "upper_90_deg", "identifiability", "reaches_at_bound",
+    return pd.DataFrame(rows, columns=["method", "joint", "bound", "estimate_rad", "estimate_deg",
+                                       "observed_min_deg", "observed_max_deg", "median_deg", "lower_90_deg",
+                                       "upper_90_deg", "identifiability", "margin_deg", "reaches_at_bound",
                                        "exercised", "calibration", "status"])
 
 
+FALLBACK_MARK = "\u2020"
+"""A method whose status is not "ok" (it fell back or failed) carries this mark in the wide table."""
+WIDE_LIMITS_KEY = ("lower .. upper [deg] of the model's joint angles (not ISB clinical angles); observed = the "
+                   "range recorded in these reaches (the functional range of the task, not the person's maximal "
+                   "range; naive is that range); * = not exercised: no recorded angle came within the margin "
+                   "(limits.csv: margin_deg) of the estimate, so the data say nothing about that bound; "
+                   "\u2020 = the method fell back or failed (its status in limits.csv)")
+
+
 def wide_limits(table):
-    """The limits as a person reads them: one row per joint, one column per method, each cell
-    "lower .. upper" in degrees with 1 decimal; a bound no reach exercised is marked "*"."""
+    """The limits as a person reads them: one row per joint, the observed range first (when the
+    recording has joint angles), then one column per method, each cell "lower .. upper" in degrees
+    with 1 decimal; a bound no reach exercised is marked "*", a method whose status is not "ok"
+    carries `FALLBACK_MARK` after its name."""
     import numpy as np
     import pandas as pd
 
@@ -272,15 +309,22 @@ def wide_limits(table):
         for bound in ("lower", "upper"):
             r = g[g["bound"] == bound].iloc[0]
             v = r["estimate_deg"] if np.isfinite(r["estimate_deg"]) else r["estimate_rad"]
-            mark = "*" if r["exercised"] is not None and not bool(r["exercised"]) else ""
+            ex = r["exercised"]
+            mark = "*" if ex is not None and not (isinstance(ex, float) and np.isnan(ex)) and not bool(ex) else ""
             parts.append(f"{v:.1f}{mark}")
         return " .. ".join(parts)
 
+    joints = list(dict.fromkeys(table["joint"]))
     out = {}
+    if "observed_min_deg" in table and table["observed_min_deg"].notna().any():
+        first = table.drop_duplicates("joint").set_index("joint")
+        out["observed"] = [f"{first.loc[j, 'observed_min_deg']:.1f} .. {first.loc[j, 'observed_max_deg']:.1f}"
+                           for j in joints]
     for m in dict.fromkeys(table["method"]):
         t = table[table["method"] == m]
-        out[m] = [cell(t[t["joint"] == j]) for j in dict.fromkeys(table["joint"])]
-    return pd.DataFrame(out, index=pd.Index(list(dict.fromkeys(table["joint"])), name="joint"))
+        ok = (t["status"].astype(str) == "ok").all() if "status" in t else True
+        out[m if ok else f"{m} {FALLBACK_MARK}"] = [cell(t[t["joint"] == j]) for j in joints]
+    return pd.DataFrame(out, index=pd.Index(joints, name="joint"))
 
 
 def _recorded_task(model, sim, obs, noise):
@@ -387,7 +431,7 @@ def _limits_html(table, sim) -> Markup:
                                  "Inferred joint limits [deg]: the model's range (grey), each method's estimate "
                                  "(marker) and 90% interval (line); hollow markers: bounds no reach exercised (not "
                                  "an impairment: the data say nothing about them)", alt="limits figure"))
-    parts.append(part("meta", "lower .. upper [deg]; * = not exercised") + table_html(wide_limits(table), index=True))
+    parts.append(part("meta", WIDE_LIMITS_KEY) + table_html(wide_limits(table), index=True))
     return join(parts)
 
 
@@ -405,6 +449,56 @@ def _ee_of(traj_ee: torch.Tensor, length: torch.Tensor, b: int) -> np.ndarray:
     return traj_ee[b, : int(length[b])].to(torch.float64).numpy()
 
 
+def method_title(name: str, status: str) -> str:
+    """A panel title: the method's name, with `FALLBACK_MARK` when its status is not "ok" (the
+    status itself, often a long sentence, goes into the caption, never into a title)."""
+    return name if status == "ok" else f"{name} {FALLBACK_MARK}"
+
+
+def reach_figure(sim, o, results: dict, draws: dict):
+    """One reach: per method (columns) the end-effector path from above (top) and the distance
+    to the goal per step (bottom): observed, the estimate's prediction, the posterior draws."""
+    import numpy as np
+    import torch
+    from matplotlib.figure import Figure
+
+    from camo_sbi.diagnostics.style import DOUBLE_COLUMN
+    from camo_sbi.task import contain
+
+    methods = list(results)
+    seen = (o.ee if o.ee is not None else sim.forward_kinematics(o.q)).to(torch.float64).numpy()
+    fig = Figure(figsize=(max(DOUBLE_COLUMN, 1.75 * len(methods)), 4.4), constrained_layout=True)
+    axes = fig.subplots(2, len(methods), squeeze=False)
+    for c, m in enumerate(methods):
+        # float32, as CAMO's candidates: a new chain's float64 kernel is not compiled for a figure
+        th = contain(draws[m], o.start).to(torch.float32)
+        pred = sim.simulate(th, o.goal, o.start)
+        est = sim.simulate(contain(torch.as_tensor(results[m].estimate), o.start).to(torch.float32), o.goal,
+                           o.start)
+        top, side = axes[0, c], axes[1, c]
+        for b in range(th.shape[0]):
+            e = _ee_of(pred.ee, pred.length, b)
+            top.plot(e[:, 0], e[:, 1], color="C0", alpha=0.15, lw=0.8)
+            side.plot(np.arange(e.shape[0]), np.linalg.norm(e - o.goal.numpy(), axis=1), color="C0",
+                      alpha=0.15, lw=0.8)
+        e = _ee_of(est.ee, est.length, 0)
+        top.plot(e[:, 0], e[:, 1], color="C3", ls="--", lw=1.2, label="estimate")
+        side.plot(np.arange(e.shape[0]), np.linalg.norm(e - o.goal.numpy(), axis=1), color="C3", ls="--",
+                  lw=1.2)
+        top.plot(seen[:, 0], seen[:, 1], color="k", lw=1.8, label="observed")
+        side.plot(np.arange(seen.shape[0]), np.linalg.norm(seen - o.goal.numpy(), axis=1), color="k", lw=1.8)
+        top.plot(*o.goal.numpy()[:2], marker="*", color="k", ms=10, ls="none")
+        top.set_title(method_title(m, results[m].status))
+        top.set_xlabel("x [m]")
+        top.set_ylabel("y [m]")
+        top.set_aspect("equal", adjustable="datalim")
+        side.set_xlabel("controller step")
+        side.set_ylabel("distance to goal [m]")
+        if c == 0:
+            top.legend()
+    return fig
+
+
 def _report(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
             formats=None) -> Path:
     """report.html: the limits table (degrees) and, per reach, observed vs posterior-predictive
@@ -418,15 +512,11 @@ def _report(out: Path, task, results: dict, notes: list[str], table, settings: d
 
 
 def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int) -> Path:
-    import numpy as np
     import pandas as pd
     import torch
-    from matplotlib.figure import Figure
 
     from camo_sbi.diagnostics.pages import join, part
     from camo_sbi.diagnostics.report import figure_html, table_html, write_page
-    from camo_sbi.diagnostics.style import DOUBLE_COLUMN
-    from camo_sbi.task import contain
 
     sim = task.simulator
     obs = task.observations[:MAX_REPORT_REACHES]
@@ -436,40 +526,14 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
     draws = {m: torch.as_tensor(r.systematic(PPC_DRAWS if r.samples.shape[0] > 1 else 1), dtype=torch.float64)
              for m, r in results.items()}
     for i, o in enumerate(tqdm(obs, desc="report", unit="reach")):
-        seen = (o.ee if o.ee is not None else sim.forward_kinematics(o.q)).to(torch.float64).numpy()
-        fig = Figure(figsize=(max(DOUBLE_COLUMN, 1.75 * len(methods)), 4.4), constrained_layout=True)
-        axes = fig.subplots(2, len(methods), squeeze=False)
-        for c, m in enumerate(methods):
-            # float32, as CAMO's candidates: a new chain's float64 kernel is not compiled for a figure
-            th = contain(draws[m], o.start).to(torch.float32)
-            pred = sim.simulate(th, o.goal, o.start)
-            est = sim.simulate(contain(torch.as_tensor(results[m].estimate), o.start).to(torch.float32), o.goal,
-                               o.start)
-            top, side = axes[0, c], axes[1, c]
-            for b in range(th.shape[0]):
-                e = _ee_of(pred.ee, pred.length, b)
-                top.plot(e[:, 0], e[:, 1], color="C0", alpha=0.15, lw=0.8)
-                side.plot(np.arange(e.shape[0]), np.linalg.norm(e - o.goal.numpy(), axis=1), color="C0",
-                          alpha=0.15, lw=0.8)
-            e = _ee_of(est.ee, est.length, 0)
-            top.plot(e[:, 0], e[:, 1], color="C3", ls="--", lw=1.2, label="estimate")
-            side.plot(np.arange(e.shape[0]), np.linalg.norm(e - o.goal.numpy(), axis=1), color="C3", ls="--",
-                      lw=1.2)
-            top.plot(seen[:, 0], seen[:, 1], color="k", lw=1.8, label="observed")
-            side.plot(np.arange(seen.shape[0]), np.linalg.norm(seen - o.goal.numpy(), axis=1), color="k", lw=1.8)
-            top.plot(*o.goal.numpy()[:2], marker="*", color="k", ms=10, ls="none")
-            top.set_title(f"{m} ({results[m].status})")
-            top.set_xlabel("x [m]")
-            top.set_ylabel("y [m]")
-            top.set_aspect("equal", adjustable="datalim")
-            side.set_xlabel("controller step")
-            side.set_ylabel("distance to goal [m]")
-            if c == 0:
-                top.legend()
+        fig = reach_figure(sim, o, results, draws)
+        fallback = [m for m in methods if results[m].status != "ok"]
         reach_html.append(figure_html(
             fig, f"reach {i}: observed (black), the estimate's prediction (red dashed) and "
                  f"{PPC_DRAWS} posterior-predictive draws per method (blue; point methods: one); "
-                 f"top: end-effector path seen from above, bottom: distance to the goal per step",
+                 f"top: end-effector path seen from above, bottom: distance to the goal per step"
+                 + (f"; {FALLBACK_MARK}: fell back or failed ({'; '.join(f'{m}: {results[m].status}' for m in fallback)})"
+                    if fallback else ""),
             alt=f"reach {i}"))
     more = len(task.observations) - len(obs)
     if more > 0:
@@ -730,7 +794,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
     notes = notes + [f"warning: {w}" for w in recording.warnings]
     report = _report(out, task, results, notes, table, settings, args.seed,
                      formats=None if formats == ("png",) else formats)
-    print("limits [deg], lower .. upper (* = not exercised: no reach came near this bound; limits.csv: exercised)")
+    print("limits [deg], " + WIDE_LIMITS_KEY.replace(" [deg]", "", 1))
     print(wide_limits(table).to_string())
     for name, res in results.items():
         if res.status != "ok":

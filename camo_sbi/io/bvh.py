@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["load_bvh_map", "read_bvh"]
+__all__ = ["bvh_sources", "load_bvh_map", "read_bvh"]
 
 _AXES = {"Xrotation": 0, "Yrotation": 1, "Zrotation": 2}
 
@@ -62,6 +62,17 @@ def load_bvh_map(path, joint_names, flag: str = "--bvh-map") -> dict:
         if not ok or not reaches:
             raise ValueError(f"{flag} {path}: 'reaches' must be a list of [first, last] frame numbers (first < last)")
     return {"joints": joints, "reaches": reaches, "path": str(path)}
+
+
+def bvh_sources(mapping: dict) -> dict:
+    """{model joint: {"what": "BVH channel J.Xrotation", "entry": "--bvh-map FILE entry 'joint' (sign s,
+    offset_deg o)", "raw": model angle [rad] -> the channel's value [deg]}} for error messages."""
+    out = {}
+    for j, e in mapping["joints"].items():
+        out[j] = {"what": f"BVH channel {e['bvh']}.{e['channel']}",
+                  "entry": f"--bvh-map {mapping['path']} entry {j!r} (sign {e['sign']}, offset_deg {e['offset_deg']:g})",
+                  "raw": lambda v, s=e["sign"], o=e["offset_deg"]: (float(np.degrees(v)) - o) / s}
+    return out
 
 
 def read_bvh(path, mapping: dict) -> dict:

@@ -132,6 +132,7 @@ class _Table:
     columns: dict[str, np.ndarray]
     rows: np.ndarray  # CSV line numbers, or NPZ array indices
     row_word: str  # "line" or "row"
+    sources: dict | None = None  # column -> where its values come from (a BVH channel and its map entry)
 
     def where(self, column: str, i: int) -> str:
         return f"{self.path}: column {column!r}, {self.row_word} {int(self.rows[i])}"
@@ -324,6 +325,13 @@ def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel) ->
     if outside.any():
         i, j = (int(v) for v in np.argwhere(outside)[0])
         value = table.columns[names[j]][i]
+        if table.sources and names[j] in table.sources:  # converted from a source in degrees already
+            src = table.sources[names[j]]
+            raise ValueError(
+                f"{table.path}: frame {int(table.rows[i])}: {src['what']} = {src['raw'](value):.2f} deg gives "
+                f"{names[j]} = {np.degrees(value):.2f} deg, outside the model's range [{np.degrees(b[j, 0]):.1f}, "
+                f"{np.degrees(b[j, 1]):.1f}] deg by more than {K_SIGMA:g} noise sigma "
+                f"({np.degrees(tol):.2g} deg): check {src['entry']} (its channel, sign and offset_deg)")
         msg = (f"{table.where(names[j], i)}: {value:.6g} lies outside the model's range "
                f"[{b[j, 0]:.6g}, {b[j, 1]:.6g}] {'rad' if types[j] == 'revolute' else 'm'} by more than "
                f"{K_SIGMA:g} noise sigma ({tol:.3g})")
@@ -558,16 +566,20 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         if frame_markers:
             frame = frame_from_markers(c3d["markers"], frame_markers)
     elif path.suffix.lower() == ".bvh":
-        from camo_sbi.io.bvh import load_bvh_map, read_bvh
+        from camo_sbi.io.bvh import bvh_sources, load_bvh_map, read_bvh
 
         if bvh_map is None:
             raise ValueError(f"--bvh-map: a BVH file ({path}) needs the mapping from its channels to the model's "
                              f"joints (see the README: From a motion-capture session)")
         if not path.is_file():
             raise ValueError(f"{path}: no such file")
-        d = read_bvh(path, load_bvh_map(bvh_map, list(simulator.joint_names)))
+        if degrees:
+            raise ValueError(f"--degrees: a BVH file's channels are in degrees and read as such ({path}); drop "
+                             f"--degrees")
+        mapping = load_bvh_map(bvh_map, list(simulator.joint_names))
+        d = read_bvh(path, mapping)
         frames = d.pop("frames")
-        table = _Table(path, d, frames, "frame")
+        table = _Table(path, d, frames, "frame", sources=bvh_sources(mapping))
         info["bvh_map"] = str(bvh_map)
     else:
         if ee_markers:
