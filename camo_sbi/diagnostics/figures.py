@@ -29,7 +29,7 @@ from camo_sbi.diagnostics.style import (
     paper_figure,
 )
 
-__all__ = ["plot_limits", "plot_predictive"]
+__all__ = ["plot_limits", "plot_predictive", "plot_speed"]
 
 
 @paper_figure
@@ -135,4 +135,26 @@ def plot_limits(table, ranges: Mapping[str, tuple[float, float]], *, title: str 
     figure_legend(fig, ax)
     if title:
         fig.suptitle(title)
+    return fig
+
+
+@paper_figure
+def plot_speed(time, speed, cuts, *, title: str = "") -> Figure:
+    """The hand speed [m/s] over time [s] with each reach found shaded and numbered from 0
+    (``cuts``: [(start, end)] in seconds)."""
+    t = np.asarray(time, dtype=float)
+    v = np.asarray(speed, dtype=float)
+    fig, axes = new_figure(1, 1, width="double", figsize=(7.0, 2.4))
+    ax = axes[0, 0]
+    ax.plot(t, v, color="k", lw=0.8)
+    top = float(v.max()) if v.size else 1.0
+    for k, (a, b) in enumerate(cuts):
+        ax.axvspan(a, b, color="C0", alpha=0.18, lw=0)
+        ax.text(0.5 * (a + b), 1.02 * top, str(k), ha="center", va="bottom", fontsize=7, color="C0")
+    ax.set_ylim(0, 1.12 * top + 1e-9)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("hand speed [m/s]")
+    ax.grid(alpha=0.3)
+    if title:
+        ax.set_title(title)
     return fig

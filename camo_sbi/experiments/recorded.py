@@ -500,7 +500,7 @@ def reach_figure(sim, o, results: dict, draws: dict):
 
 
 def _report(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
-            formats=None) -> Path:
+            formats=None, speed: dict | None = None) -> Path:
     """report.html: the limits table (degrees) and, per reach, observed vs posterior-predictive
     paths; with ``formats`` (``--figure-format``) the figures also as files in
     ``out/report_figures``."""
@@ -508,10 +508,11 @@ def _report(out: Path, task, results: dict, notes: list[str], table, settings: d
     from camo_sbi.diagnostics.style import paper_style
 
     with paper_style(), figure_files(out / "report_figures", formats):
-        return _report_page(out, task, results, notes, table, settings, seed)
+        return _report_page(out, task, results, notes, table, settings, seed, speed)
 
 
-def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int) -> Path:
+def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
+                 speed: dict | None = None) -> Path:
     import pandas as pd
     import torch
 
@@ -547,6 +548,13 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
          + table_html(_shown_limits(table), float_format="{:.4g}")),
         ("reaches", "Observed vs posterior-predictive reaches", join(reach_html)),
     ]
+    if speed is not None:
+        from camo_sbi.diagnostics.figures import plot_speed
+
+        sections.insert(2, ("reaches-found", "Reaches found", figure_html(
+            plot_speed(speed["time"], speed["speed"], speed["cuts"]),
+            f"hand speed ({speed['source']}) and the {len(speed['cuts'])} reaches found (shaded, numbered as in "
+            f"reaches.csv); rule: {speed['rule']}", alt="hand speed with the cuts")))
     return write_page(out / "report.html", f"camo_sbi infer: {settings['observations']}", sections,
                       meta=f"model {task.name}, {len(task.observations)} reaches, seed {seed}")
 
@@ -587,7 +595,7 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
 
 #: what an infer run writes into --out (removed when --force replaces a run of other settings)
 _INFER_OUTPUTS = ("limits.csv", "report.html", "config.json", "posteriors", "estimates", "predictions", "work", "figures",
-                  "starts.csv", "next_goals.csv", "subjects")
+                  "starts.csv", "next_goals.csv", "subjects", "reaches.csv")
 
 
 def _infer_settings(args, model, overrides: dict) -> dict:
@@ -791,9 +799,14 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
                                                        **settings, "model_spec": json.loads(model.to_json())},
                                                       indent=2))
     write_starts(out / "starts.csv", obs, sim)
+    if recording.segments:
+        import pandas as pd
+
+        atomic_write_text(out / "reaches.csv", pd.DataFrame(list(recording.segments)).to_csv(index=False))
+        print(f"reaches: {len(recording.segments)} found ({recording.speed['rule']}) -> {out / 'reaches.csv'}")
     notes = notes + [f"warning: {w}" for w in recording.warnings]
     report = _report(out, task, results, notes, table, settings, args.seed,
-                     formats=None if formats == ("png",) else formats)
+                     formats=None if formats == ("png",) else formats, speed=recording.speed)
     print("limits [deg], " + WIDE_LIMITS_KEY.replace(" [deg]", "", 1))
     print(wide_limits(table).to_string())
     for name, res in results.items():
@@ -824,6 +837,12 @@ def add_recording_arguments(p: argparse.ArgumentParser) -> None:
                    help="C3D marker(s) of the end effector (several: their mean)")
     p.add_argument("--bvh-map", type=Path, default=None,
                    help="JSON mapping of a BVH file's channels to the model's joints (signs, offsets, reaches)")
+    p.add_argument("--reaches", default=None, metavar="auto|events|A-B,C-D",
+                   help="find the reaches in a recording with time (C3D, BVH, or a time column): auto (by hand "
+                        "speed), events (the C3D file's events), or inclusive frame ranges; each reach's goal is "
+                        "where it ends; DIR/reaches.csv lists them (default: the file's own reaches)")
+    p.add_argument("--side", choices=("right", "left"), default=None,
+                   help="the recorded arm: the events' context with --reaches events")
     p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
                    help="free: estimate the body's segment-length scale s in [0.85, 1.15] from the joint and "
                         "end-effector columns and infer on the scaled body")
@@ -855,7 +874,8 @@ def load_from_args(args, path, sim, noise, start):
                           resample=None if args.resample == "none" else args.resample, rate=args.rate,
                           ee_units=args.ee_units, goal=args.goal, frame=frame, ee_markers=ee_markers,
                           frame_markers=markers, body_scale=getattr(args, "body_scale", "fixed"),
-                          bvh_map=getattr(args, "bvh_map", None))
+                          bvh_map=getattr(args, "bvh_map", None), reaches=getattr(args, "reaches", None),
+                          side=getattr(args, "side", None))
 
 
 def write_starts(path: Path, obs, sim) -> Path:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["UNITS", "read_c3d"]
+__all__ = ["UNITS", "c3d_events", "read_c3d"]
 
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 
@@ -76,4 +76,24 @@ def read_c3d(path, ee_markers, extra_markers=()) -> dict:
             raise ValueError(f"--frame-from-markers: marker {m!r} is never visible in {path}")
         markers[m] = x[ok].mean(axis=0)
     return {"time": frame_no[keep] / rate, "reach": reach.astype(np.float64), "ee": ee[keep],
-            "frames": frame_no[keep], "markers": markers, "units": unit}
+            "frames": frame_no[keep], "markers": markers, "units": unit, "events": c3d_events(c3d)}
+
+
+def c3d_events(c3d) -> list[tuple[float, str, str]]:
+    """The file's events as (time [s], label, context), from EVENT:TIMES (minutes, seconds rows),
+    EVENT:LABELS and EVENT:CONTEXTS; [] when the file has none."""
+    try:
+        group = c3d["parameters"]["EVENT"]
+        times = np.asarray(group["TIMES"]["value"], dtype=np.float64)
+    except KeyError:
+        return []
+    if times.size == 0:
+        return []
+    times = times.reshape(2, -1) if times.ndim == 1 else times
+    labels = [str(v).strip() for v in group.get("LABELS", {}).get("value", [])]
+    contexts = [str(v).strip() for v in group.get("CONTEXTS", {}).get("value", [])]
+    n = times.shape[1]
+    labels += [""] * (n - len(labels))
+    contexts += [""] * (n - len(contexts))
+    return [(float(times[0, k] * 60.0 + times[1, k]), labels[k], contexts[k]) for k in range(n)
+            if np.isfinite(times[:, k]).all()]

@@ -452,6 +452,8 @@ class Recording:
     warnings: tuple[str, ...] = ()
     info: dict = field(default_factory=dict)
     scale: float = 1.0  # the body's segment-length scale (body_scale="free"), else 1
+    segments: tuple[dict, ...] = ()  # reaches found by --reaches (reaches.csv rows), else ()
+    speed: dict | None = None  # {"time", "speed", "cuts": [(t0, t1)], "rule"} for the report's speed figure
 
 
 BODY_SCALE_RANGE = (0.85, 1.15)
@@ -494,6 +496,80 @@ def _hint_body_scale(table: _Table, simulator, q, ee, reaches, noise) -> None:
         raise
 
 
+def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, has_ee: bool, degrees: bool,
+               noise: NoiseModel):
+    """The table cut into the reaches ``spec`` finds (`camo_sbi.io.segment`): (the table of the
+    reaches' rows with new reach ids, the reaches.csv rows, the speed figure's data)."""
+    from camo_sbi.io.segment import (
+        ACTIVE_SPEED,
+        CUTOFF_HZ,
+        MIN_DURATION_S,
+        MIN_PEAK_SPEED,
+        NOISE_FACTOR,
+        ONSET_FRACTION,
+        events_segments,
+        hand_speed,
+        parse_reaches,
+        ranges_segments,
+        segment_by_speed,
+    )
+
+    kind, ranges = parse_reaches(spec)
+    if TIME not in table.columns:
+        raise ValueError(f"--reaches: {table.path} has no time (a C3D, a BVH, or a CSV/NPZ with a 'time' column "
+                         f"in seconds); with a step column give the reach column instead")
+    t = table.columns[TIME]
+    if has_ee:
+        hand = np.stack([table.columns[c] for c in EE_COLUMNS], axis=1)
+    else:
+        q = _joint_values(table, simulator, degrees, noise)
+        hand = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
+    # the file's own runs (C3D gaps, a CSV's reach ids): speed is computed within each, never across a gap
+    rid = table.columns[REACH]
+    starts = np.flatnonzero(np.r_[True, rid[1:] != rid[:-1]])
+    runs = list(zip(starts, np.r_[starts[1:], rid.shape[0]], strict=True))
+    speed = np.zeros(t.shape[0])
+    for a, b in runs:
+        speed[a:b] = hand_speed(t[a:b], hand[a:b])
+    what = str(table.path)
+    if kind == "frames":
+        segs = ranges_segments(table.rows, ranges, what)
+        rule = "explicit frame ranges (--reaches)"
+    elif kind == "events":
+        if events is None:
+            raise ValueError(f"--reaches: events come from a C3D file's EVENT group; {table.path} is not a C3D file")
+        segs = events_segments(t, events, side, what)
+        rule = f"the file's events{'' if side is None else f' (context {side} or General)'}"
+    else:
+        segs = []
+        for a, b in runs:
+            segs += [type(g)(g.first + a, g.last + a, g.rule, g.peak_speed) for g in segment_by_speed(t[a:b], speed[a:b])]
+        rule = (f"hand speed: {CUTOFF_HZ:g} Hz low-pass; movement = speed > {ACTIVE_SPEED:g} m/s with a peak > "
+                f"{MIN_PEAK_SPEED:g} m/s; cuts where the speed falls below max({ONSET_FRACTION:g} x peak, "
+                f"{NOISE_FACTOR:g} x the speed at rest), then on to its local minimum; at least "
+                f"{MIN_DURATION_S:g} s")
+    if not segs:
+        raise ValueError(f"--reaches: {spec} found no reach in {table.path} (rule: {rule}); give frame ranges "
+                         f"(--reaches 0-120,121-260)")
+    keep = np.concatenate([np.arange(g.first, g.last + 1) for g in segs])
+    new_rid = np.concatenate([np.full(g.last - g.first + 1, k, dtype=np.float64) for k, g in enumerate(segs)])
+    cols = {c: a[keep] for c, a in table.columns.items()}
+    cols[REACH] = new_rid
+    out = _Table(table.path, cols, table.rows[keep], table.row_word, table.sources)
+    rows = []
+    for k, g in enumerate(segs):
+        peak = g.peak_speed if np.isfinite(g.peak_speed) else float(speed[g.first: g.last + 1].max())
+        rows.append({"reach": k, "first_frame": int(table.rows[g.first]), "last_frame": int(table.rows[g.last]),
+                     "start_s": round(float(t[g.first]), 4), "end_s": round(float(t[g.last]), 4),
+                     "duration_s": round(float(t[g.last] - t[g.first]), 4), "peak_speed_m_s": round(peak, 4),
+                     **{f"start_{c}": round(float(v), 5) for c, v in zip("xyz", hand[g.first], strict=True)},
+                     **{f"goal_{c}": round(float(v), 5) for c, v in zip("xyz", hand[g.last], strict=True)},
+                     "rule": g.rule})
+    fig = {"time": t, "speed": speed, "cuts": [(float(t[g.first]), float(t[g.last])) for g in segs], "rule": rule,
+           "source": "end-effector track" if has_ee else "forward kinematics of the joint angles"}
+    return out, tuple(rows), fig
+
+
 def load_recordings(path, simulator, **kwargs) -> tuple[Observation, ...]:
     """The observed reaches in ``path``: `load_recording` (same arguments) without its warnings."""
     return load_recording(path, simulator, **kwargs).observations
@@ -503,7 +579,7 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                    start=None, resample: str | None = "time", rate: float | None = None,
                    ee_units: str | None = None, goal: str = "columns", frame: Frame | None = None,
                    ee_markers=None, frame_markers: dict | None = None, body_scale: str = "fixed",
-                   bvh_map=None) -> Recording:
+                   bvh_map=None, reaches: str | None = None, side: str | None = None) -> Recording:
     """The observed reaches in the recording file ``path`` (CSV, .npz or .c3d), for ``simulator``.
 
     Args:
@@ -528,6 +604,12 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
             markers (`frame_from_markers`) instead of ``frame``.
         bvh_map: a BVH file's mapping file (`camo_sbi.io.bvh`: BVH channels -> model joints,
             signs, offsets, reach frame ranges); a .bvh ``path`` needs it.
+        reaches: None (the file's own reaches: its reach column, C3D gaps, the BVH map's ranges),
+            or ``--reaches``: "auto" (hand speed, `camo_sbi.io.segment`), "events" (the C3D
+            file's events) or frame ranges "0-120,121-260"; the file needs time. Each reach's
+            goal is then where it ends (unless the file has goal columns); ``Recording.segments``
+            lists the reaches found and ``Recording.speed`` the hand speed with the cuts.
+        side: "right" or "left": the events' context for ``reaches="events"``.
         body_scale: "fixed" (the model's body) or "free": the segment-length scale s of the
             recorded body is estimated from the joint and end-effector columns
             (`estimate_body_scale`) and ``Recording.scale`` holds it; the checks use the
@@ -555,12 +637,14 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
     path = Path(path)
     info: dict = {"goal": goal}
     warns: list[str] = []
+    events = None
     if path.suffix.lower() == ".c3d":
         if ee_units is not None:
             raise ValueError(f"--ee-units: a C3D file's units come from its POINT:UNITS ({path}); drop --ee-units")
         if not path.is_file():
             raise ValueError(f"{path}: no such file")
         table, c3d = _read_c3d(path, ee_markers, frame_markers)
+        events = c3d.get("events", [])
         info["ee_units"] = f"{c3d['units']} (POINT:UNITS)"
         info["ee_marker"] = "+".join(ee_markers)
         if frame_markers:
@@ -594,6 +678,8 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                 if c in table.columns:
                     table.columns[c] = table.columns[c] * scale
     names = list(simulator.joint_names)
+    if reaches is not None and goal == "columns" and not any(c in table.columns for c in GOAL_COLUMNS):
+        goal = info["goal"] = "final"  # reaches found in a stream: each ends at its goal
     has_q, has_ee = _layout(table, names, goal)
     if frame is not None:
         for cols in (EE_COLUMNS, GOAL_COLUMNS):
@@ -609,6 +695,13 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                              f"their model positions after the best rigid transform: check the marker positions")
     radius = reach_radius(simulator)
     _check_units(table, radius, ee_units or "m")
+    segments, speed = (), None
+    if reaches is not None:
+        if path.suffix.lower() == ".bvh" and table.columns.get(REACH) is not None and \
+                np.unique(table.columns[REACH]).size > 1:
+            raise ValueError(f"--reaches: the --bvh-map file lists reaches already ({bvh_map}); give one or the other")
+        table, segments, speed = _resegment(table, simulator, reaches, side, events, has_q, has_ee, degrees, noise)
+        info["reaches"] = f"{len(segments)} found ({speed['rule']})"
     reaches = _reaches(table, goal)
     q_all = _joint_values(table, simulator, degrees, noise) if has_q else None
     ee_all = np.stack([table.columns[c] for c in EE_COLUMNS], axis=1) if has_ee else None
@@ -699,13 +792,13 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         obs.append(Observation(st, torch.from_numpy(goal_all[idx[0]].copy()), q, ee))
     obs = tuple(obs)
     if resample is None:
-        return Recording(obs, tuple(warns), info, scale)
+        return Recording(obs, tuple(warns), info, scale, segments, speed)
     r = estimate_rate(obs, simulator) if rate is None else float(rate)
     if not (math.isfinite(r) and r > 0):
         raise ValueError(f"rate: expected a number > 0, got {rate!r}")
     info["rate"] = round(r, 4)
     return Recording(tuple(resample_to_controller(o, simulator, mode=resample, rate=r) for o in obs),
-                     tuple(warns), info, scale)
+                     tuple(warns), info, scale, segments, speed)
 
 
 def _read(path) -> _Table:
