@@ -561,7 +561,8 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
 
 def add_infer_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--observations", type=Path, required=True,
-                   help="recording file (.csv, .npz, .c3d or .bvh), or a folder of them (one subject per file)")
+                   help="recording file (.csv, .npz, .c3d, .bvh, or an OpenSim .mot/.sto of joint angles), or a folder "
+                        "of them (one subject per file)")
     add_model_arguments(p, limits=False)
     p.add_argument("--methods", default="camo,camo-hull,naive,nominal", help="comma-separated method names")
     p.add_argument("--budget", type=int, default=500, help="simulations per observed reach")
@@ -704,6 +705,7 @@ def infer_main(args) -> int:
     grid_methods(",".join(methods) or ",")  # validates names and duplicates (--methods: ...)
     overrides = parse_configs(args.config, methods)
     noise = _noise(args)
+    _height_from_file(args)
     model = model_from_args(args)
     sim = model.build()
     check_budget_fits(args.budget, n_joints=sim.n_joints, flag="--budget")
@@ -842,7 +844,14 @@ def add_recording_arguments(p: argparse.ArgumentParser) -> None:
                         "speed), events (the C3D file's events), or inclusive frame ranges; each reach's goal is "
                         "where it ends; DIR/reaches.csv lists them (default: the file's own reaches)")
     p.add_argument("--side", choices=("right", "left"), default=None,
-                   help="the recorded arm: the events' context with --reaches events")
+                   help="the recorded arm (--markers isb mirrors a left arm onto the right-arm model; default "
+                        "right) and the events' context with --reaches events")
+    p.add_argument("--markers", choices=("isb",), default=None,
+                   help="isb: the human model's joint angles per frame from a C3D's ISB upper-limb landmarks "
+                        "(thorax, humerus, forearm, hand; angles relative to the thorax); needs --marker-map")
+    p.add_argument("--marker-map", type=Path, default=None,
+                   help='JSON {"IJ": "<label>", "PX": ..., "C7": ..., "T8": ..., "AC": ..., "EL": ..., "EM": ..., '
+                        '"RS": ..., "US": ..., "MC2": ..., "MC5": ...}: the file\'s marker for each ISB landmark')
     p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
                    help="free: estimate the body's segment-length scale s in [0.85, 1.15] from the joint and "
                         "end-effector columns and infer on the scaled body")
@@ -875,7 +884,23 @@ def load_from_args(args, path, sim, noise, start):
                           ee_units=args.ee_units, goal=args.goal, frame=frame, ee_markers=ee_markers,
                           frame_markers=markers, body_scale=getattr(args, "body_scale", "fixed"),
                           bvh_map=getattr(args, "bvh_map", None), reaches=getattr(args, "reaches", None),
-                          side=getattr(args, "side", None))
+                          side=getattr(args, "side", None), markers=getattr(args, "markers", None),
+                          marker_map=getattr(args, "marker_map", None))
+
+
+def _height_from_file(args) -> None:
+    """``--markers isb`` on a C3D with ``--model human`` and no ``--height``: the subject's height from
+    the file (PROCESSING:Height) when it has one (printed)."""
+    if getattr(args, "markers", None) is None or getattr(args, "height", None) is not None:
+        return
+    if getattr(args, "model", None) != "human" or Path(args.observations).suffix.lower() != ".c3d":
+        return
+    from camo_sbi.io.c3d import c3d_subject_height
+
+    h = c3d_subject_height(args.observations)
+    if h is not None:
+        args.height = h
+        print(f"subject height {h:.3f} m (the C3D file's PROCESSING:Height): the model is built for it")
 
 
 def write_starts(path: Path, obs, sim) -> Path:
@@ -894,7 +919,7 @@ def write_starts(path: Path, obs, sim) -> Path:
     return atomic_write_text(path, pd.DataFrame(rows).to_csv(index=False))
 
 
-RECORDING_SUFFIXES = (".csv", ".npz", ".c3d", ".bvh")
+RECORDING_SUFFIXES = (".csv", ".npz", ".c3d", ".bvh", ".mot", ".sto")
 
 
 def infer_folder(args) -> int:

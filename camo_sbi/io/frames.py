@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Frame", "frame_from_markers", "load_frame", "load_marker_positions"]
+__all__ = ["Frame", "frame_from_markers", "load_frame", "load_marker_positions", "read_json_object"]
 
 ROTATION_TOL = 1e-4
 """|R^T R - I| and |det R - 1| beyond this: not a rotation (a file typed by hand keeps ~5 digits)."""
@@ -52,6 +52,10 @@ def _read_json(path, flag: str):
     if not isinstance(data, dict):
         raise ValueError(f"{flag} {path}: expected a JSON object")
     return path, data
+
+
+read_json_object = _read_json
+"""``(path, data)`` of a JSON object file; one ValueError naming ``flag`` and the file otherwise."""
 
 
 def _vector(value, n: int, what: str) -> np.ndarray:

@@ -75,6 +75,7 @@ import torch
 
 from camo_sbi._io import atomic_write_bytes, atomic_write_text
 from camo_sbi.io.frames import Frame, frame_from_markers
+from camo_sbi.io.text import read_text
 from camo_sbi.simulators.controller import ControllerConfig
 from camo_sbi.task import NoiseModel, Observation
 
@@ -143,17 +144,7 @@ CSV_FIELD_LIMIT = 131_072
 
 
 def _read_csv(path: Path) -> _Table:
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read ({exc.strerror or exc})") from exc
-    if b"\0" in raw[:65536]:
-        raise ValueError(f"{path}: is a binary file, not a CSV recording (it holds NUL bytes)")
-    try:
-        text = raw.decode("utf-8-sig")  # a UTF-8 BOM (every Excel export) is accepted
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: is not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}): "
-                         f"expected a CSV recording") from None
+    text = read_text(path, "a CSV recording")
     reader = csv.reader(io.StringIO(text, newline=""))
     header = None
     values: list[list[float]] = []
@@ -224,6 +215,39 @@ def _read_c3d(path: Path, ee_markers, frame_markers) -> tuple[_Table, dict]:
     for k, c in enumerate(EE_COLUMNS):
         cols[c] = d["ee"][:, k]
     return _Table(path, cols, d["frames"], "frame"), d
+
+
+def _read_c3d_isb(path: Path, simulator, markers: str, marker_map, side, ee_markers, frame_markers):
+    """The human model's joint angles per frame from a C3D's ISB landmarks: (table, info dict)."""
+    from camo_sbi.io.c3d import read_c3d_points
+    from camo_sbi.io.isb import NEEDED, isb_joint_angles, load_marker_map
+
+    if markers != "isb":
+        raise ValueError(f"--markers: expected isb (ISB upper-limb landmarks), got {markers!r}")
+    if marker_map is None:
+        raise ValueError("--marker-map: --markers isb needs the map from ISB landmarks to the file's marker labels "
+                         '(JSON {"IJ": "<label>", ...})')
+    if ee_markers or frame_markers:
+        raise ValueError("--markers: isb computes joint angles in the thorax's frame; drop --ee-marker and "
+                         "--frame-from-markers")
+    from camo_sbi.simulators.human import JOINT_NAMES
+
+    if tuple(simulator.joint_names) != JOINT_NAMES:
+        raise ValueError(f"--markers: isb gives the human model's joint angles ({', '.join(JOINT_NAMES)}); use "
+                         f"--model human")
+    mapping = load_marker_map(marker_map)
+    d = read_c3d_points(path, [mapping[k] for k in NEEDED])
+    pts = {k: d["points"][mapping[k]] for k in NEEDED}
+    present = np.all([np.isfinite(v).all(axis=1) for v in pts.values()], axis=0)
+    if present.sum() < 2:
+        lost = min(NEEDED, key=lambda k: np.isfinite(pts[k]).all(axis=1).sum())
+        raise ValueError(f"--marker-map: {path} has fewer than two frames with every landmark (landmark {lost!r}, "
+                         f"marker {mapping[lost]!r}, is seen least)")
+    q = isb_joint_angles({k: v[present] for k, v in pts.items()}, side or "right")
+    run_id = np.cumsum(np.r_[True, ~present[:-1]] & present)[present]  # a new reach after every gap
+    cols = {REACH: np.unique(run_id, return_inverse=True)[1].astype(np.float64), TIME: d["time"][present],
+            **{j: q[:, k] for k, j in enumerate(JOINT_NAMES)}}
+    return _Table(path, cols, d["frames"][present], "frame"), d
 
 
 def _layout(table: _Table, joint_names: list[str], goal: str = "columns") -> tuple[bool, bool]:
@@ -579,7 +603,8 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                    start=None, resample: str | None = "time", rate: float | None = None,
                    ee_units: str | None = None, goal: str = "columns", frame: Frame | None = None,
                    ee_markers=None, frame_markers: dict | None = None, body_scale: str = "fixed",
-                   bvh_map=None, reaches: str | None = None, side: str | None = None) -> Recording:
+                   bvh_map=None, reaches: str | None = None, side: str | None = None,
+                   markers: str | None = None, marker_map=None) -> Recording:
     """The observed reaches in the recording file ``path`` (CSV, .npz or .c3d), for ``simulator``.
 
     Args:
@@ -609,7 +634,11 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
             file's events) or frame ranges "0-120,121-260"; the file needs time. Each reach's
             goal is then where it ends (unless the file has goal columns); ``Recording.segments``
             lists the reaches found and ``Recording.speed`` the hand speed with the cuts.
-        side: "right" or "left": the events' context for ``reaches="events"``.
+        side: "right" or "left": the recorded arm (``markers="isb"``: a left arm is mirrored onto
+            the right-arm model) and the events' context for ``reaches="events"``.
+        markers: "isb": a C3D's joint angles from its anatomical landmarks (`camo_sbi.io.isb`),
+            named by ``marker_map`` (a JSON file {ISB landmark: the file's label}); the model
+            must be the human model. Frames missing a landmark separate reaches.
         body_scale: "fixed" (the model's body) or "free": the segment-length scale s of the
             recorded body is estimated from the joint and end-effector columns
             (`estimate_body_scale`) and ``Recording.scale`` holds it; the checks use the
@@ -643,10 +672,15 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
             raise ValueError(f"--ee-units: a C3D file's units come from its POINT:UNITS ({path}); drop --ee-units")
         if not path.is_file():
             raise ValueError(f"{path}: no such file")
-        table, c3d = _read_c3d(path, ee_markers, frame_markers)
+        if markers is not None:
+            table, c3d = _read_c3d_isb(path, simulator, markers, marker_map, side, ee_markers, frame_markers)
+            info["joint_angles"] = (f"ISB landmarks ({marker_map}), {side or 'right'} arm, relative to the "
+                                    f"thorax (camo_sbi.io.isb)")
+        else:
+            table, c3d = _read_c3d(path, ee_markers, frame_markers)
+            info["ee_marker"] = "+".join(ee_markers)
         events = c3d.get("events", [])
         info["ee_units"] = f"{c3d['units']} (POINT:UNITS)"
-        info["ee_marker"] = "+".join(ee_markers)
         if frame_markers:
             frame = frame_from_markers(c3d["markers"], frame_markers)
     elif path.suffix.lower() == ".bvh":
@@ -665,7 +699,24 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         frames = d.pop("frames")
         table = _Table(path, d, frames, "frame", sources=bvh_sources(mapping))
         info["bvh_map"] = str(bvh_map)
+    elif path.suffix.lower() in (".mot", ".sto"):
+        from camo_sbi.io.mot import read_mot
+
+        if markers is not None or ee_markers:
+            raise ValueError(f"--markers: only a C3D file has markers ({path})")
+        if not path.is_file():
+            raise ValueError(f"{path}: no such file")
+        if degrees:
+            raise ValueError(f"--degrees: an OpenSim file says its unit itself (inDegrees); drop --degrees ({path})")
+        d = read_mot(path, list(simulator.joint_names))
+        table = _Table(path, {REACH: np.zeros(d["time"].shape[0]), TIME: d["time"], **d["columns"]}, d["frames"],
+                       "line")
+        info["joint_angles"] = f"OpenSim {path.suffix} ({'degrees' if d['in_degrees'] else 'radians'})"
+        if d["skipped"]:
+            info["skipped_columns"] = ", ".join(d["skipped"])
     else:
+        if markers is not None:
+            raise ValueError(f"--markers: only a C3D file has markers ({path})")
         if ee_markers:
             raise ValueError(f"--ee-marker: only a C3D file has markers ({path})")
         if frame_markers:
@@ -678,7 +729,8 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                 if c in table.columns:
                     table.columns[c] = table.columns[c] * scale
     names = list(simulator.joint_names)
-    if reaches is not None and goal == "columns" and not any(c in table.columns for c in GOAL_COLUMNS):
+    angles_only = markers is not None or path.suffix.lower() in (".mot", ".sto")  # formats without goals
+    if (reaches is not None or angles_only) and goal == "columns" and not any(c in table.columns for c in GOAL_COLUMNS):
         goal = info["goal"] = "final"  # reaches found in a stream: each ends at its goal
     has_q, has_ee = _layout(table, names, goal)
     if frame is not None:
