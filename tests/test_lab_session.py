@@ -5,6 +5,7 @@ the same naive limits; the .mot reader refuses malformed files naming the line."
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -15,6 +16,7 @@ from camo_sbi.experiments.lab_session import MARKER_LABELS, synthetic_session
 from camo_sbi.io.mot import read_mot
 from camo_sbi.io.recordings import load_recording
 from camo_sbi.simulators.human import JOINT_NAMES, human
+from camo_sbi.task import NoiseModel
 
 pytest.importorskip("ezc3d")
 
@@ -122,3 +124,43 @@ def test_the_done_when_command_on_a_synthetic_session(tmp_path):
     limits = pd.read_csv(out / "limits.csv")
     assert set(limits.method) == {"naive", "camo-seq", "camo-touched", "npe"}
     assert limits.observed_min_deg.notna().all() and limits.observed_max_deg.notna().all()
+
+
+# ----------------------------------------------------------------------------- a real session
+
+
+REAL = Path(__file__).parent / "data" / "pyomeca_shoulder.c3d"
+REAL_MAP = REAL.with_name("pyomeca_shoulder_map.json")
+
+
+def test_real_session_gives_joint_angles_and_reaches(body):
+    """pyomeca's upper-limb trial (tests/data/pyomeca_shoulder.SOURCE.md): the wrist's ulnar
+    deviation goes past the model's 30 deg, which is refused naming the joint, the frame and what
+    to check (never --degrees), or clipped with a warning; two reaches are found by hand speed."""
+    with pytest.raises(ValueError) as err:
+        load_recording(REAL, body, markers="isb", marker_map=REAL_MAP, reaches="auto", resample=None)
+    msg = str(err.value)
+    assert "the ISB landmarks give wrist_deviation = " in msg and "frame " in msg and "--degrees" not in msg
+    rec = load_recording(REAL, body, markers="isb", marker_map=REAL_MAP, reaches="auto", resample=None,
+                         out_of_range="clip", noise=NoiseModel(joint_deg=1.0))
+    assert len(rec.observations) == 2 and len(rec.segments) == 2
+    assert [w.split(": ")[1] for w in rec.warnings] == ["wrist_deviation"]
+    q = np.degrees(np.concatenate([o.q.numpy() for o in rec.observations]))
+    elbow = q[:, JOINT_NAMES.index("elbow_flexion")]
+    assert elbow.min() < 20 and elbow.max() > 120  # the trial bends the elbow through most of its range
+
+
+@pytest.mark.slow
+def test_the_done_when_command_on_the_real_session(tmp_path):
+    """The issue's command on the real trial, with --out-of-range clip (its wrist goes past the
+    model's ulnar deviation) and small budgets: exit 0, two reaches, every method's rows."""
+    out = tmp_path / "out"
+    npe = json.dumps({"max_epochs": 3, "num_transforms": 1, "hidden_features": 8, "training_batch_size": 20,
+                      "n_posterior_samples": 200, "is_rounds": 1})
+    assert main(["infer", "--observations", str(REAL), "--model", "human", "--markers", "isb", "--marker-map",
+                 str(REAL_MAP), "--reaches", "auto", "--side", "right", "--out-of-range", "clip", "--methods",
+                 "naive,camo-seq,camo-touched,npe", "--budget", "60", "--noise-joint-deg", "1", "--config",
+                 f"npe={npe}", "--out", str(out)]) == 0
+    assert len(pd.read_csv(out / "reaches.csv")) == 2
+    limits = pd.read_csv(out / "limits.csv")
+    assert set(limits.method) == {"naive", "camo-seq", "camo-touched", "npe"} and limits.observed_min_deg.notna().all()

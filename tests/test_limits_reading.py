@@ -175,7 +175,7 @@ def test_bvh_channel_out_of_range_names_channel_frame_and_entry(sim, tmp_path):
         load_recording(bvh, sim, goal="final", bvh_map=bad, resample=None)
     msg = str(err.value)
     assert msg.startswith(f"{bvh}: frame 0: BVH channel B3.Yrotation = ")
-    assert f"--bvh-map {bad} entry 'elbow' (sign 1, offset_deg 200)" in msg
+    assert f"--bvh-map {bad} entry 'elbow' (sign 1, offset_deg 200: its channel" in msg
     assert "degrees" not in msg.replace(" deg", "") and "--degrees" not in msg
     with pytest.raises(ValueError, match=r"^--degrees: a BVH file's channels are in degrees"):
         load_recording(bvh, sim, goal="final", bvh_map=bvh.with_suffix(".json"), resample=None, degrees=True)

@@ -852,6 +852,9 @@ def add_recording_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--marker-map", type=Path, default=None,
                    help='JSON {"IJ": "<label>", "PX": ..., "C7": ..., "T8": ..., "AC": ..., "EL": ..., "EM": ..., '
                         '"RS": ..., "US": ..., "MC2": ..., "MC5": ...}: the file\'s marker for each ISB landmark')
+    p.add_argument("--out-of-range", choices=("error", "clip"), default="error",
+                   help="a joint angle beyond the model's range (more than the noise allowance): error, or clip it "
+                        "onto the range with a warning per joint (a person beyond the normative range)")
     p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
                    help="free: estimate the body's segment-length scale s in [0.85, 1.15] from the joint and "
                         "end-effector columns and infer on the scaled body")
@@ -885,7 +888,8 @@ def load_from_args(args, path, sim, noise, start):
                           frame_markers=markers, body_scale=getattr(args, "body_scale", "fixed"),
                           bvh_map=getattr(args, "bvh_map", None), reaches=getattr(args, "reaches", None),
                           side=getattr(args, "side", None), markers=getattr(args, "markers", None),
-                          marker_map=getattr(args, "marker_map", None))
+                          marker_map=getattr(args, "marker_map", None),
+                          out_of_range=getattr(args, "out_of_range", "error"))
 
 
 def _height_from_file(args) -> None:

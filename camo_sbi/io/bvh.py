@@ -70,7 +70,8 @@ def bvh_sources(mapping: dict) -> dict:
     out = {}
     for j, e in mapping["joints"].items():
         out[j] = {"what": f"BVH channel {e['bvh']}.{e['channel']}",
-                  "entry": f"--bvh-map {mapping['path']} entry {j!r} (sign {e['sign']}, offset_deg {e['offset_deg']:g})",
+                  "entry": f"--bvh-map {mapping['path']} entry {j!r} (sign {e['sign']}, offset_deg {e['offset_deg']:g}: "
+                           f"its channel, sign and offset_deg)",
                   "raw": lambda v, s=e["sign"], o=e["offset_deg"]: (float(np.degrees(v)) - o) / s}
     return out
 

@@ -247,7 +247,11 @@ def _read_c3d_isb(path: Path, simulator, markers: str, marker_map, side, ee_mark
     run_id = np.cumsum(np.r_[True, ~present[:-1]] & present)[present]  # a new reach after every gap
     cols = {REACH: np.unique(run_id, return_inverse=True)[1].astype(np.float64), TIME: d["time"][present],
             **{j: q[:, k] for k, j in enumerate(JOINT_NAMES)}}
-    return _Table(path, cols, d["frames"][present], "frame"), d
+    src = {j: {"what": "the ISB landmarks", "entry": f"--marker-map {marker_map} and --side {side or 'right'}; a "
+                                                   f"person beyond the model's normative range: raise "
+                                                   f"--noise-joint-deg (values within its allowance are clipped)"}
+           for j in JOINT_NAMES}
+    return _Table(path, cols, d["frames"][present], "frame", sources=src), d
 
 
 def _layout(table: _Table, joint_names: list[str], goal: str = "columns") -> tuple[bool, bool]:
@@ -334,8 +338,11 @@ def _reaches(table: _Table, goal: str = "columns") -> list[np.ndarray]:
     return out
 
 
-def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel) -> np.ndarray:
-    """(rows, n) joint values in radians, checked against the model's range and clipped within noise."""
+def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel,
+                  clip_warnings: list | None = None) -> np.ndarray:
+    """(rows, n) joint values in radians, checked against the model's range and clipped within noise.
+    With ``clip_warnings`` (a list; ``out_of_range="clip"``) values beyond the range are clipped onto
+    it too, one warning per joint (how many samples, by how much at most) appended to the list."""
     names = list(simulator.joint_names)
     types = _joint_types(simulator)
     b = simulator.bounds.to(torch.float64).numpy()
@@ -346,16 +353,26 @@ def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel) ->
     tol = K_SIGMA * noise.sigma("joint") + BOUND_SLACK
     below, above = q < b[:, 0] - tol, q > b[:, 1] + tol
     outside = below | above
+    if outside.any() and clip_warnings is not None:
+        for j in np.flatnonzero(outside.any(axis=0)):
+            excess = np.maximum(b[j, 0] - q[:, j], q[:, j] - b[j, 1]).max()
+            unit, f = ("deg", np.degrees) if rev[j] else ("m", float)
+            clip_warnings.append(
+                f"{table.path}: {names[j]}: {int(outside[:, j].sum())} of {q.shape[0]} samples beyond the model's "
+                f"range [{f(b[j, 0]):.1f}, {f(b[j, 1]):.1f}] {unit} (at most {f(excess):.1f} {unit}), clipped onto "
+                f"it (--out-of-range clip): that bound's estimate is the model's range, not the person's")
+        return np.clip(q, b[:, 0], b[:, 1])
     if outside.any():
         i, j = (int(v) for v in np.argwhere(outside)[0])
         value = table.columns[names[j]][i]
-        if table.sources and names[j] in table.sources:  # converted from a source in degrees already
+        if table.sources and names[j] in table.sources:  # computed from a source, in radians already
             src = table.sources[names[j]]
+            given = f"{src['what']} = {src['raw'](value):.2f} deg gives " if "raw" in src else f"{src['what']} give "
             raise ValueError(
-                f"{table.path}: frame {int(table.rows[i])}: {src['what']} = {src['raw'](value):.2f} deg gives "
+                f"{table.path}: frame {int(table.rows[i])}: {given}"
                 f"{names[j]} = {np.degrees(value):.2f} deg, outside the model's range [{np.degrees(b[j, 0]):.1f}, "
                 f"{np.degrees(b[j, 1]):.1f}] deg by more than {K_SIGMA:g} noise sigma "
-                f"({np.degrees(tol):.2g} deg): check {src['entry']} (its channel, sign and offset_deg)")
+                f"({np.degrees(tol):.2g} deg): check {src['entry']}")
         msg = (f"{table.where(names[j], i)}: {value:.6g} lies outside the model's range "
                f"[{b[j, 0]:.6g}, {b[j, 1]:.6g}] {'rad' if types[j] == 'revolute' else 'm'} by more than "
                f"{K_SIGMA:g} noise sigma ({tol:.3g})")
@@ -521,7 +538,7 @@ def _hint_body_scale(table: _Table, simulator, q, ee, reaches, noise) -> None:
 
 
 def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, has_ee: bool, degrees: bool,
-               noise: NoiseModel):
+               noise: NoiseModel, clip: bool = False):
     """The table cut into the reaches ``spec`` finds (`camo_sbi.io.segment`): (the table of the
     reaches' rows with new reach ids, the reaches.csv rows, the speed figure's data)."""
     from camo_sbi.io.segment import (
@@ -546,7 +563,7 @@ def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, h
     if has_ee:
         hand = np.stack([table.columns[c] for c in EE_COLUMNS], axis=1)
     else:
-        q = _joint_values(table, simulator, degrees, noise)
+        q = _joint_values(table, simulator, degrees, noise, [] if clip else None)  # warned when loaded
         hand = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
     # the file's own runs (C3D gaps, a CSV's reach ids): speed is computed within each, never across a gap
     rid = table.columns[REACH]
@@ -604,7 +621,7 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                    ee_units: str | None = None, goal: str = "columns", frame: Frame | None = None,
                    ee_markers=None, frame_markers: dict | None = None, body_scale: str = "fixed",
                    bvh_map=None, reaches: str | None = None, side: str | None = None,
-                   markers: str | None = None, marker_map=None) -> Recording:
+                   markers: str | None = None, marker_map=None, out_of_range: str = "error") -> Recording:
     """The observed reaches in the recording file ``path`` (CSV, .npz or .c3d), for ``simulator``.
 
     Args:
@@ -639,6 +656,10 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         markers: "isb": a C3D's joint angles from its anatomical landmarks (`camo_sbi.io.isb`),
             named by ``marker_map`` (a JSON file {ISB landmark: the file's label}); the model
             must be the human model. Frames missing a landmark separate reaches.
+        out_of_range: "error" (default): a joint value beyond the model's range by more than the
+            noise allowance is an error naming it; "clip": it is clipped onto the range with a
+            warning per joint (a person beyond the model's normative range, or a marker set's
+            offset: the bound's estimate is then the model's range, say so when reading it).
         body_scale: "fixed" (the model's body) or "free": the segment-length scale s of the
             recorded body is estimated from the joint and end-effector columns
             (`estimate_body_scale`) and ``Recording.scale`` holds it; the checks use the
@@ -661,6 +682,8 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         raise ValueError(f"ee_units: expected one of {tuple(EE_UNITS)}, got {ee_units!r}")
     if goal not in GOAL_MODES:
         raise ValueError(f"goal: expected one of {GOAL_MODES}, got {goal!r}")
+    if out_of_range not in ("error", "clip"):
+        raise ValueError(f"out_of_range: expected 'error' or 'clip', got {out_of_range!r}")
     if body_scale not in ("fixed", "free"):
         raise ValueError(f"body_scale: expected 'fixed' or 'free', got {body_scale!r}")
     path = Path(path)
@@ -752,10 +775,12 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         if path.suffix.lower() == ".bvh" and table.columns.get(REACH) is not None and \
                 np.unique(table.columns[REACH]).size > 1:
             raise ValueError(f"--reaches: the --bvh-map file lists reaches already ({bvh_map}); give one or the other")
-        table, segments, speed = _resegment(table, simulator, reaches, side, events, has_q, has_ee, degrees, noise)
+        table, segments, speed = _resegment(table, simulator, reaches, side, events, has_q, has_ee, degrees, noise,
+                                            clip=out_of_range == "clip")
         info["reaches"] = f"{len(segments)} found ({speed['rule']})"
     reaches = _reaches(table, goal)
-    q_all = _joint_values(table, simulator, degrees, noise) if has_q else None
+    q_all = _joint_values(table, simulator, degrees, noise, warns if out_of_range == "clip" else None) \
+        if has_q else None
     ee_all = np.stack([table.columns[c] for c in EE_COLUMNS], axis=1) if has_ee else None
     if goal == "final":
         last = np.array([i[-1] for i in reaches])
