@@ -153,7 +153,25 @@ def test_limits_figure_shows_every_range_unclipped(sim):
     assert not [t for t in ax.texts if "not exercised" in t.get_text()]
     labels = [t.get_text() for t in fig.legends[0].get_texts()] if fig.legends else \
         [t.get_text() for t in ax.get_legend().get_texts()]
-    assert "not exercised (hollow)" in labels and "recorded range (functional, not maximal)" in labels
+    assert "not exercised (hollow)" in labels and "recorded range (functional)" in labels
+
+
+def test_limits_figure_legend_fits_the_figure(sim):
+    """Seven legend entries (four methods, model range, recorded range, not exercised): the
+    legend, as rendered, lies inside the figure (it was once cut on both sides)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from camo_sbi.diagnostics.figures import plot_limits
+
+    task = _task(sim, 14.0)
+    res = {m: _posterior(sim, m, 15.0, 14.0) for m in ("camo", "naive", "nominal", "abc-smc")}
+    b = np.degrees(sim.bounds.double().numpy())
+    fig = plot_limits(limits_table(res, sim, task), {j: (float(b[i, 0]), float(b[i, 1])) for i, j in enumerate(JOINTS)})
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw_without_rendering()
+    box = fig.legends[0].get_window_extent(renderer)
+    assert len(fig.legends[0].get_texts()) == 7
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.width and box.y0 >= 0
 
 
 # ----------------------------------------------------------------------------- BVH out of range

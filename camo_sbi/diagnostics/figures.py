@@ -112,7 +112,7 @@ def plot_limits(table, ranges: Mapping[str, tuple[float, float]], *, title: str 
         if observed:
             o_lo, o_hi = float(rows_j["observed_min_deg"].iloc[0]), float(rows_j["observed_max_deg"].iloc[0])
             ax.barh(y0, max(o_hi - o_lo, 0.3), left=o_lo, height=0.12, color="k", zorder=2,
-                    label="recorded range (functional, not maximal)" if r == 0 else None)
+                    label="recorded range (functional)" if r == 0 else None)
         for k, m in enumerate(methods):
             st = method_style(m)
             y = y0 + 0.3 - 0.6 * (k + 0.5) / span
@@ -132,7 +132,7 @@ def plot_limits(table, ranges: Mapping[str, tuple[float, float]], *, title: str 
     ax.set_ylim(-0.6, n - 0.4)
     ax.set_xlabel("model joint angle [deg] (not ISB clinical angles); marker: estimate, line: 90% interval")
     ax.grid(axis="x", alpha=0.3)
-    figure_legend(fig, ax)
+    figure_legend(fig, ax, ncols=4)  # four columns hold the longest label within the figure's width
     if title:
         fig.suptitle(title)
     return fig

@@ -431,7 +431,7 @@ def _limits_html(table, sim) -> Markup:
                                  "Inferred joint limits [deg]: the model's range (grey), each method's estimate "
                                  "(marker) and 90% interval (line); hollow markers: bounds no reach exercised (not "
                                  "an impairment: the data say nothing about them)", alt="limits figure"))
-    parts.append(part("meta", WIDE_LIMITS_KEY) + table_html(wide_limits(table), index=True))
+    parts.append(part("meta", WIDE_LIMITS_KEY) + part("wide", table_html(wide_limits(table), index=True)))
     return join(parts)
 
 
@@ -539,13 +539,14 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
     more = len(task.observations) - len(obs)
     if more > 0:
         reach_html.append(part("meta", f"{more} more reaches not shown"))
-    settings_html = table_html(pd.DataFrame([{"setting": k, "value": str(v)} for k, v in settings.items()]))
+    settings_html = part("wide", table_html(pd.DataFrame([{"setting": k, "value": str(v)}
+                                                          for k, v in settings.items()])))
     sections = [
         ("limits", "Estimated limits", _limits_html(table, sim)),
         ("settings", "Settings", settings_html + (part("items", notes) if notes else "")),
         ("limits-table", "All columns of limits.csv",
          part("meta", "degrees (limits.csv also holds radians, estimate_rad)")
-         + table_html(_shown_limits(table), float_format="{:.4g}")),
+         + part("wide", table_html(_shown_limits(table), float_format="{:.4g}"))),
         ("reaches", "Observed vs posterior-predictive reaches", join(reach_html)),
     ]
     if speed is not None:
