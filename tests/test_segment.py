@@ -51,7 +51,7 @@ def _errors(time, segs, truth) -> np.ndarray:
 def test_speed_rule_finds_every_reach_close_to_its_true_cuts():
     """Five sessions of ten movements (out and back), 1 mm noise, 100 Hz: every movement found,
     once; the cuts unbiased (mean error within 15 ms), 90% of them within 50 ms, all within 100 ms
-    (measured on 30 sessions: 95% within 50 ms, the worst 92 ms; docs/guide/lab_session.md)."""
+    (measured on 30 sessions: 94% within 50 ms, the worst 120 ms; docs/guide/lab_session.md)."""
     errs = []
     for seed in range(5):
         rng = np.random.default_rng(100 + seed)

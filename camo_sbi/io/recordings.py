@@ -248,8 +248,8 @@ def _read_c3d_isb(path: Path, simulator, markers: str, marker_map, side, ee_mark
     cols = {REACH: np.unique(run_id, return_inverse=True)[1].astype(np.float64), TIME: d["time"][present],
             **{j: q[:, k] for k, j in enumerate(JOINT_NAMES)}}
     src = {j: {"what": "the ISB landmarks", "entry": f"--marker-map {marker_map} and --side {side or 'right'}; a "
-                                                   f"person beyond the model's normative range: raise "
-                                                   f"--noise-joint-deg (values within its allowance are clipped)"}
+                                                   f"person beyond the model's normative range: --out-of-range "
+                                                   f"clip (or a larger --noise-joint-deg)"}
            for j in JOINT_NAMES}
     return _Table(path, cols, d["frames"][present], "frame", sources=src), d
 
