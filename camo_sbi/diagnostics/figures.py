@@ -6,8 +6,8 @@
   not paths in space.
 
 * `plot_limits`: the inferred limits a clinician reads first: per joint the model's range
-  (grey bar), each method's estimate and 90% interval in degrees, bounds no reach exercised
-  drawn hollow and labelled "not exercised".
+  (grey bar), the recorded range (black), each method's estimate and 90% interval in degrees,
+  bounds no reach exercised drawn hollow ("not exercised" in the legend).
 
 The forest and corner plots of the limits are arviz's (`camo_sbi.diagnostics.arviz_io`:
 ``plot_forest``, ``plot_corner`` over ``arviz.plot_pair``).
@@ -29,7 +29,7 @@ from camo_sbi.diagnostics.style import (
     paper_figure,
 )
 
-__all__ = ["plot_limits", "plot_predictive"]
+__all__ = ["plot_limits", "plot_predictive", "plot_speed"]
 
 
 @paper_figure
@@ -79,12 +79,19 @@ def plot_predictive(observed: Sequence[np.ndarray], predicted: Mapping[str, Sequ
     return fig
 
 
+def _unknown(value) -> bool:
+    """An empty ``exercised`` cell (None, or NaN after a CSV round trip): not applicable."""
+    return value is None or (isinstance(value, float) and np.isnan(value))
+
+
 @paper_figure
 def plot_limits(table, ranges: Mapping[str, tuple[float, float]], *, title: str = "") -> Figure:
-    """Per joint (one row), the model's range ``ranges[joint]`` (degrees) as a grey bar, and for
-    each method of ``table`` (the limits table: method, joint, bound, estimate_deg, lower_90_deg,
-    upper_90_deg, exercised) its two bounds: a marker at the estimate and a line over the 90%
-    interval. A bound with ``exercised`` False is drawn hollow and labelled "not exercised"."""
+    """Per joint (one row), the model's range ``ranges[joint]`` (degrees) as a grey bar, the
+    recorded range (``observed_min_deg`` .. ``observed_max_deg``, when the table has them) as a
+    black bar inside it, and for each method of ``table`` (the limits table: method, joint, bound,
+    estimate_deg, lower_90_deg, upper_90_deg, exercised) its two bounds: a marker at the estimate
+    and a line over the 90% interval. A bound with ``exercised`` False is drawn hollow (the
+    legend says "not exercised"). The x axis spans every range and estimate, with a margin."""
     joints = [j for j in ranges if j in set(table["joint"])]
     if not joints:
         raise ValueError("table: no joint with a range in degrees to draw")
@@ -93,33 +100,61 @@ def plot_limits(table, ranges: Mapping[str, tuple[float, float]], *, title: str 
     fig, axes = new_figure(1, 1, width="double", figsize=(7.0, 0.9 + 0.42 * n * max(1, len(methods)) ** 0.5))
     ax = axes[0, 0]
     span = max(1, len(methods))
-    labelled = False
+    observed = "observed_min_deg" in table and table["observed_min_deg"].notna().any()
+    xs = []
     for r, joint in enumerate(joints):
         y0 = n - 1 - r
         lo, hi = ranges[joint]
-        ax.barh(y0, hi - lo, left=lo, height=0.8, color="0.85", edgecolor="0.6", lw=0.5,
+        xs += [lo, hi]
+        ax.barh(y0, hi - lo, left=lo, height=0.8, color="0.88", edgecolor="0.6", lw=0.5,
                 label="model range" if r == 0 else None, zorder=1)
+        rows_j = table[table["joint"] == joint]
+        if observed:
+            o_lo, o_hi = float(rows_j["observed_min_deg"].iloc[0]), float(rows_j["observed_max_deg"].iloc[0])
+            ax.barh(y0, max(o_hi - o_lo, 0.3), left=o_lo, height=0.12, color="k", zorder=2,
+                    label="recorded range (functional)" if r == 0 else None)
         for k, m in enumerate(methods):
             st = method_style(m)
             y = y0 + 0.3 - 0.6 * (k + 0.5) / span
-            rows = table[(table["method"] == m) & (table["joint"] == joint)]
-            for _, row in rows.iterrows():
-                ax.plot([row["lower_90_deg"], row["upper_90_deg"]], [y, y], color=st.color, lw=1.4, zorder=2)
-                hollow = not bool(row["exercised"])
+            for _, row in rows_j[rows_j["method"] == m].iterrows():
+                ax.plot([row["lower_90_deg"], row["upper_90_deg"]], [y, y], color=st.color, lw=1.4, zorder=3)
+                hollow = not _unknown(row["exercised"]) and not bool(row["exercised"])
                 ax.plot(row["estimate_deg"], y, marker=st.marker, ms=5, ls="none", color=st.color,
-                        mfc="white" if hollow else st.color, zorder=3)
+                        mfc="white" if hollow else st.color, zorder=4)
+                xs += [row["lower_90_deg"], row["upper_90_deg"], row["estimate_deg"]]
             if r == 0:
                 ax.plot([], [], marker=st.marker, ms=5, color=st.color, lw=1.4, label=m)
-                if hollow and not labelled:
-                    ax.annotate("not exercised", (row["estimate_deg"], y), xytext=(0, 5), textcoords="offset points",
-                                ha="center", fontsize=6, color="0.3")
-                    labelled = True
     ax.plot([], [], marker="o", ls="none", color="0.3", mfc="white", label="not exercised (hollow)")
+    xs = np.asarray([x for x in xs if np.isfinite(x)], dtype=float)
+    pad = 0.04 * float(np.ptp(xs)) + 2.0
+    ax.set_xlim(float(xs.min()) - pad, float(xs.max()) + pad)  # nothing clipped: every bar and marker shows
     ax.set_yticks(range(n), list(reversed(joints)))
     ax.set_ylim(-0.6, n - 0.4)
-    ax.set_xlabel("joint angle [deg]; marker: estimate, line: 90% interval")
+    ax.set_xlabel("model joint angle [deg] (not ISB clinical angles); marker: estimate, line: 90% interval")
     ax.grid(axis="x", alpha=0.3)
-    figure_legend(fig, ax)
+    figure_legend(fig, ax, ncols=4)  # four columns hold the longest label within the figure's width
     if title:
         fig.suptitle(title)
+    return fig
+
+
+@paper_figure
+def plot_speed(time, speed, cuts, *, title: str = "") -> Figure:
+    """The hand speed [m/s] over time [s] with each reach found shaded and numbered from 0
+    (``cuts``: [(start, end)] in seconds)."""
+    t = np.asarray(time, dtype=float)
+    v = np.asarray(speed, dtype=float)
+    fig, axes = new_figure(1, 1, width="double", figsize=(7.0, 2.4))
+    ax = axes[0, 0]
+    ax.plot(t, v, color="k", lw=0.8)
+    top = float(v.max()) if v.size else 1.0
+    for k, (a, b) in enumerate(cuts):
+        ax.axvspan(a, b, color="C0", alpha=0.18, lw=0)
+        ax.text(0.5 * (a + b), 1.02 * top, str(k), ha="center", va="bottom", fontsize=7, color="C0")
+    ax.set_ylim(0, 1.12 * top + 1e-9)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("hand speed [m/s]")
+    ax.grid(alpha=0.3)
+    if title:
+        ax.set_title(title)
     return fig

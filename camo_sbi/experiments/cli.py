@@ -154,6 +154,10 @@ COMMANDS = (
             "cli:_report", (), ("camo-sbi report runs/tiny", "camo-sbi report runs/tiny -o tiny.html")),
     Command("demo", "simulate a batch of reaches and plot them", "cli:_demo_arguments", "demo:main", (),
             ("camo-sbi demo --model human --out demo.png",)),
+    Command("describe", "describe a body model: joints, axes, signs, ranges, frames, and a figure",
+            "describe:add_arguments", "describe:main", (),
+            ("camo-sbi describe --model human --out runs/describe",
+             "camo-sbi describe --urdf tests/data/arm7.urdf --ee tool --out runs/describe")),
     Command("simulate-observations", "write synthetic recorded reaches of a subject (recording format)",
             "recorded:add_simulate_arguments", "recorded:simulate_main", (),
             (f"camo-sbi simulate-observations {_OBS} --limits tests/data/arm7_limits.json --reaches 5 "

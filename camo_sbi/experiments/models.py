@@ -265,7 +265,8 @@ def load_limits(path, sim, *, degrees: bool = False) -> torch.Tensor:
         raise ValueError(f"{where}: unknown joint {unknown[0]!r}; the model's joints: {', '.join(names)}")
     missing = [j for j in names if j not in data]
     if missing:
-        raise ValueError(f"{where}: joint {missing[0]!r} is missing (every joint needs [lo, hi])")
+        raise ValueError(f"{where}: joint {missing[0]!r} is missing (every joint needs [lo, hi]; missing: "
+                         f"{', '.join(missing)}; the model's joints, in order: {', '.join(names)})")
     types = sim.spec.joint_types
     b, s = sim.bounds.to(torch.float64), sim.start.to(torch.float64)
     out = torch.empty(len(names), 2, dtype=torch.float64)

@@ -169,19 +169,37 @@ def simulate_main(args) -> int:
 # ----------------------------------------------------------------------------- infer
 
 
+EXERCISED_MARGIN_DEG = 2.0
+"""`limits_table`: a bound is exercised when a recorded angle came within this margin (plus the noise
+allowance, `K_SIGMA` sigma) of the bound's estimate (prismatic joints: `EXERCISED_MARGIN_M`)."""
+EXERCISED_MARGIN_M = 0.005
+OBSERVED_RANGE_METHODS = ("naive",)
+"""Methods whose estimate is the observed extreme itself: exercised by construction, so their
+``exercised`` is left empty (the observed range is the range used in the task, never a limit)."""
+
+
 def limits_table(results: dict, sim, task=None):
-    """One row per method, joint and bound: estimate [rad], [deg], posterior median [deg], the 90%
-    central interval [deg], identifiability, exercised, the calibration verdict and the status.
+    """One row per method, joint and bound: estimate [rad], [deg], the joint's observed range
+    [deg], posterior median [deg], the 90% central interval [deg], identifiability, exercised,
+    the calibration verdict and the status.
 
     Point methods (one sample) have both interval ends and the median at the estimate, and no
     identifiability. Prismatic joints: ``estimate_rad`` holds metres and the degree columns are
     empty. With ``task`` (its prior and observations):
 
+    * ``observed_min_deg``, ``observed_max_deg``: the joint's recorded range over every reach
+      (empty without joint columns), beside every method's estimate.
     * ``identifiability``: the 90% interval's width over the prior's 90% width for this bound
       (1: the data taught nothing; a bound fixed by the prior: empty).
-    * ``reaches_at_bound``: reaches whose observed joint angle comes within the noise allowance
-      (`K_SIGMA` sigma) of the bound's 90% interval (the estimate for point methods).
-    * ``exercised``: some reach came that close; with no joint columns (end-effector-only
+    * ``margin_deg``: `EXERCISED_MARGIN_DEG` plus the noise allowance (`K_SIGMA` sigma).
+    * ``reaches_at_bound``: reaches whose recorded extreme on this side came within
+      ``margin_deg`` of the bound's ESTIMATE (not of its interval: a wide interval that begins
+      at the observed extreme would always pass).
+    * ``exercised``: the recorded extreme on this side (the lowest angle of every reach for a
+      lower bound, the highest for an upper one) lies within ``margin_deg`` of the estimate. An
+      estimate short of the recorded extreme (the data went past it) is not exercised either. A method whose estimate is the observed
+      extreme itself (naive, `OBSERVED_RANGE_METHODS`) is exercised by construction, which says
+      nothing about a limit: its ``exercised`` is empty. With no joint columns (end-effector-only
       data, nothing to come close with) instead: the posterior narrowed the bound below
       `NARROWED` of the prior width. With joint columns narrowing alone does not count: an
       over-confident posterior (CAMO's, see ``calibration``) narrows bounds no reach touched,
@@ -214,37 +232,56 @@ def limits_table(results: dict, sim, task=None):
         point = res.samples.shape[0] <= 1
         verdict = calibration_verdict(name, model)  # measured: camo_sbi.diagnostics.verdicts
         for j, joint in enumerate(sim.joint_names):
+            rev = types[j] == "revolute"
+            deg = (lambda v: float(np.degrees(v))) if rev else (lambda v: float("nan"))
+            margin = (np.radians(EXERCISED_MARGIN_DEG) if rev else EXERCISED_MARGIN_M) + allow
+            seen = (deg(q_lo[:, j].min()), deg(q_hi[:, j].max())) if q_lo is not None else (float("nan"),) * 2
             for b, bound in enumerate(("lower", "upper")):
                 k = 2 * j + b
-                deg = (lambda v: float(np.degrees(v))) if types[j] == "revolute" else (lambda v: float("nan"))
                 ident = touching = float("nan")
                 exercised = None
                 if task is not None:
-                    e_lo, e_hi = float(lo[k]), float(hi[k])
-                    if point:
-                        e_lo = e_hi = float(res.estimate[k])
-                    else:
-                        ident = float((e_hi - e_lo) / prior_w[k]) if prior_w[k] > 0 else float("nan")
-                    touching = 0
+                    if not point:
+                        ident = float((hi[k] - lo[k]) / prior_w[k]) if prior_w[k] > 0 else float("nan")
+                    touching, near = 0, False
                     if q_lo is not None:
                         x = q_lo[:, j] if b == 0 else q_hi[:, j]
-                        touching = int(((x >= e_lo - allow) & (x <= e_hi + allow)).sum())
+                        gap = np.abs(x - float(res.estimate[k]))
+                        touching = int((gap <= margin).sum())
+                        extreme = x.min() if b == 0 else x.max()  # the recorded extreme on this side
+                        near = bool(abs(extreme - float(res.estimate[k])) <= margin)
                     narrowed = q_lo is None and bool(np.isfinite(ident) and ident < NARROWED)
-                    exercised = bool(touching > 0 or narrowed)
+                    exercised = bool(near or narrowed)
+                    if name in OBSERVED_RANGE_METHODS and q_lo is not None:
+                        exercised = None
                 rows.append({"method": name, "joint": joint, "bound": bound,
                              "estimate_rad": float(res.estimate[k]), "estimate_deg": deg(res.estimate[k]),
+                             "observed_min_deg": seen[0], "observed_max_deg": seen[1],
                              "median_deg": deg(res.estimate[k] if point else med[k]),
                              "lower_90_deg": deg(lo[k]), "upper_90_deg": deg(hi[k]), "identifiability": ident,
+                             "margin_deg": deg(margin) if task is not None else float("nan"),
                              "reaches_at_bound": touching, "exercised": exercised, "calibration": verdict,
                              "status": res.status})
-    return pd.DataFrame(rows, columns=["method", "joint", "bound", "estimate_rad", "estimate_deg", "median_deg",
-                                       "lower_90_deg", "upper_90_deg", "identifiability", "reaches_at_bound",
+    return pd.DataFrame(rows, columns=["method", "joint", "bound", "estimate_rad", "estimate_deg",
+                                       "observed_min_deg", "observed_max_deg", "median_deg", "lower_90_deg",
+                                       "upper_90_deg", "identifiability", "margin_deg", "reaches_at_bound",
                                        "exercised", "calibration", "status"])
 
 
+FALLBACK_MARK = "\u2020"
+"""A method whose status is not "ok" (it fell back or failed) carries this mark in the wide table."""
+WIDE_LIMITS_KEY = ("lower .. upper [deg] of the model's joint angles (not ISB clinical angles); observed = the "
+                   "range recorded in these reaches (the functional range of the task, not the person's maximal "
+                   "range; naive is that range); * = not exercised: no recorded angle came within the margin "
+                   "(limits.csv: margin_deg) of the estimate, so the data say nothing about that bound; "
+                   "\u2020 = the method fell back or failed (its status in limits.csv)")
+
+
 def wide_limits(table):
-    """The limits as a person reads them: one row per joint, one column per method, each cell
-    "lower .. upper" in degrees with 1 decimal; a bound no reach exercised is marked "*"."""
+    """The limits as a person reads them: one row per joint, the observed range first (when the
+    recording has joint angles), then one column per method, each cell "lower .. upper" in degrees
+    with 1 decimal; a bound no reach exercised is marked "*", a method whose status is not "ok"
+    carries `FALLBACK_MARK` after its name."""
     import numpy as np
     import pandas as pd
 
@@ -253,15 +290,22 @@ def wide_limits(table):
         for bound in ("lower", "upper"):
             r = g[g["bound"] == bound].iloc[0]
             v = r["estimate_deg"] if np.isfinite(r["estimate_deg"]) else r["estimate_rad"]
-            mark = "*" if r["exercised"] is not None and not bool(r["exercised"]) else ""
+            ex = r["exercised"]
+            mark = "*" if ex is not None and not (isinstance(ex, float) and np.isnan(ex)) and not bool(ex) else ""
             parts.append(f"{v:.1f}{mark}")
         return " .. ".join(parts)
 
+    joints = list(dict.fromkeys(table["joint"]))
     out = {}
+    if "observed_min_deg" in table and table["observed_min_deg"].notna().any():
+        first = table.drop_duplicates("joint").set_index("joint")
+        out["observed"] = [f"{first.loc[j, 'observed_min_deg']:.1f} .. {first.loc[j, 'observed_max_deg']:.1f}"
+                           for j in joints]
     for m in dict.fromkeys(table["method"]):
         t = table[table["method"] == m]
-        out[m] = [cell(t[t["joint"] == j]) for j in dict.fromkeys(table["joint"])]
-    return pd.DataFrame(out, index=pd.Index(list(dict.fromkeys(table["joint"])), name="joint"))
+        ok = (t["status"].astype(str) == "ok").all() if "status" in t else True
+        out[m if ok else f"{m} {FALLBACK_MARK}"] = [cell(t[t["joint"] == j]) for j in joints]
+    return pd.DataFrame(out, index=pd.Index(joints, name="joint"))
 
 
 def _recorded_task(model, sim, obs, noise):
@@ -356,7 +400,7 @@ def _limits_html(table, sim) -> Markup:
                                  "Inferred joint limits [deg]: the model's range (grey), each method's estimate "
                                  "(marker) and 90% interval (line); hollow markers: bounds no reach exercised (not "
                                  "an impairment: the data say nothing about them)", alt="limits figure"))
-    parts.append(part("meta", "lower .. upper [deg]; * = not exercised") + table_html(wide_limits(table), index=True))
+    parts.append(part("meta", WIDE_LIMITS_KEY) + part("wide", table_html(wide_limits(table), index=True)))
     return join(parts)
 
 
@@ -374,8 +418,58 @@ def _ee_of(traj_ee: torch.Tensor, length: torch.Tensor, b: int) -> np.ndarray:
     return traj_ee[b, : int(length[b])].to(torch.float64).numpy()
 
 
+def method_title(name: str, status: str) -> str:
+    """A panel title: the method's name, with `FALLBACK_MARK` when its status is not "ok" (the
+    status itself, often a long sentence, goes into the caption, never into a title)."""
+    return name if status == "ok" else f"{name} {FALLBACK_MARK}"
+
+
+def reach_figure(sim, o, results: dict, draws: dict):
+    """One reach: per method (columns) the end-effector path from above (top) and the distance
+    to the goal per step (bottom): observed, the estimate's prediction, the posterior draws."""
+    import numpy as np
+    import torch
+    from matplotlib.figure import Figure
+
+    from camo_sbi.diagnostics.style import DOUBLE_COLUMN
+    from camo_sbi.task import contain
+
+    methods = list(results)
+    seen = (o.ee if o.ee is not None else sim.forward_kinematics(o.q)).to(torch.float64).numpy()
+    fig = Figure(figsize=(max(DOUBLE_COLUMN, 1.75 * len(methods)), 4.4), constrained_layout=True)
+    axes = fig.subplots(2, len(methods), squeeze=False)
+    for c, m in enumerate(methods):
+        # float32, as CAMO's candidates: a new chain's float64 kernel is not compiled for a figure
+        th = contain(draws[m], o.start).to(torch.float32)
+        pred = sim.simulate(th, o.goal, o.start)
+        est = sim.simulate(contain(torch.as_tensor(results[m].estimate), o.start).to(torch.float32), o.goal,
+                           o.start)
+        top, side = axes[0, c], axes[1, c]
+        for b in range(th.shape[0]):
+            e = _ee_of(pred.ee, pred.length, b)
+            top.plot(e[:, 0], e[:, 1], color="C0", alpha=0.15, lw=0.8)
+            side.plot(np.arange(e.shape[0]), np.linalg.norm(e - o.goal.numpy(), axis=1), color="C0",
+                      alpha=0.15, lw=0.8)
+        e = _ee_of(est.ee, est.length, 0)
+        top.plot(e[:, 0], e[:, 1], color="C3", ls="--", lw=1.2, label="estimate")
+        side.plot(np.arange(e.shape[0]), np.linalg.norm(e - o.goal.numpy(), axis=1), color="C3", ls="--",
+                  lw=1.2)
+        top.plot(seen[:, 0], seen[:, 1], color="k", lw=1.8, label="observed")
+        side.plot(np.arange(seen.shape[0]), np.linalg.norm(seen - o.goal.numpy(), axis=1), color="k", lw=1.8)
+        top.plot(*o.goal.numpy()[:2], marker="*", color="k", ms=10, ls="none")
+        top.set_title(method_title(m, results[m].status))
+        top.set_xlabel("x [m]")
+        top.set_ylabel("y [m]")
+        top.set_aspect("equal", adjustable="datalim")
+        side.set_xlabel("controller step")
+        side.set_ylabel("distance to goal [m]")
+        if c == 0:
+            top.legend()
+    return fig
+
+
 def _report(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
-            formats=None) -> Path:
+            formats=None, speed: dict | None = None) -> Path:
     """report.html: the limits table (degrees) and, per reach, observed vs posterior-predictive
     paths; with ``formats`` (``--figure-format``) the figures also as files in
     ``out/report_figures``."""
@@ -383,19 +477,16 @@ def _report(out: Path, task, results: dict, notes: list[str], table, settings: d
     from camo_sbi.diagnostics.style import paper_style
 
     with paper_style(), figure_files(out / "report_figures", formats):
-        return _report_page(out, task, results, notes, table, settings, seed)
+        return _report_page(out, task, results, notes, table, settings, seed, speed)
 
 
-def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int) -> Path:
-    import numpy as np
+def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
+                 speed: dict | None = None) -> Path:
     import pandas as pd
     import torch
-    from matplotlib.figure import Figure
 
     from camo_sbi.diagnostics.pages import join, part
     from camo_sbi.diagnostics.report import figure_html, table_html, write_page
-    from camo_sbi.diagnostics.style import DOUBLE_COLUMN
-    from camo_sbi.task import contain
 
     sim = task.simulator
     obs = task.observations[:MAX_REPORT_REACHES]
@@ -405,60 +496,43 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
     draws = {m: torch.as_tensor(r.systematic(PPC_DRAWS if r.samples.shape[0] > 1 else 1), dtype=torch.float64)
              for m, r in results.items()}
     for i, o in enumerate(tqdm(obs, desc="report", unit="reach")):
-        seen = (o.ee if o.ee is not None else sim.forward_kinematics(o.q)).to(torch.float64).numpy()
-        fig = Figure(figsize=(max(DOUBLE_COLUMN, 1.75 * len(methods)), 4.4), constrained_layout=True)
-        axes = fig.subplots(2, len(methods), squeeze=False)
-        for c, m in enumerate(methods):
-            # float32, as CAMO's candidates: a new chain's float64 kernel is not compiled for a figure
-            th = contain(draws[m], o.start).to(torch.float32)
-            pred = sim.simulate(th, o.goal, o.start)
-            est = sim.simulate(contain(torch.as_tensor(results[m].estimate), o.start).to(torch.float32), o.goal,
-                               o.start)
-            top, side = axes[0, c], axes[1, c]
-            for b in range(th.shape[0]):
-                e = _ee_of(pred.ee, pred.length, b)
-                top.plot(e[:, 0], e[:, 1], color="C0", alpha=0.15, lw=0.8)
-                side.plot(np.arange(e.shape[0]), np.linalg.norm(e - o.goal.numpy(), axis=1), color="C0",
-                          alpha=0.15, lw=0.8)
-            e = _ee_of(est.ee, est.length, 0)
-            top.plot(e[:, 0], e[:, 1], color="C3", ls="--", lw=1.2, label="estimate")
-            side.plot(np.arange(e.shape[0]), np.linalg.norm(e - o.goal.numpy(), axis=1), color="C3", ls="--",
-                      lw=1.2)
-            top.plot(seen[:, 0], seen[:, 1], color="k", lw=1.8, label="observed")
-            side.plot(np.arange(seen.shape[0]), np.linalg.norm(seen - o.goal.numpy(), axis=1), color="k", lw=1.8)
-            top.plot(*o.goal.numpy()[:2], marker="*", color="k", ms=10, ls="none")
-            top.set_title(f"{m} ({results[m].status})")
-            top.set_xlabel("x [m]")
-            top.set_ylabel("y [m]")
-            top.set_aspect("equal", adjustable="datalim")
-            side.set_xlabel("controller step")
-            side.set_ylabel("distance to goal [m]")
-            if c == 0:
-                top.legend()
+        fig = reach_figure(sim, o, results, draws)
+        fallback = [m for m in methods if results[m].status != "ok"]
         reach_html.append(figure_html(
             fig, f"reach {i}: observed (black), the estimate's prediction (red dashed) and "
                  f"{PPC_DRAWS} posterior-predictive draws per method (blue; point methods: one); "
-                 f"top: end-effector path seen from above, bottom: distance to the goal per step",
+                 f"top: end-effector path seen from above, bottom: distance to the goal per step"
+                 + (f"; {FALLBACK_MARK}: fell back or failed ({'; '.join(f'{m}: {results[m].status}' for m in fallback)})"
+                    if fallback else ""),
             alt=f"reach {i}"))
     more = len(task.observations) - len(obs)
     if more > 0:
         reach_html.append(part("meta", f"{more} more reaches not shown"))
-    settings_html = table_html(pd.DataFrame([{"setting": k, "value": str(v)} for k, v in settings.items()]))
+    settings_html = part("wide", table_html(pd.DataFrame([{"setting": k, "value": str(v)}
+                                                          for k, v in settings.items()])))
     sections = [
         ("limits", "Estimated limits", _limits_html(table, sim)),
         ("settings", "Settings", settings_html + (part("items", notes) if notes else "")),
         ("limits-table", "All columns of limits.csv",
          part("meta", "degrees (limits.csv also holds radians, estimate_rad)")
-         + table_html(_shown_limits(table), float_format="{:.4g}")),
+         + part("wide", table_html(_shown_limits(table), float_format="{:.4g}"))),
         ("reaches", "Observed vs posterior-predictive reaches", join(reach_html)),
     ]
+    if speed is not None:
+        from camo_sbi.diagnostics.figures import plot_speed
+
+        sections.insert(2, ("reaches-found", "Reaches found", figure_html(
+            plot_speed(speed["time"], speed["speed"], speed["cuts"]),
+            f"hand speed ({speed['source']}) and the {len(speed['cuts'])} reaches found (shaded, numbered as in "
+            f"reaches.csv); rule: {speed['rule']}", alt="hand speed with the cuts")))
     return write_page(out / "report.html", f"camo_sbi infer: {settings['observations']}", sections,
                       meta=f"model {task.name}, {len(task.observations)} reaches, seed {seed}")
 
 
 def add_infer_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--observations", type=Path, required=True,
-                   help="recording file (.csv, .npz, .c3d or .bvh), or a folder of them (one subject per file)")
+                   help="recording file (.csv, .npz, .c3d, .bvh, or an OpenSim .mot/.sto of joint angles), or a folder "
+                        "of them (one subject per file)")
     add_model_arguments(p, limits=False)
     p.add_argument("--methods", default="camo,camo-hull,naive,nominal", help="comma-separated method names")
     p.add_argument("--budget", type=int, default=500, help="simulations per observed reach")
@@ -492,7 +566,7 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
 
 #: what an infer run writes into --out (removed when --force replaces a run of other settings)
 _INFER_OUTPUTS = ("limits.csv", "report.html", "config.json", "posteriors", "estimates", "predictions", "work", "figures",
-                  "starts.csv", "next_goals.csv", "subjects")
+                  "starts.csv", "next_goals.csv", "subjects", "reaches.csv")
 
 
 def _infer_settings(args, model, overrides: dict) -> dict:
@@ -602,6 +676,7 @@ def infer_main(args) -> int:
     grid_methods(",".join(methods) or ",")  # validates names and duplicates (--methods: ...)
     overrides = parse_configs(args.config, methods)
     noise = _noise(args)
+    _height_from_file(args)
     model = model_from_args(args)
     sim = model.build()
     check_budget_fits(args.budget, n_joints=sim.n_joints, flag="--budget")
@@ -699,10 +774,15 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
                                                        **settings, "model_spec": json.loads(model.to_json())},
                                                       indent=2))
     write_starts(out / "starts.csv", obs, sim)
+    if recording.segments:
+        import pandas as pd
+
+        atomic_write_text(out / "reaches.csv", pd.DataFrame(list(recording.segments)).to_csv(index=False))
+        print(f"reaches: {len(recording.segments)} found ({recording.speed['rule']}) -> {out / 'reaches.csv'}")
     notes = notes + [f"warning: {w}" for w in recording.warnings]
     report = _report(out, task, results, notes, table, settings, args.seed,
-                     formats=None if formats == ("png",) else formats)
-    print("limits [deg], lower .. upper (* = not exercised: no reach came near this bound; limits.csv: exercised)")
+                     formats=None if formats == ("png",) else formats, speed=recording.speed)
+    print("limits [deg], " + WIDE_LIMITS_KEY.replace(" [deg]", "", 1))
     print(wide_limits(table).to_string())
     for name, res in results.items():
         if res.status != "ok":
@@ -735,6 +815,22 @@ def add_recording_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-reaches", type=int, default=MAX_REACHES, metavar="N",
                    help="refuse a recording of more reaches (each is a task of every method; a larger one "
                         "runs with a larger N)")
+    p.add_argument("--reaches", default=None, metavar="auto|events|A-B,C-D",
+                   help="find the reaches in a recording with time (C3D, BVH, or a time column): auto (by hand "
+                        "speed), events (the C3D file's events), or inclusive frame ranges; each reach's goal is "
+                        "where it ends; DIR/reaches.csv lists them (default: the file's own reaches)")
+    p.add_argument("--side", choices=("right", "left"), default=None,
+                   help="the recorded arm (--markers isb mirrors a left arm onto the right-arm model; default "
+                        "right) and the events' context with --reaches events")
+    p.add_argument("--markers", choices=("isb",), default=None,
+                   help="isb: the human model's joint angles per frame from a C3D's ISB upper-limb landmarks "
+                        "(thorax, humerus, forearm, hand; angles relative to the thorax); needs --marker-map")
+    p.add_argument("--marker-map", type=Path, default=None,
+                   help='JSON {"IJ": "<label>", "PX": ..., "C7": ..., "T8": ..., "AC": ..., "EL": ..., "EM": ..., '
+                        '"RS": ..., "US": ..., "MC2": ..., "MC5": ...}: the file\'s marker for each ISB landmark')
+    p.add_argument("--out-of-range", choices=("error", "clip"), default="error",
+                   help="a joint angle beyond the model's range (more than the noise allowance): error, or clip it "
+                        "onto the range with a warning per joint (a person beyond the normative range)")
     p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
                    help="free: estimate the body's segment-length scale s in [0.85, 1.15] from the joint and "
                         "end-effector columns and infer on the scaled body")
@@ -767,7 +863,25 @@ def load_from_args(args, path, sim, noise, start):
                           ee_units=args.ee_units, goal=args.goal, frame=frame, ee_markers=ee_markers,
                           frame_markers=markers, body_scale=getattr(args, "body_scale", "fixed"),
                           bvh_map=getattr(args, "bvh_map", None),
-                          max_reaches=getattr(args, "max_reaches", MAX_REACHES))
+                          max_reaches=getattr(args, "max_reaches", MAX_REACHES), reaches=getattr(args, "reaches", None),
+                          side=getattr(args, "side", None), markers=getattr(args, "markers", None),
+                          marker_map=getattr(args, "marker_map", None),
+                          out_of_range=getattr(args, "out_of_range", "error"))
+
+
+def _height_from_file(args) -> None:
+    """``--markers isb`` on a C3D with ``--model human`` and no ``--height``: the subject's height from
+    the file (PROCESSING:Height) when it has one (printed)."""
+    if getattr(args, "markers", None) is None or getattr(args, "height", None) is not None:
+        return
+    if getattr(args, "model", None) != "human" or Path(args.observations).suffix.lower() != ".c3d":
+        return
+    from camo_sbi.io.c3d import c3d_subject_height
+
+    h = c3d_subject_height(args.observations)
+    if h is not None:
+        args.height = h
+        print(f"subject height {h:.3f} m (the C3D file's PROCESSING:Height): the model is built for it")
 
 
 def write_starts(path: Path, obs, sim) -> Path:
@@ -786,7 +900,7 @@ def write_starts(path: Path, obs, sim) -> Path:
     return atomic_write_text(path, pd.DataFrame(rows).to_csv(index=False))
 
 
-RECORDING_SUFFIXES = (".csv", ".npz", ".c3d", ".bvh")
+RECORDING_SUFFIXES = (".csv", ".npz", ".c3d", ".bvh", ".mot", ".sto")
 
 
 def infer_folder(args) -> int:

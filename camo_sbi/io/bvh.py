@@ -28,7 +28,7 @@ import numpy as np
 
 from camo_sbi._files import read_json, read_text
 
-__all__ = ["MAX_BVH_BYTES", "BvhFile", "load_bvh_map", "parse_bvh", "read_bvh"]
+__all__ = ["MAX_BVH_BYTES", "BvhFile", "bvh_sources", "load_bvh_map", "parse_bvh", "read_bvh"]
 
 _AXES = {"Xrotation": 0, "Yrotation": 1, "Zrotation": 2}
 _CHANNELS = {*_AXES, "Xposition", "Yposition", "Zposition"}
@@ -47,8 +47,10 @@ def load_bvh_map(path, joint_names, flag: str = "--bvh-map") -> dict:
     for j in joint_names:
         e = data["joints"].get(j)
         if not isinstance(e, dict) or not isinstance(e.get("bvh"), str):
+            missing = [k for k in joint_names if not isinstance(data["joints"].get(k), dict)]
             raise ValueError(f"{flag} {path}: joint {j!r} is missing (every model joint needs "
-                             f'{{"bvh": NAME, "channel": "Xrotation|Yrotation|Zrotation"}})')
+                             f'{{"bvh": NAME, "channel": "Xrotation|Yrotation|Zrotation"}}; the model\'s joints, '
+                             f"in order: {', '.join(joint_names)}; missing: {', '.join(missing)})")
         if e.get("channel") not in _AXES:
             raise ValueError(f"{flag} {path}: joint {j!r}: channel {e.get('channel')!r} is not one of {', '.join(_AXES)}")
         sign, off = e.get("sign", 1), e.get("offset_deg", 0.0)
@@ -197,6 +199,18 @@ def _numbers_ok(toks: list[str]) -> bool:
         return all(np.isfinite([float(v) for v in toks]))
     except ValueError:
         return False
+
+
+def bvh_sources(mapping: dict) -> dict:
+    """{model joint: {"what": "BVH channel J.Xrotation", "entry": "--bvh-map FILE entry 'joint' (sign s,
+    offset_deg o)", "raw": model angle [rad] -> the channel's value [deg]}} for error messages."""
+    out = {}
+    for j, e in mapping["joints"].items():
+        out[j] = {"what": f"BVH channel {e['bvh']}.{e['channel']}",
+                  "entry": f"--bvh-map {mapping['path']} entry {j!r} (sign {e['sign']}, offset_deg {e['offset_deg']:g}: "
+                           f"its channel, sign and offset_deg)",
+                  "raw": lambda v, s=e["sign"], o=e["offset_deg"]: (float(np.degrees(v)) - o) / s}
+    return out
 
 
 def read_bvh(path, mapping: dict) -> dict:

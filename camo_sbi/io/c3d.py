@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["UNITS", "read_c3d"]
+__all__ = ["UNITS", "c3d_events", "c3d_subject_height", "read_c3d", "read_c3d_points", "write_c3d_points"]
 
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 
@@ -112,29 +112,13 @@ def _check_complete(path: Path, c3d) -> int | None:
 
 def read_c3d(path, ee_markers, extra_markers=()) -> dict:
     """{"time" (F,), "reach" (F,), "ee" (F, 3) [m], "frames" (F,), "markers" {name: (3,) mean lab
-    position [m]} for ``extra_markers``, "units": the file's unit, "warnings": [str]} for the frames
-    where every end-effector marker is present; reaches are runs of such frames (>= 2 frames). A
-    warning says when the file holds more frames than its header declares (and ezc3d reads)."""
-    import ezc3d
-
+    position [m]} for ``extra_markers``, "units": the file's unit, "warnings": [str], "events"} for the
+    frames where every end-effector marker is present; reaches are runs of such frames (>= 2 frames).
+    A warning says when the file holds more frames than its header declares (and ezc3d reads)."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: no such file")
-    _probe(path)
-    try:
-        c3d = ezc3d.c3d(str(path))
-    except (OSError, RuntimeError, ValueError) as exc:
-        raise ValueError(f"{path}: cannot read as C3D ({exc})") from None
+    c3d = _open(path)
     held = _check_complete(path, c3d)
-    labels = [str(s).strip() for s in _param(c3d, "POINT", "LABELS", path)]
-    units_v = _param(c3d, "POINT", "UNITS", path)
-    unit = str(units_v[0]).strip().lower() if len(units_v) else ""
-    if unit not in UNITS:
-        raise ValueError(f"{path}: parameter POINT:UNITS is {unit!r}; expected one of {', '.join(UNITS)}")
-    rate = float(np.asarray(_param(c3d, "POINT", "RATE", path)).reshape(-1)[0])
-    if not (np.isfinite(rate) and rate > 0):
-        raise ValueError(f"{path}: parameter POINT:RATE is {rate!r}; expected a frame rate > 0")
-    pts = np.asarray(c3d["data"]["points"], dtype=np.float64)[:3] * UNITS[unit]  # (3, markers, frames)
+    labels, unit, rate, pts = _points(c3d, path)  # pts: (3, markers, frames) in metres
 
     def column(name: str, flag: str) -> np.ndarray:
         if name not in labels:
@@ -170,4 +154,110 @@ def read_c3d(path, ee_markers, extra_markers=()) -> dict:
         warnings.append(f"{path}: holds data for {held:,} frames but its header declares {pts.shape[2]:,} (a 16-bit "
                         f"count stops at 65,535): only those {pts.shape[2]:,} were read")
     return {"time": frame_no[keep] / rate, "reach": reach.astype(np.float64), "ee": ee[keep],
-            "frames": frame_no[keep], "markers": markers, "units": unit, "warnings": warnings}
+            "frames": frame_no[keep], "markers": markers, "units": unit, "warnings": warnings,
+            "events": c3d_events(c3d)}
+
+
+def c3d_events(c3d) -> list[tuple[float, str, str]]:
+    """The file's events as (time [s], label, context), from EVENT:TIMES (minutes, seconds rows),
+    EVENT:LABELS and EVENT:CONTEXTS; [] when the file has none."""
+    try:
+        group = c3d["parameters"]["EVENT"]
+        times = np.asarray(group["TIMES"]["value"], dtype=np.float64)
+    except KeyError:
+        return []
+    if times.size == 0:
+        return []
+    times = times.reshape(2, -1) if times.ndim == 1 else times
+    labels = [str(v).strip() for v in group.get("LABELS", {}).get("value", [])]
+    contexts = [str(v).strip() for v in group.get("CONTEXTS", {}).get("value", [])]
+    n = times.shape[1]
+    labels += [""] * (n - len(labels))
+    contexts += [""] * (n - len(contexts))
+    return [(float(times[0, k] * 60.0 + times[1, k]), labels[k], contexts[k]) for k in range(n)
+            if np.isfinite(times[:, k]).all()]
+
+
+def _points(c3d, path: Path) -> tuple[list[str], str, float, np.ndarray]:
+    """(labels, unit, rate [Hz], (3, markers, frames) positions in metres) of an opened C3D."""
+    labels = [str(s).strip() for s in _param(c3d, "POINT", "LABELS", path)]
+    units_v = _param(c3d, "POINT", "UNITS", path)
+    unit = str(units_v[0]).strip().lower() if len(units_v) else ""
+    if unit not in UNITS:
+        raise ValueError(f"{path}: parameter POINT:UNITS is {unit!r}; expected one of {', '.join(UNITS)}")
+    rate = float(np.asarray(_param(c3d, "POINT", "RATE", path)).reshape(-1)[0])
+    if not (np.isfinite(rate) and rate > 0):
+        raise ValueError(f"{path}: parameter POINT:RATE is {rate!r}; expected a frame rate > 0")
+    return labels, unit, rate, np.asarray(c3d["data"]["points"], dtype=np.float64)[:3] * UNITS[unit]
+
+
+def _open(path: Path):
+    """The C3D file ``path`` opened by ezc3d, after a probe in a child process (`_probe`: a file
+    that crashes or exhausts ezc3d is refused naming it, never taking this process down)."""
+    import ezc3d
+
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file")
+    _probe(path)
+    try:
+        return ezc3d.c3d(str(path))
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise ValueError(f"{path}: cannot read as C3D ({exc})") from None
+
+
+def read_c3d_points(path, labels, flag: str = "--marker-map") -> dict:
+    """{"time" (F,), "frames" (F,), "points" {label: (F, 3) [m], NaN where the marker is missing},
+    "units", "events"} for the markers ``labels`` (each must be in the file: ValueError naming
+    ``flag``, the label and the file's markers)."""
+    path = Path(path)
+    c3d = _open(path)
+    _check_complete(path, c3d)
+    names, unit, rate, pts = _points(c3d, path)
+    out = {}
+    for lab in labels:
+        if lab not in names:
+            raise ValueError(f"{flag}: marker {lab!r} is not in {path} (its markers: {', '.join(names)})")
+        x = pts[:, names.index(lab), :].T.copy()
+        x[~np.isfinite(x).all(axis=1) | (x == 0).all(axis=1)] = np.nan  # a missing marker: NaN or zeros
+        out[lab] = x
+    first = int(c3d["header"]["points"]["first_frame"])
+    frames = np.arange(pts.shape[2]) + first
+    return {"time": frames / rate, "frames": frames, "points": out, "units": unit, "events": c3d_events(c3d)}
+
+
+def c3d_subject_height(path) -> float | None:
+    """The subject's standing height [m] from PROCESSING:Height (Vicon's, millimetres when above
+    3, else metres), or None when the file has none."""
+    c3d = _open(Path(path))
+    try:
+        v = np.asarray(c3d["parameters"]["PROCESSING"]["Height"]["value"], dtype=np.float64).reshape(-1)
+    except (KeyError, TypeError, ValueError):
+        return None
+    if v.size == 0 or not np.isfinite(v[0]) or v[0] <= 0:
+        return None
+    return float(v[0] / 1000.0 if v[0] > 3.0 else v[0])
+
+
+def write_c3d_points(path, points: dict, rate: float, *, events=(), height_m: float | None = None) -> Path:
+    """A C3D file of marker tracks ``points`` {label: (F, 3) metres, NaN = missing} written in mm
+    at ``rate`` Hz, with ``events`` [(time [s], label, context)] and PROCESSING:Height [mm]."""
+    import ezc3d
+
+    labels = list(points)
+    n = next(iter(points.values())).shape[0]
+    pts = np.ones((4, len(labels), n))
+    for k, lab in enumerate(labels):
+        x = np.asarray(points[lab], dtype=np.float64) * 1000.0
+        pts[:3, k, :] = np.where(np.isfinite(x), x, 0.0).T  # a missing marker is written as zeros
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = [float(rate)]
+    c["parameters"]["POINT"]["LABELS"]["value"] = tuple(labels)
+    c["parameters"]["POINT"]["UNITS"]["value"] = ["mm"]
+    c["data"]["points"] = pts
+    for t, label, context in events:
+        c.add_event([0, float(t)], context=context, label=label)
+    if height_m is not None:
+        c.add_parameter("PROCESSING", "Height", [float(height_m) * 1000.0])
+    path = Path(path)
+    c.write(str(path))
+    return path

@@ -21,7 +21,7 @@ import numpy as np
 
 from camo_sbi._files import read_json
 
-__all__ = ["Frame", "frame_from_markers", "load_frame", "load_marker_positions"]
+__all__ = ["Frame", "frame_from_markers", "load_frame", "load_marker_positions", "read_json_object"]
 
 MAX_TRANSLATION_M = 1000.0
 """A lab frame's translation beyond this many metres is refused (millimetres typed as metres, or worse)."""
@@ -50,6 +50,10 @@ def _read_json(path, flag: str):
     if not isinstance(data, dict):
         raise ValueError(f"{flag} {path}: expected a JSON object")
     return path, data
+
+
+read_json_object = _read_json
+"""``(path, data)`` of a JSON object file; one ValueError naming ``flag`` and the file otherwise."""
 
 
 def _vector(value, n: int, what: str) -> np.ndarray:

@@ -75,6 +75,7 @@ import torch
 
 from camo_sbi._io import atomic_write_bytes, atomic_write_text
 from camo_sbi.io.frames import Frame, frame_from_markers
+from camo_sbi.io.text import read_text
 from camo_sbi.simulators.controller import ControllerConfig
 from camo_sbi.task import NoiseModel, Observation
 
@@ -132,6 +133,7 @@ class _Table:
     columns: dict[str, np.ndarray]
     rows: np.ndarray  # CSV line numbers, or NPZ array indices
     row_word: str  # "line" or "row"
+    sources: dict | None = None  # column -> where its values come from (a BVH channel and its map entry)
 
     def where(self, column: str, i: int) -> str:
         return f"{self.path}: column {column!r}, {self.row_word} {int(self.rows[i])}"
@@ -142,17 +144,7 @@ CSV_FIELD_LIMIT = 131_072
 
 
 def _read_csv(path: Path) -> _Table:
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read ({exc.strerror or exc})") from exc
-    if b"\0" in raw[:65536]:
-        raise ValueError(f"{path}: is a binary file, not a CSV recording (it holds NUL bytes)")
-    try:
-        text = raw.decode("utf-8-sig")  # a UTF-8 BOM (every Excel export) is accepted
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: is not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}): "
-                         f"expected a CSV recording") from None
+    text = read_text(path, "a CSV recording")
     reader = csv.reader(io.StringIO(text, newline=""))
     header = None
     values: list[list[float]] = []
@@ -223,6 +215,43 @@ def _read_c3d(path: Path, ee_markers, frame_markers) -> tuple[_Table, dict]:
     for k, c in enumerate(EE_COLUMNS):
         cols[c] = d["ee"][:, k]
     return _Table(path, cols, d["frames"], "frame"), d
+
+
+def _read_c3d_isb(path: Path, simulator, markers: str, marker_map, side, ee_markers, frame_markers):
+    """The human model's joint angles per frame from a C3D's ISB landmarks: (table, info dict)."""
+    from camo_sbi.io.c3d import read_c3d_points
+    from camo_sbi.io.isb import NEEDED, isb_joint_angles, load_marker_map
+
+    if markers != "isb":
+        raise ValueError(f"--markers: expected isb (ISB upper-limb landmarks), got {markers!r}")
+    if marker_map is None:
+        raise ValueError("--marker-map: --markers isb needs the map from ISB landmarks to the file's marker labels "
+                         '(JSON {"IJ": "<label>", ...})')
+    if ee_markers or frame_markers:
+        raise ValueError("--markers: isb computes joint angles in the thorax's frame; drop --ee-marker and "
+                         "--frame-from-markers")
+    from camo_sbi.simulators.human import JOINT_NAMES
+
+    if tuple(simulator.joint_names) != JOINT_NAMES:
+        raise ValueError(f"--markers: isb gives the human model's joint angles ({', '.join(JOINT_NAMES)}); use "
+                         f"--model human")
+    mapping = load_marker_map(marker_map)
+    d = read_c3d_points(path, [mapping[k] for k in NEEDED])
+    pts = {k: d["points"][mapping[k]] for k in NEEDED}
+    present = np.all([np.isfinite(v).all(axis=1) for v in pts.values()], axis=0)
+    if present.sum() < 2:
+        lost = min(NEEDED, key=lambda k: np.isfinite(pts[k]).all(axis=1).sum())
+        raise ValueError(f"--marker-map: {path} has fewer than two frames with every landmark (landmark {lost!r}, "
+                         f"marker {mapping[lost]!r}, is seen least)")
+    q = isb_joint_angles({k: v[present] for k, v in pts.items()}, side or "right")
+    run_id = np.cumsum(np.r_[True, ~present[:-1]] & present)[present]  # a new reach after every gap
+    cols = {REACH: np.unique(run_id, return_inverse=True)[1].astype(np.float64), TIME: d["time"][present],
+            **{j: q[:, k] for k, j in enumerate(JOINT_NAMES)}}
+    src = {j: {"what": "the ISB landmarks", "entry": f"--marker-map {marker_map} and --side {side or 'right'}; a "
+                                                   f"person beyond the model's normative range: --out-of-range "
+                                                   f"clip (or a larger --noise-joint-deg)"}
+           for j in JOINT_NAMES}
+    return _Table(path, cols, d["frames"][present], "frame", sources=src), d
 
 
 def _layout(table: _Table, joint_names: list[str], goal: str = "columns") -> tuple[bool, bool]:
@@ -309,8 +338,11 @@ def _reaches(table: _Table, goal: str = "columns") -> list[np.ndarray]:
     return out
 
 
-def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel) -> np.ndarray:
-    """(rows, n) joint values in radians, checked against the model's range and clipped within noise."""
+def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel,
+                  clip_warnings: list | None = None) -> np.ndarray:
+    """(rows, n) joint values in radians, checked against the model's range and clipped within noise.
+    With ``clip_warnings`` (a list; ``out_of_range="clip"``) values beyond the range are clipped onto
+    it too, one warning per joint (how many samples, by how much at most) appended to the list."""
     names = list(simulator.joint_names)
     types = _joint_types(simulator)
     b = simulator.bounds.to(torch.float64).numpy()
@@ -321,9 +353,26 @@ def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel) ->
     tol = K_SIGMA * noise.sigma("joint") + BOUND_SLACK
     below, above = q < b[:, 0] - tol, q > b[:, 1] + tol
     outside = below | above
+    if outside.any() and clip_warnings is not None:
+        for j in np.flatnonzero(outside.any(axis=0)):
+            excess = np.maximum(b[j, 0] - q[:, j], q[:, j] - b[j, 1]).max()
+            unit, f = ("deg", np.degrees) if rev[j] else ("m", float)
+            clip_warnings.append(
+                f"{table.path}: {names[j]}: {int(outside[:, j].sum())} of {q.shape[0]} samples beyond the model's "
+                f"range [{f(b[j, 0]):.1f}, {f(b[j, 1]):.1f}] {unit} (at most {f(excess):.1f} {unit}), clipped onto "
+                f"it (--out-of-range clip): that bound's estimate is the model's range, not the person's")
+        return np.clip(q, b[:, 0], b[:, 1])
     if outside.any():
         i, j = (int(v) for v in np.argwhere(outside)[0])
         value = table.columns[names[j]][i]
+        if table.sources and names[j] in table.sources:  # computed from a source, in radians already
+            src = table.sources[names[j]]
+            given = f"{src['what']} = {src['raw'](value):.2f} deg gives " if "raw" in src else f"{src['what']} give "
+            raise ValueError(
+                f"{table.path}: frame {int(table.rows[i])}: {given}"
+                f"{names[j]} = {np.degrees(value):.2f} deg, outside the model's range [{np.degrees(b[j, 0]):.1f}, "
+                f"{np.degrees(b[j, 1]):.1f}] deg by more than {K_SIGMA:g} noise sigma "
+                f"({np.degrees(tol):.2g} deg): check {src['entry']}")
         msg = (f"{table.where(names[j], i)}: {value:.6g} lies outside the model's range "
                f"[{b[j, 0]:.6g}, {b[j, 1]:.6g}] {'rad' if types[j] == 'revolute' else 'm'} by more than "
                f"{K_SIGMA:g} noise sigma ({tol:.3g})")
@@ -491,6 +540,8 @@ class Recording:
     warnings: tuple[str, ...] = ()
     info: dict = field(default_factory=dict)
     scale: float = 1.0  # the body's segment-length scale (body_scale="free"), else 1
+    segments: tuple[dict, ...] = ()  # reaches found by --reaches (reaches.csv rows), else ()
+    speed: dict | None = None  # {"time", "speed", "cuts": [(t0, t1)], "rule"} for the report's speed figure
 
 
 BODY_SCALE_RANGE = (0.85, 1.15)
@@ -533,6 +584,80 @@ def _hint_body_scale(table: _Table, simulator, q, ee, reaches, noise) -> None:
         raise
 
 
+def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, has_ee: bool, degrees: bool,
+               noise: NoiseModel, clip: bool = False):
+    """The table cut into the reaches ``spec`` finds (`camo_sbi.io.segment`): (the table of the
+    reaches' rows with new reach ids, the reaches.csv rows, the speed figure's data)."""
+    from camo_sbi.io.segment import (
+        ACTIVE_SPEED,
+        CUTOFF_HZ,
+        MIN_DURATION_S,
+        MIN_PEAK_SPEED,
+        NOISE_FACTOR,
+        ONSET_FRACTION,
+        events_segments,
+        hand_speed,
+        parse_reaches,
+        ranges_segments,
+        segment_by_speed,
+    )
+
+    kind, ranges = parse_reaches(spec)
+    if TIME not in table.columns:
+        raise ValueError(f"--reaches: {table.path} has no time (a C3D, a BVH, or a CSV/NPZ with a 'time' column "
+                         f"in seconds); with a step column give the reach column instead")
+    t = table.columns[TIME]
+    if has_ee:
+        hand = np.stack([table.columns[c] for c in EE_COLUMNS], axis=1)
+    else:
+        q = _joint_values(table, simulator, degrees, noise, [] if clip else None)  # warned when loaded
+        hand = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
+    # the file's own runs (C3D gaps, a CSV's reach ids): speed is computed within each, never across a gap
+    rid = table.columns[REACH]
+    starts = np.flatnonzero(np.r_[True, rid[1:] != rid[:-1]])
+    runs = list(zip(starts, np.r_[starts[1:], rid.shape[0]], strict=True))
+    speed = np.zeros(t.shape[0])
+    for a, b in runs:
+        speed[a:b] = hand_speed(t[a:b], hand[a:b])
+    what = str(table.path)
+    if kind == "frames":
+        segs = ranges_segments(table.rows, ranges, what)
+        rule = "explicit frame ranges (--reaches)"
+    elif kind == "events":
+        if events is None:
+            raise ValueError(f"--reaches: events come from a C3D file's EVENT group; {table.path} is not a C3D file")
+        segs = events_segments(t, events, side, what)
+        rule = f"the file's events{'' if side is None else f' (context {side} or General)'}"
+    else:
+        segs = []
+        for a, b in runs:
+            segs += [type(g)(g.first + a, g.last + a, g.rule, g.peak_speed) for g in segment_by_speed(t[a:b], speed[a:b])]
+        rule = (f"hand speed: {CUTOFF_HZ:g} Hz low-pass; movement = speed > {ACTIVE_SPEED:g} m/s with a peak > "
+                f"{MIN_PEAK_SPEED:g} m/s; cuts where the speed falls below max({ONSET_FRACTION:g} x peak, "
+                f"{NOISE_FACTOR:g} x the speed at rest), then on to its local minimum; at least "
+                f"{MIN_DURATION_S:g} s")
+    if not segs:
+        raise ValueError(f"--reaches: {spec} found no reach in {table.path} (rule: {rule}); give frame ranges "
+                         f"(--reaches 0-120,121-260)")
+    keep = np.concatenate([np.arange(g.first, g.last + 1) for g in segs])
+    new_rid = np.concatenate([np.full(g.last - g.first + 1, k, dtype=np.float64) for k, g in enumerate(segs)])
+    cols = {c: a[keep] for c, a in table.columns.items()}
+    cols[REACH] = new_rid
+    out = _Table(table.path, cols, table.rows[keep], table.row_word, table.sources)
+    rows = []
+    for k, g in enumerate(segs):
+        peak = g.peak_speed if np.isfinite(g.peak_speed) else float(speed[g.first: g.last + 1].max())
+        rows.append({"reach": k, "first_frame": int(table.rows[g.first]), "last_frame": int(table.rows[g.last]),
+                     "start_s": round(float(t[g.first]), 4), "end_s": round(float(t[g.last]), 4),
+                     "duration_s": round(float(t[g.last] - t[g.first]), 4), "peak_speed_m_s": round(peak, 4),
+                     **{f"start_{c}": round(float(v), 5) for c, v in zip("xyz", hand[g.first], strict=True)},
+                     **{f"goal_{c}": round(float(v), 5) for c, v in zip("xyz", hand[g.last], strict=True)},
+                     "rule": g.rule})
+    fig = {"time": t, "speed": speed, "cuts": [(float(t[g.first]), float(t[g.last])) for g in segs], "rule": rule,
+           "source": "end-effector track" if has_ee else "forward kinematics of the joint angles"}
+    return out, tuple(rows), fig
+
+
 def load_recordings(path, simulator, **kwargs) -> tuple[Observation, ...]:
     """The observed reaches in ``path``: `load_recording` (same arguments) without its warnings."""
     return load_recording(path, simulator, **kwargs).observations
@@ -542,7 +667,8 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                    start=None, resample: str | None = "time", rate: float | None = None,
                    ee_units: str | None = None, goal: str = "columns", frame: Frame | None = None,
                    ee_markers=None, frame_markers: dict | None = None, body_scale: str = "fixed",
-                   bvh_map=None, max_reaches: int | None = MAX_REACHES) -> Recording:
+                   bvh_map=None, max_reaches: int | None = MAX_REACHES, reaches: str | None = None, side: str | None = None,
+                   markers: str | None = None, marker_map=None, out_of_range: str = "error") -> Recording:
     """The observed reaches in the recording file ``path`` (CSV, .npz or .c3d), for ``simulator``.
 
     Args:
@@ -567,6 +693,20 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
             markers (`frame_from_markers`) instead of ``frame``.
         bvh_map: a BVH file's mapping file (`camo_sbi.io.bvh`: BVH channels -> model joints,
             signs, offsets, reach frame ranges); a .bvh ``path`` needs it.
+        reaches: None (the file's own reaches: its reach column, C3D gaps, the BVH map's ranges),
+            or ``--reaches``: "auto" (hand speed, `camo_sbi.io.segment`), "events" (the C3D
+            file's events) or frame ranges "0-120,121-260"; the file needs time. Each reach's
+            goal is then where it ends (unless the file has goal columns); ``Recording.segments``
+            lists the reaches found and ``Recording.speed`` the hand speed with the cuts.
+        side: "right" or "left": the recorded arm (``markers="isb"``: a left arm is mirrored onto
+            the right-arm model) and the events' context for ``reaches="events"``.
+        markers: "isb": a C3D's joint angles from its anatomical landmarks (`camo_sbi.io.isb`),
+            named by ``marker_map`` (a JSON file {ISB landmark: the file's label}); the model
+            must be the human model. Frames missing a landmark separate reaches.
+        out_of_range: "error" (default): a joint value beyond the model's range by more than the
+            noise allowance is an error naming it; "clip": it is clipped onto the range with a
+            warning per joint (a person beyond the model's normative range, or a marker set's
+            offset: the bound's estimate is then the model's range, say so when reading it).
         body_scale: "fixed" (the model's body) or "free": the segment-length scale s of the
             recorded body is estimated from the joint and end-effector columns
             (`estimate_body_scale`) and ``Recording.scale`` holds it; the checks use the
@@ -594,35 +734,65 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
     if max_reaches is not None and (isinstance(max_reaches, bool) or not isinstance(max_reaches, int)
                                     or max_reaches < 1):
         raise ValueError(f"--max-reaches: expected a whole number >= 1, got {max_reaches!r}")
+    if out_of_range not in ("error", "clip"):
+        raise ValueError(f"out_of_range: expected 'error' or 'clip', got {out_of_range!r}")
     if body_scale not in ("fixed", "free"):
         raise ValueError(f"body_scale: expected 'fixed' or 'free', got {body_scale!r}")
     path = Path(path)
     info: dict = {"goal": goal}
     warns: list[str] = []
+    events = None
     if path.suffix.lower() == ".c3d":
         if ee_units is not None:
             raise ValueError(f"--ee-units: a C3D file's units come from its POINT:UNITS ({path}); drop --ee-units")
         if not path.is_file():
             raise ValueError(f"{path}: no such file")
-        table, c3d = _read_c3d(path, ee_markers, frame_markers)
+        if markers is not None:
+            table, c3d = _read_c3d_isb(path, simulator, markers, marker_map, side, ee_markers, frame_markers)
+            info["joint_angles"] = (f"ISB landmarks ({marker_map}), {side or 'right'} arm, relative to the "
+                                    f"thorax (camo_sbi.io.isb)")
+        else:
+            table, c3d = _read_c3d(path, ee_markers, frame_markers)
+            info["ee_marker"] = "+".join(ee_markers)
+        events = c3d.get("events", [])
         info["ee_units"] = f"{c3d['units']} (POINT:UNITS)"
-        warns.extend(c3d["warnings"])
-        info["ee_marker"] = "+".join(ee_markers)
+        warns.extend(c3d.get("warnings", []))
         if frame_markers:
             frame = frame_from_markers(c3d["markers"], frame_markers)
     elif path.suffix.lower() == ".bvh":
-        from camo_sbi.io.bvh import load_bvh_map, read_bvh
+        from camo_sbi.io.bvh import bvh_sources, load_bvh_map, read_bvh
 
         if bvh_map is None:
             raise ValueError(f"--bvh-map: a BVH file ({path}) needs the mapping from its channels to the model's "
                              f"joints (see docs/user-guide/motion-capture.md)")
         if not path.is_file():
             raise ValueError(f"{path}: no such file")
-        d = read_bvh(path, load_bvh_map(bvh_map, list(simulator.joint_names)))
+        if degrees:
+            raise ValueError(f"--degrees: a BVH file's channels are in degrees and read as such ({path}); drop "
+                             f"--degrees")
+        mapping = load_bvh_map(bvh_map, list(simulator.joint_names))
+        d = read_bvh(path, mapping)
         frames = d.pop("frames")
-        table = _Table(path, d, frames, "frame")
+        table = _Table(path, d, frames, "frame", sources=bvh_sources(mapping))
         info["bvh_map"] = str(bvh_map)
+    elif path.suffix.lower() in (".mot", ".sto"):
+        from camo_sbi.io.mot import read_mot
+
+        if markers is not None or ee_markers:
+            raise ValueError(f"--markers: only a C3D file has markers ({path})")
+        if not path.is_file():
+            raise ValueError(f"{path}: no such file")
+        if degrees:
+            raise ValueError(f"--degrees: an OpenSim file says its unit itself (inDegrees); drop --degrees ({path})")
+        d = read_mot(path, list(simulator.joint_names))
+        table = _Table(path, {REACH: np.zeros(d["time"].shape[0]), TIME: d["time"], **d["columns"]}, d["frames"],
+                       "line")
+        info["joint_angles"] = f"OpenSim {path.suffix} ({'degrees' if d['in_degrees'] else 'radians'})"
+        if d["skipped"]:
+            info["skipped_columns"] = ", ".join(d["skipped"])
     else:
+        if markers is not None:
+            raise ValueError(f"--markers: only a C3D file has markers ({path})")
         if ee_markers:
             raise ValueError(f"--ee-marker: only a C3D file has markers ({path})")
         if frame_markers:
@@ -635,6 +805,9 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                 if c in table.columns:
                     table.columns[c] = table.columns[c] * scale
     names = list(simulator.joint_names)
+    angles_only = markers is not None or path.suffix.lower() in (".mot", ".sto")  # formats without goals
+    if (reaches is not None or angles_only) and goal == "columns" and not any(c in table.columns for c in GOAL_COLUMNS):
+        goal = info["goal"] = "final"  # reaches found in a stream: each ends at its goal
     has_q, has_ee = _layout(table, names, goal)
     if frame is not None:
         for cols in (EE_COLUMNS, GOAL_COLUMNS):
@@ -650,12 +823,21 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                              f"their model positions after the best rigid transform: check the marker positions")
     radius = reach_radius(simulator)
     _check_units(table, radius, "file" if path.suffix.lower() == ".c3d" else ee_units or "m", frame)
+    segments, speed = (), None
+    if reaches is not None:
+        if path.suffix.lower() == ".bvh" and table.columns.get(REACH) is not None and \
+                np.unique(table.columns[REACH]).size > 1:
+            raise ValueError(f"--reaches: the --bvh-map file lists reaches already ({bvh_map}); give one or the other")
+        table, segments, speed = _resegment(table, simulator, reaches, side, events, has_q, has_ee, degrees, noise,
+                                            clip=out_of_range == "clip")
+        info["reaches"] = f"{len(segments)} found ({speed['rule']})"
     reaches = _reaches(table, goal)
     if max_reaches is not None and len(reaches) > max_reaches:
         raise ValueError(f"--max-reaches: {path} holds {len(reaches):,} reaches, more than {max_reaches:,}: every "
                          f"reach is a task of every method (--budget simulations each) and, when the recording "
                          f"has no joint columns, an IK problem; give --max-reaches {len(reaches)} to run them all")
-    q_all = _joint_values(table, simulator, degrees, noise) if has_q else None
+    q_all = _joint_values(table, simulator, degrees, noise, warns if out_of_range == "clip" else None) \
+        if has_q else None
     ee_all = np.stack([table.columns[c] for c in EE_COLUMNS], axis=1) if has_ee else None
     if goal == "final":
         last = np.array([i[-1] for i in reaches])
@@ -744,13 +926,13 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         obs.append(Observation(st, torch.from_numpy(goal_all[idx[0]].copy()), q, ee))
     obs = tuple(obs)
     if resample is None:
-        return Recording(obs, tuple(warns), info, scale)
+        return Recording(obs, tuple(warns), info, scale, segments, speed)
     r = estimate_rate(obs, simulator) if rate is None else float(rate)
     if not (math.isfinite(r) and r > 0):
         raise ValueError(f"rate: expected a number > 0, got {rate!r}")
     info["rate"] = round(r, 4)
     return Recording(tuple(resample_to_controller(o, simulator, mode=resample, rate=r) for o in obs),
-                     tuple(warns), info, scale)
+                     tuple(warns), info, scale, segments, speed)
 
 
 def _read(path) -> _Table:
@@ -782,7 +964,7 @@ def load_goals(path, simulator, *, degrees: bool = False, noise: NoiseModel | No
     missing = [j for j in names if j not in table.columns]
     if has_q and missing:
         raise ValueError(f"{table.path}: column {missing[0]!r} is missing (give every joint of the start "
-                         f"posture or none)")
+                         f"posture or none; the model's joints: {', '.join(names)})")
     for c, a in table.columns.items():
         bad = np.flatnonzero(~np.isfinite(a))
         if bad.size:

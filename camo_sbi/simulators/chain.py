@@ -74,20 +74,28 @@ class ChainSpec:
         """sha256 of every constant: identifies the chain for kernel caching."""
         return self._digest
 
-    def fk_numpy(self, q: np.ndarray) -> np.ndarray:
-        """Plain float64 numpy FK from the spec (for checks): q (..., n) -> (..., 3)."""
+    def joint_frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Plain float64 numpy poses at posture q (..., n): ((..., n, 4, 4) each joint frame
+        before its own motion, i.e. ``T_{k-1} @ origins[k]`` (its centre and axis), and the
+        (..., 4, 4) end-effector pose), in the base link frame."""
         q = np.asarray(q, dtype=np.float64)
         batch = q.shape[:-1]
         T = np.broadcast_to(np.eye(4), (*batch, 4, 4)).copy()
+        frames = []
         for k in range(self.n_joints):
             T = T @ self.origins[k]
+            frames.append(T)
             M = np.broadcast_to(np.eye(4), (*batch, 4, 4)).copy()
             if self.joint_types[k] == "revolute":
                 M[..., :3, :3] = _axis_angle(self.axes[k], q[..., k])
             else:
                 M[..., :3, 3] = q[..., k, None] * self.axes[k]
             T = T @ M
-        return (T @ self.tip)[..., :3, 3]
+        return np.stack(frames, axis=-3), T @ self.tip
+
+    def fk_numpy(self, q: np.ndarray) -> np.ndarray:
+        """Plain float64 numpy FK from the spec (for checks): q (..., n) -> (..., 3)."""
+        return self.joint_frames(q)[1][..., :3, 3]
 
 
 def _axis_angle(a: np.ndarray, ang: np.ndarray) -> np.ndarray:

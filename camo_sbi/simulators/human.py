@@ -112,6 +112,7 @@ __all__ = [
     "IMPAIRED_PROFILES",
     "ImpairmentProfile",
     "JOINT_NAMES",
+    "JOINT_SIGNS",
     "NORMATIVE_ROM_DEG",
     "anthropometry",
     "default_start",
@@ -133,6 +134,23 @@ JOINT_NAMES: tuple[str, ...] = (
     "wrist_deviation",
 )
 """Movable joints, base to tip (the simulator's joint order)."""
+
+JOINT_SIGNS: Mapping[str, tuple[str, str]] = MappingProxyType(
+    {
+        "torso_flexion": ("forward bend (flexion)", "backward bend (extension)"),
+        "torso_rotation": ("trunk turns to the left", "trunk turns to the right"),
+        "shoulder_flexion": ("arm raised forward (flexion)", "arm moved backward (extension)"),
+        "shoulder_abduction": ("arm raised sideways, away from the body (abduction)",
+                               "arm across the body (adduction)"),
+        "shoulder_rotation": ("internal rotation", "external rotation"),
+        "elbow_flexion": ("elbow flexion (0 = fully extended)", "hyperextension (outside the range)"),
+        "forearm_pronation": ("pronation (palm turns backward / down)", "supination (palm turns forward / up)"),
+        "wrist_flexion": ("palmar flexion", "dorsal extension"),
+        "wrist_deviation": ("radial deviation (towards the thumb)", "ulnar deviation (towards the little finger)"),
+    }
+)
+"""Per joint, what a positive and a negative angle mean (the module docstring's conventions;
+checked against the forward kinematics by tests/test_describe.py)."""
 
 END_EFFECTOR = "right_hand_tip"
 """End-effector link: half a hand length distal to the wrist joint centre."""
