@@ -13,10 +13,12 @@ its cache files, so only a private directory of this user is used (`camo_sbi._io
 with mode 0700; never the installed package's ``__pycache__``. When that directory is not private
 (world- or group-writable, another user's, a symbolic link) or cannot be created, the kernels are
 compiled in memory on every run, with one `NumbaCacheWarning`. Inside it a module's kernels are
-filed under its package's dotted name (`PackageLocator`), not under a digest of the source
-file's absolute path as numba's own locator does, and numba checks each index against the
-sha256 of the source: a second clone or install of the same sources in the same user account
-loads the kernels the first one compiled (compiling happens once per user, not once per clone).
+filed under its package's dotted name and the sha256 of the sources of the modules given
+together (`PackageLocator`: ``camo_sbi.inference.distances-<digest>``), not under a digest of
+the source file's absolute path as numba's own locator does: a second clone or install of the
+same sources in the same user account loads the kernels the first one compiled (compiling
+happens once per user, not once per clone), and checkouts of different sources (worktrees of
+two branches) keep apart caches instead of flushing each other's on every switch.
 """
 
 from __future__ import annotations
@@ -61,17 +63,22 @@ def cache_root() -> Path:
     return Path(base) / "camo_sbi" / "numba"
 
 
+_SUBDIRS: dict[str, str] = {}
+"""module name -> its cache subdirectory, set by `use_private_cache` before numba locates a cache."""
+
+
 class PackageLocator(UserProvidedCacheLocator):
     """numba's locator for ``numba.config.CACHE_DIR``, with a module's kernels filed under its
-    package's dotted name (``CACHE_DIR/camo_sbi.inference.distances``) instead of a digest of the
-    source's absolute path: the same sources in another directory (a fresh clone, a reinstall)
-    find the same cache. numba still stamps each index with the sha256 of the source file and
-    recompiles when it differs (`flush_if_changed` covers kernels split across modules)."""
+    package's dotted name and the digest of the sources given to `use_private_cache` together
+    (``CACHE_DIR/camo_sbi.inference.distances-<16 hex>``) instead of a digest of the source's
+    absolute path: the same sources in another directory (a fresh clone, a reinstall) find the
+    same cache, other sources another one. numba still stamps each index with the sha256 of the
+    source file (`flush_if_changed` covers kernels split across modules)."""
 
     def __init__(self, py_func, py_file):
         super().__init__(py_func, py_file)
         package = py_func.__module__.rpartition(".")[0] or py_func.__module__
-        self._cache_path = os.path.join(numba_config.CACHE_DIR, package)
+        self._cache_path = os.path.join(numba_config.CACHE_DIR, _SUBDIRS.get(py_func.__module__, package))
 
 
 def _dispatchers(modules) -> list:
@@ -91,6 +98,9 @@ def use_private_cache(modules) -> Path | None:
         return None
     root = cache_root()
     reason = make_private_dir(root, subdirs=())
+    digest = sources_digest(modules)[:16]
+    for m in modules:
+        _SUBDIRS[m.__name__] = f"{m.__name__.rpartition('.')[0] or m.__name__}-{digest}"
     if reason is None:
         saved = {k: getattr(numba_config, k) for k in ("CACHE_DIR", "CACHE_LOCATOR_CLASSES")
                  if hasattr(numba_config, k)}
