@@ -106,10 +106,10 @@ def use_private_cache(modules) -> Path | None:
                  if hasattr(numba_config, k)}
         try:
             numba_config.CACHE_DIR = str(root)
-            if "CACHE_LOCATOR_CLASSES" in saved:  # (numba < 0.62 has no such setting: its default locator)
+            if "CACHE_LOCATOR_CLASSES" in saved:  # (a numba without it: its own locator for CACHE_DIR)
                 numba_config.CACHE_LOCATOR_CLASSES = f"{__name__}.{PackageLocator.__name__}"
             for d in dispatchers:
-                d.enable_caching()  # numba's own locator for a user-provided directory
+                d.enable_caching()  # located by PackageLocator (numba imports it by that name)
         finally:
             for k, v in saved.items():
                 setattr(numba_config, k, v)
@@ -191,4 +191,3 @@ def flush_if_changed(modules) -> bool:
         Path(tmp).write_text(digest)
         os.replace(tmp, p)
     return True
-
