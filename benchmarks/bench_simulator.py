@@ -1,6 +1,17 @@
 """Simulator throughput: generated numba kernel vs the two baselines, measured in one run.
 
     python benchmarks/bench_simulator.py [--sizes 2000 5000] [--steps 100] [--repeats 7]
+    python benchmarks/bench_simulator.py --joints 4,8,16 [--sizes 2000]    (growth with n)
+    python benchmarks/bench_simulator.py --device cuda                     (the GPU arm)
+
+``--joints``: instead of the Panda table, a generated serial chain of n revolute joints
+(alternating z/y axes, 0.6 m long in all, ``chain_urdf``) for each n, the kernel's cost per
+trajectory-step at each B, and the ratio of each n's cost to the previous n's (the issue's
+target: 8 -> 16 joints at most 2.5x).
+
+``--device cuda``: the torch backend (`controller.reference_simulate`) on the GPU at each B,
+with its ratio against the numba kernel on the CPU measured in the same run. Without a CUDA
+device the arm is skipped with a message (the GPU path is never needed on CPU).
 
 Franka Panda, float32, CPU. Every trajectory runs all T steps (goal tolerance 1e-9, so no
 early exit) in all three implementations, so "trajectory-steps" mean the same thing:
@@ -57,6 +68,78 @@ def problem(sim, B: int, seed: int = 0):
     return theta.float(), sim.forward_kinematics(q).float()
 
 
+def chain_urdf(n: int) -> str:
+    """A serial chain of ``n`` revolute joints (axes alternating z, y; links 0.6/n m) ending at "tool"."""
+    links = "".join(f'<link name="l{i}"/>' for i in range(n + 1)) + '<link name="tool"/>'
+    step = 0.6 / n
+    joints = "".join(
+        f'<joint name="j{i}" type="revolute"><parent link="l{i}"/><child link="l{i + 1}"/>'
+        f'<origin xyz="0 0 {step if i else 0.1:.4f}" rpy="0 0 0"/><axis xyz="0 {i % 2} {1 - i % 2}"/>'
+        f'<limit lower="-2.5" upper="2.5" effort="1" velocity="1"/></joint>' for i in range(n))
+    tool = (f'<joint name="tip" type="fixed"><parent link="l{n}"/><child link="tool"/>'
+            f'<origin xyz="0 0 {step:.4f}" rpy="0 0 0"/></joint>')
+    return f'<?xml version="1.0"?><robot name="chain{n}">{links}{joints}{tool}</robot>'
+
+
+def growth(joints: list[int], sizes: list[int], T: int, repeats: int) -> None:
+    """Kernel cost per trajectory-step for chains of each joint count (float32, every step run)."""
+    print(f"generated chains, float32, CPU, T={T}, every trajectory runs all T steps; numba threads "
+          f"{numba.get_num_threads()}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
+    per_step: dict[tuple[int, int], float] = {}
+    for n in joints:
+        sim = from_urdf_chain(n, T)
+        for B in sizes:
+            theta, goals = problem(sim, B, seed=B)
+            sim.simulate(theta, goals)  # compile / load
+            t = best_of(lambda th=theta, g=goals: sim.simulate(th, g), repeats)
+            per_step[n, B] = t / (B * T)
+    print(f"{'n':>4} " + " ".join(f"{'B=' + str(B) + ' us/step':>16} {'x prev n':>9}" for B in sizes))
+    for i, n in enumerate(joints):
+        cells = []
+        for B in sizes:
+            prev = per_step[joints[i - 1], B] if i else None
+            cells.append(f"{per_step[n, B] * 1e6:>16.4f} {(per_step[n, B] / prev if prev else float('nan')):>8.2f}x")
+        print(f"{n:>4} " + " ".join(cells))
+    if len(joints) >= 2:
+        a, b = joints[-2], joints[-1]
+        for B in sizes:
+            r = per_step[b, B] / per_step[a, B]
+            print(f"{a} -> {b} joints, B={B}: {r:.2f}x per step (joint ratio {b / a:.1f}; "
+                  f"growth exponent {__import__('math').log(r) / __import__('math').log(b / a):.2f})")
+
+
+def from_urdf_chain(n: int, T: int):
+    from camo_sbi.simulators import from_urdf
+
+    return from_urdf(chain_urdf(n), "tool", start=[0.3 * (-1) ** i for i in range(n)],
+                     controller=ControllerConfig(max_steps=T, tol=1e-9), backend="numba")
+
+
+def gpu_arm(sim, sizes: list[int], repeats: int) -> None:
+    """The torch backend on CUDA against the numba kernel on the CPU, or a message without a GPU."""
+    if not torch.cuda.is_available():
+        print("--device cuda: no CUDA device here (torch.cuda.is_available() is False); the GPU arm is "
+              "skipped. The numba kernel above is the CPU path and needs no GPU.")
+        return
+    ref = sim.with_config(backend="torch")
+    name = torch.cuda.get_device_name(0)
+    print(f"\nGPU arm: torch backend on {name} vs the numba kernel on the CPU (same problems)")
+    for B in sizes:
+        theta, goals = problem(sim, B, seed=B)
+        sim.simulate(theta, goals)
+        t_k = best_of(lambda th=theta, g=goals: sim.simulate(th, g), repeats)
+        th, g = theta.cuda(), goals.cuda()
+
+        def on_gpu(th=th, g=g):
+            ref.simulate(th, g)
+            torch.cuda.synchronize()
+
+        on_gpu()  # warm-up (CUDA context, kernels)
+        t_g = best_of(on_gpu, repeats)
+        print(f"  B={B:>6}: numba CPU {t_k * 1e3:8.1f} ms, torch CUDA {t_g * 1e3:8.1f} ms, "
+              f"ratio numba / CUDA {t_k / t_g:.2f}x")
+
+
 def best_of(fn, repeats: int) -> float:
     times = []
     for _ in range(repeats):
@@ -73,8 +156,19 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=7, help="kernel timings: best of N")
     ap.add_argument("--reference-repeats", type=int, default=2, help="baseline (a): best of N")
     ap.add_argument("--per-trajectory", type=int, default=5, help="baseline (b): trajectories timed")
+    ap.add_argument("--joints", default=None, help="comma-separated joint counts: the growth table instead")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                    help="cuda: also time the torch backend on the GPU (skipped with a message without one)")
     args = ap.parse_args(argv)
     T = args.steps
+    if args.joints:
+        joints = [int(v) for v in args.joints.split(",") if v.strip()]
+        if not joints or any(n < 1 for n in joints):
+            ap.error("--joints: give positive joint counts, e.g. 4,8,16")
+        growth(joints, args.sizes, T, args.repeats)
+        if args.device == "cuda":
+            gpu_arm(from_urdf_chain(joints[-1], T), args.sizes, args.repeats)
+        return
 
     cache = tempfile.mkdtemp(prefix="camo_sbi_bench_kernels_")
     os.environ["CAMO_SBI_KERNEL_CACHE"] = cache  # empty cache: the first call compiles
@@ -137,6 +231,8 @@ def main(argv=None) -> None:
           "the default ControllerConfig (1 cm tolerance, early exit per trajectory).\n"
           "(a) is the best over torch threads {1, default}; (b) uses one torch thread.")
     print(f"numba threading layer: {numba.threading_layer()}; load average now {os.getloadavg()[0]:.1f}")
+    if args.device == "cuda":
+        gpu_arm(sim, args.sizes, args.repeats)
     shutil.rmtree(cache, ignore_errors=True)
 
 

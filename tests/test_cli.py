@@ -17,7 +17,7 @@ PREDICTION = {"cartesian_error_mm", "joint_error_deg", "eq2_cartesian", "eq2_joi
               "reference_joint"}
 # limit_error_binding_deg / limit_error_free_deg appear when some bound binds / does not
 # wall_time and compile_time (numba compiling on first use) are timings: they differ between runs
-TIMINGS = ("wall_time", "compile_time")
+TIMINGS = ("wall_time", "compile_time", "import_time")
 BINDING = {"binding_test_fraction", "binding_test_reaches", "binding_train_fraction", "binding_train_reaches",
            "binding_test_bound_min_fraction"}
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]

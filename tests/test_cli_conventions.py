@@ -339,11 +339,66 @@ def test_compile_time_is_measured_apart_from_wall_time(monkeypatch):
     assert second.compile_time == 0.0
 
 
+def test_import_time_is_measured_apart_from_wall_time(monkeypatch):
+    """A method whose run would import a slow library (here one that sleeps 0.3 s on import): with
+    the import in its ``setup`` it is import_time, before the clock, never in wall_time (elapsed
+    covers both only once); a second run imports nothing. Also through run_method_sequence, where
+    the import lands on the first result only (a non-continual method reruns per k)."""
+    from camo_sbi.inference import registry
+    from camo_sbi.inference.baselines import NominalConfig, run_nominal
+    from camo_sbi.inference.registry import Capabilities, Implementation, MethodSpec, run_method, run_method_sequence
+    from tests.test_distributed import _toy_task
+
+    state = {"imported": 0}
+
+    def slow_import():
+        if not state["imported"]:
+            time.sleep(0.3)
+        state["imported"] += 1
+
+    def run(task, observations, *, budget, seed, config):
+        assert state["imported"], "the run started before its setup"
+        return run_nominal(task, observations, budget=budget, seed=seed, config=config)
+
+    impl = Implementation(run, NominalConfig, setup=slow_import)
+    monkeypatch.setitem(registry._REGISTRY, "slowimport", MethodSpec(
+        "slowimport", "test", lambda: impl, Capabilities(spaces=(), simulates=False)))
+    task = _toy_task()
+    t0 = time.perf_counter()
+    first = run_method("slowimport", task, budget=1, seed=0)
+    elapsed = time.perf_counter() - t0
+    assert first.import_time >= 0.3
+    assert first.wall_time + first.compile_time + first.import_time <= elapsed  # counted once, apart
+    second = run_method("slowimport", task, budget=1, seed=0)
+    assert second.import_time < 0.3  # imported already: nothing slept
+    state["imported"] = 0
+    seq = run_method_sequence("slowimport", task, budget=1, seed=0)
+    assert len(seq) >= 2 and seq[0].import_time >= 0.3 and all(r.import_time < 0.3 for r in seq[1:])
+
+
+def test_npe_imports_sbi_in_its_setup_not_in_its_run():
+    """NPE's run imports sbi lazily (train_npe); its setup imports the same modules first."""
+    import ast
+    import inspect
+    import sys
+
+    from camo_sbi.inference import sbi_adapter
+    from camo_sbi.inference.registry import get_method
+
+    impl = get_method("npe").load()
+    assert impl.setup is sbi_adapter.import_sbi
+    impl.setup()
+    tree = ast.parse(inspect.getsource(sbi_adapter.train_npe).lstrip())
+    used = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module.startswith("sbi")}
+    assert used and all(m in sys.modules for m in used), used
+
+
 def test_compare_records_compile_time_beside_wall_time(finished):
     df = pd.read_csv(finished / "results.csv")
     metrics = set(df.metric)
-    assert {"wall_time", "compile_time"} <= metrics
+    assert {"wall_time", "compile_time", "import_time"} <= metrics
     assert (df[df.metric == "compile_time"].value >= 0).all()
+    assert (df[df.metric == "import_time"].value >= 0).all()
 
 
 # ----------------------------------------------------------------------------- study files

@@ -342,7 +342,7 @@ COMPARE = ["compare", *MODEL, *LIMITS, "--methods", "camo", "--budgets", "30", "
 
 
 def _comparable(df: pd.DataFrame) -> pd.DataFrame:
-    timings = ("wall_time", "compile_time")  # differ between runs
+    timings = ("wall_time", "compile_time", "import_time")  # differ between runs
     return df[~df.metric.isin(timings)].sort_values(list(df.columns[:7])).reset_index(drop=True)
 
 

@@ -3,8 +3,10 @@
 Every import statement in the package counts: module level, inside functions (the
 registry's lazy loaders) and under ``if TYPE_CHECKING:``. Layers, bottom to top:
 
-    0  _validation, _io, _plugins        (argument checks, atomic writes, entry points)
-    0.5 _threads                         (the shared thread runner of the numba kernels)
+    0  _validation, _io, _files, _memory, _plugins  (argument checks, atomic writes, user files,
+                                         work bounds, entry points)
+    0.5 _threads, _compiling             (the shared thread runner of the numba kernels; the
+                                         one-line notice when they compile)
     1  simulators                        (the batched simulators)
     2  priors, budget                    (the box prior, the simulation counter)
     3  task, distributed                 (the run contract's input; where work runs)
@@ -30,7 +32,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "camo_sbi"
 
 LAYERS = {
-    "_validation": 0, "_io": 0, "_files": 0, "_memory": 0, "_plugins": 0, "_threads": 0.5,
+    "_validation": 0, "_io": 0, "_files": 0, "_memory": 0, "_plugins": 0, "_threads": 0.5, "_compiling": 0.5,
     "simulators": 1,
     "priors": 2, "budget": 2,
     "task": 3, "distributed": 3,

@@ -26,7 +26,7 @@ Layout of the InferenceData built by :func:`to_inference_data`:
   more than one sample ``weighted_samples`` (sample, joint, bound) with their normalised
   ``weights`` (sample): the result itself, from which anything can be recomputed (the
   toolkit's own figures and tables read them).
-* ``attrs`` (on every group): method, budget, n_simulations, wall_time, compile_time, n_tasks,
+* ``attrs`` (on every group): method, budget, n_simulations, wall_time, compile_time, import_time, n_tasks,
   units, resampled, ``draws`` (what the draws are: "independent draws", "resampled
   from weighted samples (not MCMC)" or "point estimate"), resample_seed, weights_ess
   (the Kish effective sample size the weights imply, ``(sum w)^2 / sum w^2``; N for
@@ -405,6 +405,7 @@ def to_inference_data(
         "n_simulations": int(result.n_simulations),
         "wall_time": float(result.wall_time),
         "compile_time": float(result.compile_time),
+        "import_time": float(result.import_time),
         "n_tasks": int(result.n_tasks),
         "units": units,
         "resampled": int(resampled),

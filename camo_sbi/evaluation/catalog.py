@@ -206,6 +206,7 @@ METRICS: list[Metric] = [
     _M("n_simulations", "simulations used", "", "value", group="cost", score=_result_attr("n_simulations")),
     _M("wall_time", "wall time", "s", "value", group="cost", score=_result_attr("wall_time")),
     _M("compile_time", "numba compile time", "s", "value", group="cost", score=_result_attr("compile_time")),
+    _M("import_time", "import time (sbi, pyabc)", "s", "value", group="cost", score=_result_attr("import_time")),
     _M("training_simulations", "training simulations (amortized, once)", "", "value", group="cost",
        score=_result_extra("training_simulations")),
     _M("training_time", "training time (amortized, once)", "s", "value", group="cost",

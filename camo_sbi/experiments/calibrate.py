@@ -257,7 +257,7 @@ def run_cell(cell, out: str) -> list[dict]:
     w = res.normalized_weights()
     rows = subject_rows(res.samples[:, free], res.weights, task.true_theta.numpy()[free], names,
                         sbc_draws=cell.extras["sbc_draws"], seed=derive_seed(cell.seed, cell.subject, "sbc"))
-    meta = {"wall_time": res.wall_time, "compile_time": res.compile_time, "n_simulations": res.n_simulations, "n_samples": res.samples.shape[0],
+    meta = {"wall_time": res.wall_time, "compile_time": res.compile_time, "import_time": res.import_time, "n_simulations": res.n_simulations, "n_samples": res.samples.shape[0],
             "ess": float(1.0 / np.sum(w**2)), "attempt": attempt, **task_binding_metrics(task)}
     rows += [{"record": "meta", "name": k, "alpha": np.nan, "value": float(v)} for k, v in meta.items()]
     base = {"cell": cell.key, "task": name, "method": cell.method, "subject": cell.subject}

@@ -169,6 +169,9 @@ COMMANDS = (
     Command("robustness", "every method under observation noise, a faster recorder and a mis-sized model",
             "robustness:add_arguments", "robustness:main", ("methods", "subjects"),
             ("camo-sbi robustness --model panda --methods camo-js,naive --seeds 2 --out runs/robustness",)),
+    Command("warmup", "compile the numba kernels now, once per user (a first run would compile them)",
+            "warmup:add_arguments", "warmup:main", (),
+            ("camo-sbi warmup", "camo-sbi warmup --models panda,human")),
     Command("render-scene", "render the block-stacking scene to a PNG", "hrc:add_render_arguments",
             "hrc:render_main", ("human",), ("camo-sbi render-scene --subject frozen_shoulder --out scene.png",)),
 )

@@ -50,13 +50,17 @@ __all__ = [
 class Implementation(NamedTuple):
     """What a method's module provides: the run contract, its config class, for a
     continual method ``run_sequence`` (a generator yielding the result after each task),
-    and ``min_budget(config) -> int`` when a config needs a least per-task budget (the rule
-    the method's own ``run`` enforces; `check_budget` lets a grid refuse before it starts)."""
+    ``min_budget(config) -> int`` when a config needs a least per-task budget (the rule
+    the method's own ``run`` enforces; `check_budget` lets a grid refuse before it starts),
+    and ``setup()``, the imports its run needs (timed apart, as ``import_time``)."""
 
     run: Callable[..., PosteriorResult]
     config: type
     run_sequence: Callable | None = None
     min_budget: Callable[[Any], int] | None = None
+    setup: Callable[[], None] | None = None
+    """Imports what the method would otherwise import lazily inside its run (NPE: sbi, and with it
+    scikit-learn), called by the registry before the run's clock starts and timed as ``import_time``."""
 
 
 @dataclass(frozen=True)
@@ -250,7 +254,11 @@ def _prepare(name, task, observations, budget, seed, config):
     if not isinstance(task, Task):
         raise TypeError(f"task: expected a camo_sbi.task.Task, got {type(task).__name__}")
     spec = get_method(name)
-    impl = spec.load()
+    t0 = time.perf_counter()
+    impl = spec.load()  # the first load imports the method's module (abc-smc: pyabc)
+    if impl.setup is not None:
+        impl.setup()  # what the run would import lazily (npe: sbi, scikit-learn)
+    imported = time.perf_counter() - t0
     cfg = make_config(name, config)
     observations = check_observations(task, observations, space_of(name, cfg))
     for other in spec.capabilities.also_reads:
@@ -259,7 +267,7 @@ def _prepare(name, task, observations, budget, seed, config):
     seed = check_positive_int(seed, "seed", minimum=0)
     if spec.capabilities.needs_truth:
         task.require_truth(f"method {name!r}")
-    return spec, impl, cfg, observations, budget, seed
+    return spec, impl, cfg, observations, budget, seed, imported
 
 
 def _cap(spec: MethodSpec, budget: int, n_tasks: int) -> int | None:
@@ -328,18 +336,21 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
 
     The simulator is wrapped in a `CountingSimulator` capped at ``budget * len(observations)``
     (uncapped, still counted, for a method with `Capabilities.exact`);
-    the result's ``method``, ``n_simulations``, ``wall_time``, ``compile_time`` and ``n_tasks``
-    are set here (``wall_time`` excludes the numba compilation measured as ``compile_time``).
+    the result's ``method``, ``n_simulations``, ``wall_time``, ``compile_time``, ``import_time``
+    and ``n_tasks`` are set here (``wall_time`` excludes the numba compilation measured as
+    ``compile_time`` and the imports measured as ``import_time``: loading the method's module
+    and its ``setup``, done before the clock starts).
     A result whose status is not "ok" is warned about (RuntimeWarning).
     """
-    spec, impl, cfg, observations, budget, seed = _prepare(name, task, observations, budget, seed, config)
+    spec, impl, cfg, observations, budget, seed, imported = _prepare(name, task, observations, budget, seed,
+                                                                     config)
     counted, counter = task.with_budget(_cap(spec, budget, len(observations)))
     with _CompileClock() as jit:
         t0 = time.perf_counter()
         result = impl.run(counted, observations, budget=budget, seed=seed, config=cfg)
         elapsed = time.perf_counter() - t0
     result = replace(result, method=name, n_simulations=counter.n_simulations, wall_time=max(0.0, elapsed - jit.seconds),
-                     compile_time=jit.seconds, n_tasks=len(observations))
+                     compile_time=jit.seconds, import_time=imported, n_tasks=len(observations))
     _warn_status(name, result)
     return result
 
@@ -352,12 +363,16 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
     rerun from scratch for each k with a fresh counter capped at ``budget * k``. For a
     continual method the k-th result's ``n_simulations``, ``wall_time`` and ``compile_time``
     are read from the counter (cap ``budget * K``) and the clocks here when it yields task k's
-    result (both cumulative; ``wall_time`` without the compilation so far).
+    result (both cumulative; ``wall_time`` without the compilation so far); ``import_time``, paid
+    before the first task, is the same on every result (on the first only for the others).
     """
-    spec, impl, cfg, observations, budget, seed = _prepare(name, task, observations, budget, seed, config)
+    spec, impl, cfg, observations, budget, seed, imported = _prepare(name, task, observations, budget, seed,
+                                                                     config)
     if not spec.capabilities.continual or impl.run_sequence is None:
-        return [run_method(name, task, observations[: k + 1], budget=budget, seed=seed, config=cfg)
-                for k in range(len(observations))]
+        out = [run_method(name, task, observations[: k + 1], budget=budget, seed=seed, config=cfg)
+               for k in range(len(observations))]
+        # the imports happened in the _prepare above: the first result's
+        return [replace(out[0], import_time=out[0].import_time + imported), *out[1:]]
     counted, counter = task.with_budget(_cap(spec, budget, len(observations)))
     out = []
     with _CompileClock() as jit:
@@ -365,7 +380,8 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
         for k, r in enumerate(impl.run_sequence(counted, observations, budget=budget, seed=seed, config=cfg)):
             compiling = jit.seconds
             r = replace(r, method=name, n_tasks=k + 1, n_simulations=counter.n_simulations,
-                        wall_time=max(0.0, time.perf_counter() - t0 - compiling), compile_time=compiling)
+                        wall_time=max(0.0, time.perf_counter() - t0 - compiling), compile_time=compiling,
+                        import_time=imported)
             _warn_status(name, r)
             out.append(r)
     if len(out) != len(observations):
@@ -421,9 +437,9 @@ def _abc_budget_defaults(budget: int) -> dict:
 
 
 def _npe() -> Implementation:
-    from camo_sbi.inference import npe
+    from camo_sbi.inference import npe, sbi_adapter
 
-    return Implementation(npe.run, npe.NpeConfig, npe.run_sequence)
+    return Implementation(npe.run, npe.NpeConfig, npe.run_sequence, setup=sbi_adapter.import_sbi)
 
 
 def _npe_amortized() -> Implementation:

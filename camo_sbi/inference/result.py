@@ -35,7 +35,8 @@ class PosteriorResult:
         weights: (N,) non-negative weights summing to 1, or None for equally weighted draws.
         estimate: (2n,) float64 point estimate (CAMO: the argmax of the joint density).
         n_simulations: simulations actually consumed, as counted by the budget wrapper.
-        wall_time: seconds spent in ``run``, without JIT compilation (``compile_time``).
+        wall_time: seconds spent in ``run``, without JIT compilation (``compile_time``) or
+            imports (``import_time``).
         n_tasks: number of observed tasks the posterior conditions on.
         extras: method-specific data (e.g. per-task acceptance counts, epsilons).
         status: ``"ok"``; ``"fallback: <reason>"`` when the method could not do what it
@@ -46,6 +47,9 @@ class PosteriorResult:
         compile_time: seconds of numba compilation (or loading compiled code from its cache)
             during ``run``, measured by the registry and never counted in ``wall_time``: the
             first run in a process pays it, later ones do not.
+        import_time: seconds of importing the method's libraries before ``run`` (its module,
+            e.g. pyabc, and its ``setup``: NPE's sbi and scikit-learn), measured by the registry
+            and never counted in ``wall_time``: the first run in a process pays it.
         density: ``theta (B, 2n) -> (B,)`` unnormalised log density of the posterior, for
             the methods that have one (NPE: the combined flows; CAMO: the product of its
             per-task KDEs); None otherwise. Read through `log_prob`; not compared, not
@@ -65,6 +69,7 @@ class PosteriorResult:
     extras: dict[str, Any] = field(default_factory=dict)
     status: str = STATUS_OK
     compile_time: float = 0.0
+    import_time: float = 0.0
     density: Callable[[Any], Any] | None = field(default=None, compare=False, repr=False)
 
     def __getstate__(self):

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from camo_sbi._compiling import announce_compiling
 from camo_sbi._io import atomic_write_bytes, check_private_dir, make_private_dir
 from camo_sbi._threads import default_workers, run_chunks
 from camo_sbi.simulators.chain import ChainSpec
@@ -513,6 +514,7 @@ def load_kernel(spec: ChainSpec, dtype):
     """
     dt = _DTYPES[np.dtype(dtype)]
     key = hashlib.sha256(f"{GENERATOR_VERSION}|{spec.digest}|{dt}".encode()).hexdigest()[:24]
+    announce_compiling()  # one line if this (or any camo_sbi kernel) compiles rather than loads
     with _lock:
         mod = _loaded.get(key)
         if mod is not None:

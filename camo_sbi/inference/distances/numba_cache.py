@@ -12,7 +12,13 @@ its cache files, so only a private directory of this user is used (`camo_sbi._io
 ``NUMBA_CACHE_DIR`` when set, else ``$XDG_CACHE_HOME/camo_sbi/numba`` (``~/.cache/...``), created
 with mode 0700; never the installed package's ``__pycache__``. When that directory is not private
 (world- or group-writable, another user's, a symbolic link) or cannot be created, the kernels are
-compiled in memory on every run, with one `NumbaCacheWarning`.
+compiled in memory on every run, with one `NumbaCacheWarning`. Inside it a module's kernels are
+filed under its package's dotted name and the sha256 of the sources of the modules given
+together (`PackageLocator`: ``camo_sbi.inference.distances-<digest>``), not under a digest of
+the source file's absolute path as numba's own locator does: a second clone or install of the
+same sources in the same user account loads the kernels the first one compiled (compiling
+happens once per user, not once per clone), and checkouts of different sources (worktrees of
+two branches) keep apart caches instead of flushing each other's on every switch.
 """
 
 from __future__ import annotations
@@ -23,13 +29,14 @@ import warnings
 from pathlib import Path
 
 from numba.core import config as numba_config
-from numba.core.caching import NullCache
+from numba.core.caching import NullCache, UserProvidedCacheLocator
 from numba.core.dispatcher import Dispatcher
 
+from camo_sbi._compiling import announce_compiling
 from camo_sbi._io import make_private_dir
 
-__all__ = ["STAMP_NAME", "NumbaCacheWarning", "cache_root", "flush_if_changed", "sources_digest",
-           "use_private_cache"]
+__all__ = ["STAMP_NAME", "NumbaCacheWarning", "PackageLocator", "cache_root", "flush_if_changed",
+           "sources_digest", "use_private_cache"]
 
 
 class NumbaCacheWarning(RuntimeWarning):
@@ -56,6 +63,24 @@ def cache_root() -> Path:
     return Path(base) / "camo_sbi" / "numba"
 
 
+_SUBDIRS: dict[str, str] = {}
+"""module name -> its cache subdirectory, set by `use_private_cache` before numba locates a cache."""
+
+
+class PackageLocator(UserProvidedCacheLocator):
+    """numba's locator for ``numba.config.CACHE_DIR``, with a module's kernels filed under its
+    package's dotted name and the digest of the sources given to `use_private_cache` together
+    (``CACHE_DIR/camo_sbi.inference.distances-<16 hex>``) instead of a digest of the source's
+    absolute path: the same sources in another directory (a fresh clone, a reinstall) find the
+    same cache, other sources another one. numba still stamps each index with the sha256 of the
+    source file (`flush_if_changed` covers kernels split across modules)."""
+
+    def __init__(self, py_func, py_file):
+        super().__init__(py_func, py_file)
+        package = py_func.__module__.rpartition(".")[0] or py_func.__module__
+        self._cache_path = os.path.join(numba_config.CACHE_DIR, _SUBDIRS.get(py_func.__module__, package))
+
+
 def _dispatchers(modules) -> list:
     return [v for m in modules for v in vars(m).values()
             if isinstance(v, Dispatcher) and v.py_func.__module__ == m.__name__
@@ -67,20 +92,24 @@ def use_private_cache(modules) -> Path | None:
     that is not a private directory of this user, switch their caching off (one `NumbaCacheWarning`:
     compiled in memory, nothing read or written). Returns the directory used, or None.
     Call it at import, before any kernel runs (and before `flush_if_changed`)."""
+    announce_compiling()
     dispatchers = _dispatchers(modules)
     if not dispatchers:
         return None
     root = cache_root()
     reason = make_private_dir(root, subdirs=())
+    digest = sources_digest(modules)[:16]
+    for m in modules:
+        _SUBDIRS[m.__name__] = f"{m.__name__.rpartition('.')[0] or m.__name__}-{digest}"
     if reason is None:
         saved = {k: getattr(numba_config, k) for k in ("CACHE_DIR", "CACHE_LOCATOR_CLASSES")
                  if hasattr(numba_config, k)}
         try:
             numba_config.CACHE_DIR = str(root)
-            if "CACHE_LOCATOR_CLASSES" in saved:
-                numba_config.CACHE_LOCATOR_CLASSES = ""
+            if "CACHE_LOCATOR_CLASSES" in saved:  # (a numba without it: its own locator for CACHE_DIR)
+                numba_config.CACHE_LOCATOR_CLASSES = f"{__name__}.{PackageLocator.__name__}"
             for d in dispatchers:
-                d.enable_caching()  # numba's own locator for a user-provided directory
+                d.enable_caching()  # located by PackageLocator (numba imports it by that name)
         finally:
             for k, v in saved.items():
                 setattr(numba_config, k, v)
