@@ -77,10 +77,13 @@ def _add_noise_arguments(p: argparse.ArgumentParser) -> None:
 # ----------------------------------------------------------------------------- simulate-observations
 
 
-def simulate_recordings(sim, theta, n_reaches: int, *, seed: int, noise=None, rate_multiplier: float = 1.0):
+def simulate_recordings(sim, theta, n_reaches: int, *, seed: int, noise=None, rate_multiplier: float = 1.0,
+                        generator: str = "controller", tremor_mm: float = 0.0):
     """Synthetic recorded reaches of a subject with limits ``theta`` (2n,): a tuple of `Observation`.
 
-    Goals from `reachable_goals` (seed ``derive_seed(seed, 0)``); each reach resampled to
+    Goals from `reachable_goals` (seed ``derive_seed(seed, 0)``); the subject moves by
+    ``generator`` (`camo_sbi.scenarios.generators.make_generator`, nuisances seeded by
+    ``derive_seed(seed, 2)``; "controller": the model itself); each reach resampled to
     ``rate_multiplier`` times as many samples (linear interpolation in time); noise from
     ``noise.perturb`` (seed ``derive_seed(seed, 1)``) on every value, start included.
     """
@@ -89,6 +92,7 @@ def simulate_recordings(sim, theta, n_reaches: int, *, seed: int, noise=None, ra
 
     from camo_sbi._validation import derive_seed, torch_generator
     from camo_sbi.io.recordings import resample_to_controller
+    from camo_sbi.scenarios.generators import make_generator
     from camo_sbi.scenarios.reaching import observe, reachable_goals
     from camo_sbi.task import NoiseModel, Observation
 
@@ -97,7 +101,7 @@ def simulate_recordings(sim, theta, n_reaches: int, *, seed: int, noise=None, ra
         raise ValueError(f"rate_multiplier: expected a number > 0, got {rate_multiplier!r}")
     theta = torch.as_tensor(theta, dtype=torch.float64)
     goals = reachable_goals(sim, theta, n_reaches, torch_generator(derive_seed(seed, 0)))
-    exact = observe(sim, theta, goals)
+    exact = observe(make_generator(sim, generator, seed=derive_seed(seed, 2), tremor_mm=tremor_mm), theta, goals)
     if rate_multiplier != 1:
         exact = tuple(resample_to_controller(o, sim, mode="time", rate=1.0 / rate_multiplier) for o in exact)
     gen = torch_generator(derive_seed(seed, 1))
@@ -116,6 +120,11 @@ def add_simulate_arguments(p: argparse.ArgumentParser) -> None:
     _add_noise_arguments(p)
     p.add_argument("--rate-multiplier", type=float, default=1.0,
                    help="the recorder samples R times per controller step (default 1)")
+    p.add_argument("--generator", choices=("controller", "minimum-jerk", "via-point"), default="controller",
+                   help="how the subject moves: the model's controller (default) or human-like paths the methods "
+                        "do not assume (camo_sbi.scenarios.generators)")
+    p.add_argument("--tremor-mm", type=float, default=0.0,
+                   help="physiological tremor sd per coordinate [mm] on minimum-jerk / via-point paths")
     p.add_argument("--scale", type=float, default=1.0,
                    help="the subject's segments are F times as long as the model's (default 1; 0.85-1.15)")
     p.add_argument("--space", choices=("both", "joint", "cartesian"), default="both",
@@ -127,8 +136,10 @@ def simulate_main(args) -> int:
     import numpy as np
     import torch
 
+    from camo_sbi._validation import derive_seed
     from camo_sbi.evaluation.claims import FEW_REACHES
     from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.scenarios.generators import make_generator
     from camo_sbi.scenarios.reaching import binding_reaches
     from camo_sbi.task import Observation
 
@@ -139,6 +150,12 @@ def simulate_main(args) -> int:
     if args.seed < 0:
         raise ValueError("--seed: must be >= 0")
     noise = _noise(args)
+    tremor = getattr(args, "tremor_mm", 0.0)
+    generator = getattr(args, "generator", "controller")
+    if not (np.isfinite(tremor) and tremor >= 0):
+        raise ValueError(f"--tremor-mm: must be >= 0, got {tremor}")
+    if tremor and generator == "controller":
+        raise ValueError("--tremor-mm: tremor needs --generator minimum-jerk or via-point")
     model = model_from_args(args)
     if model.limits is None:
         raise ValueError("--limits: simulate-observations needs the subject's true limits (--limits FILE.json)")
@@ -149,15 +166,17 @@ def simulate_main(args) -> int:
     body = sim if args.scale == 1.0 else sim.scaled(args.scale)
     with tqdm(total=1, desc="simulate-observations", unit="file") as bar:
         obs = simulate_recordings(body, theta, args.reaches, seed=args.seed, noise=noise,
-                                  rate_multiplier=args.rate_multiplier)
+                                  rate_multiplier=args.rate_multiplier, generator=generator, tremor_mm=tremor)
         if args.space != "both":
             obs = tuple(Observation(o.start, o.goal, o.q if args.space == "joint" else None,
                                     o.ee if args.space == "cartesian" else None) for o in obs)
         path = save_recordings(args.out, obs, sim)
         bar.update()
     n = sum(o.length for o in obs)
-    print(f"{model.name}: {len(obs)} reaches, {n} samples -> {path}")
-    hit = binding_reaches(sim, theta, sim.bounds.reshape(-1), torch.stack([o.start for o in obs]),
+    print(f"{model.name}: {len(obs)} reaches, {n} samples ({generator}) -> {path}")
+    mover = sim if generator == "controller" else make_generator(body, generator, seed=derive_seed(args.seed, 2),
+                                                                 tremor_mm=tremor)
+    hit = binding_reaches(mover, theta, sim.bounds.reshape(-1), torch.stack([o.start for o in obs]),
                           torch.stack([o.goal for o in obs]))
     print(f"binding_train_fraction {float(hit.double().mean()):.2f}: {int(hit.sum())} of {len(obs)} reaches move "
           f"> 1 mm when the limits are relaxed to the nominal range"
