@@ -225,6 +225,10 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
         task, true_test = misspecified_observations(task, body)
         binding = _bb(body, true_theta, task.test_starts, task.test_goals, task.prior)
         informative = task_binding_metrics(task, simulator=body)
+        if args.reach_model != "controller":  # the methods condition on a human-like model instead
+            from camo_sbi.scenarios.generators import reach_model
+
+            task = task.with_simulator(reach_model(sim, args.reach_model))
     else:
         informative = task_binding_metrics(task)
     rows = []
@@ -235,6 +239,10 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
             # every metric of the catalog that applies, per-joint limit errors and costs included
             metrics = {**evaluate_result(task, res, true_test, binding, reachability=st.workspace == "nominal"),
                        **informative, **design}
+            if st.generator and res is results[-1]:  # the reproduction check of the final posterior (issue 33)
+                from camo_sbi.diagnostics.misspecification import check_metrics
+
+                metrics.update(check_metrics(task, res, seed=derive_seed(args.seed, run, 33)))
             for metric, value in metrics.items():
                 rows.append({"run": run, "model": model.name, "subject": subject, "method": name,
                              "n_tasks": res.n_tasks, "metric": metric, "value": value, "status": res.status})
@@ -378,6 +386,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "via-point: human-like paths the methods do not assume; camo_sbi.scenarios.generators)")
     p.add_argument("--tremor-mm", type=float, default=0.0,
                    help="--setting misspecified: physiological tremor sd per coordinate [mm] on the human-like paths")
+    p.add_argument("--reach-model", choices=("controller", "minimum-jerk"), default="controller",
+                   help="--setting misspecified: the simulator every method conditions on and predicts with "
+                        "(minimum-jerk: camo_sbi.scenarios.generators.reach_model, its duration normalised to the "
+                        "generator's mean slowness)")
     add_model_arguments(p)
     p.add_argument("--runs", type=int, default=30, help="independent runs (paper: 30)")
     p.add_argument("--tasks", type=int, default=10, help="observed training goals per run")
@@ -437,6 +449,8 @@ def _check(args) -> None:
     if not _setting(args).generator and (getattr(args, "generator", "controller") != "controller"
                                          or getattr(args, "tremor_mm", 0.0)):
         raise ValueError("--generator: human-like reaches need --setting misspecified")
+    if not _setting(args).generator and getattr(args, "reach_model", "controller") != "controller":
+        raise ValueError("--reach-model: a human-like reach model needs --setting misspecified")
     if not (getattr(args, "tremor_mm", 0.0) >= 0):
         raise ValueError(f"--tremor-mm: must be >= 0, got {args.tremor_mm}")
     if getattr(args, "tremor_mm", 0.0) and args.generator == "controller":
@@ -463,7 +477,7 @@ def main(args) -> int:
         args.setting = "toolkit"
     if not hasattr(args, "design"):
         args.design = "random"
-    for name, default in (("generator", "controller"), ("tremor_mm", 0.0)):
+    for name, default in (("generator", "controller"), ("tremor_mm", 0.0), ("reach_model", "controller")):
         if not hasattr(args, name):
             setattr(args, name, default)
     _check(args)
@@ -500,6 +514,8 @@ def main(args) -> int:
                     cell["paper_design"] = PAPER_DESIGN
                 if _setting(args).generator:
                     cell["generator"], cell["tremor_mm"] = args.generator, args.tremor_mm
+                    if args.reach_model != "controller":
+                        cell["reach_model"] = args.reach_model
                 key = cell_key(cell)
                 keys.append(key)
                 if store.done(key):

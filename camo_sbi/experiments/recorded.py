@@ -424,19 +424,47 @@ def _ee_of(traj_ee: torch.Tensor, length: torch.Tensor, b: int) -> np.ndarray:
     return traj_ee[b, : int(length[b])].to(torch.float64).numpy()
 
 
+MODEL_CHECK_STREAM = 33
+"""Seed stream of the reproduction check (`derive_seed(seed, MODEL_CHECK_STREAM)`)."""
+
+
+def _model_checks(task, results: dict, seed: int) -> dict:
+    """{method: `ReproductionCheck`}: does each posterior reproduce each observed reach (issue 33)?"""
+    from camo_sbi._validation import derive_seed
+    from camo_sbi.diagnostics.misspecification import check_reproduction
+
+    return {name: check_reproduction(task, res, seed=derive_seed(seed, MODEL_CHECK_STREAM))
+            for name, res in results.items()}
+
+
+def _check_html(checks: dict):
+    """The report's opening section: the warnings of the check, then its per-reach table."""
+    import pandas as pd
+
+    from camo_sbi.diagnostics.misspecification import reach_rows, verdict_lines
+    from camo_sbi.diagnostics.pages import join, part
+    from camo_sbi.diagnostics.report import table_html
+
+    lines = [w for c in checks.values() for w in verdict_lines(c)]
+    head = part("items", lines) if lines else part(
+        "meta", "every posterior checked reproduces every reach (Holm-adjusted p >= 0.05)")
+    return join([head, table_html(pd.DataFrame(reach_rows(checks)))])
+
+
 def _report(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
-            formats=None) -> Path:
-    """report.html: the limits table (degrees) and, per reach, observed vs posterior-predictive
-    paths; with ``formats`` (``--figure-format``) the figures also as files in
-    ``out/report_figures``."""
+            formats=None, checks: dict | None = None) -> Path:
+    """report.html: the model check (``checks``: does each posterior reproduce each reach?), the
+    limits table (degrees) and, per reach, observed vs posterior-predictive paths; with
+    ``formats`` (``--figure-format``) the figures also as files in ``out/report_figures``."""
     from camo_sbi.diagnostics.report import figure_files
     from camo_sbi.diagnostics.style import paper_style
 
     with paper_style(), figure_files(out / "report_figures", formats):
-        return _report_page(out, task, results, notes, table, settings, seed)
+        return _report_page(out, task, results, notes, table, settings, seed, checks)
 
 
-def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int) -> Path:
+def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
+                 checks: dict | None = None) -> Path:
     import numpy as np
     import pandas as pd
     import torch
@@ -494,7 +522,7 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
     if more > 0:
         reach_html.append(part("meta", f"{more} more reaches not shown"))
     settings_html = table_html(pd.DataFrame([{"setting": k, "value": str(v)} for k, v in settings.items()]))
-    sections = [
+    sections = ([("model-check", "Does the model reproduce the recording?", _check_html(checks))] if checks else []) + [
         ("limits", "Estimated limits", _limits_html(table, sim)),
         ("settings", "Settings", settings_html + (part("items", notes) if notes else "")),
         ("limits-table", "All columns of limits.csv",
@@ -709,6 +737,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
     import camo_sbi
     from camo_sbi._validation import derive_seed
     from camo_sbi.diagnostics.arviz_io import observed_arrays, save_in_run, to_inference_data
+    from camo_sbi.diagnostics.misspecification import column_text, verdict_lines
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import save_recordings
     from camo_sbi.task import Observation, predict
@@ -727,7 +756,9 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
                                          "model_spec": model.to_json()})
         save_in_run(idata, out, name)  # posteriors/, or estimates/ for a point estimate
     bar.close()
+    checks = _model_checks(task, results, args.seed)
     table = limits_table(results, sim, task)
+    table["model_check"] = [column_text(checks[m]) for m in table["method"]]
     atomic_write_text(out / "limits.csv", table.to_csv(index=False))
     if goals is not None:
         s = obs[0].start if starts is None else starts
@@ -741,14 +772,22 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
                 "methods": ",".join(results), "budget": args.budget, "seed": args.seed,
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
                 "config": json.dumps(overrides, sort_keys=True), "suggest": args.suggest, **recording.info,
-                "warnings": list(recording.warnings)}
+                "warnings": list(recording.warnings) + [w for c in checks.values() for w in verdict_lines(c)]}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", "camo_sbi_version": camo_sbi.__version__,
                                                        **settings, "model_spec": json.loads(model.to_json())},
                                                       indent=2))
     write_starts(out / "starts.csv", obs, sim)
     notes = notes + [f"warning: {w}" for w in recording.warnings]
     report = _report(out, task, results, notes, table, settings, args.seed,
-                     formats=None if formats == ("png",) else formats)
+                     formats=None if formats == ("png",) else formats, checks=checks)
+    print("model check (does each posterior reproduce each reach? camo_sbi.diagnostics.misspecification):")
+    for name, c in checks.items():
+        print(f"  {name}: {column_text(c)}"
+              + ("" if not c.checked else "; per reach: " + ", ".join(
+                  f"{i} {v} (p={c.p_adjusted[i]:.3f})" for i, v in enumerate(c.verdicts()))))
+    for c in checks.values():
+        for w in verdict_lines(c):
+            print(f"warning: {w}")
     print("limits [deg], lower .. upper (* = not exercised: no reach came near this bound; limits.csv: exercised)")
     print(wide_limits(table).to_string())
     for name, res in results.items():

@@ -39,6 +39,7 @@ __all__ = [
     "check_sbi_version",
     "check_tarp",
     "fit_density_estimator",
+    "mmd_misspecification_p",
     "run_sbc",
     "run_tarp",
     "sbi_version",
@@ -319,6 +320,21 @@ def c2st(a: torch.Tensor, b: torch.Tensor, *, seed: int, n_folds: int = 5, class
     acc = sbi_c2st(torch.as_tensor(a, dtype=torch.float32), torch.as_tensor(b, dtype=torch.float32),
                    seed=int(seed), n_folds=n_folds, classifier=classifier)
     return float(acc)
+
+
+def mmd_misspecification_p(x_obs: torch.Tensor, x: torch.Tensor, *, seed: int, n_shuffle: int = 1000) -> float:
+    """p-value of ``sbi.diagnostics.misspecification.calc_misspecification_mmd`` in x-space (RBF
+    MMD, median-heuristic bandwidth, a permutation baseline of ``n_shuffle`` draws): is
+    ``x_obs`` (n_obs, d) out of the distribution of ``x`` (N, d)? Seeded (fork_rng)."""
+    check_sbi_version()
+    from sbi.diagnostics.misspecification import calc_misspecification_mmd
+
+    with torch.random.fork_rng(devices=[]), _quiet():
+        torch.manual_seed(int(seed))
+        p, _ = calc_misspecification_mmd(torch.as_tensor(x_obs, dtype=torch.float32),
+                                         torch.as_tensor(x, dtype=torch.float32), mode="x_space",
+                                         n_shuffle=int(n_shuffle), max_samples=x.shape[0])
+    return float(p)
 
 
 def _on_posterior(fn, thetas, xs, posterior, num_posterior_samples: int, seed: int):

@@ -56,7 +56,7 @@ import torch
 from camo_sbi._validation import check_positive_float
 from camo_sbi.simulators.base import Trajectories
 
-__all__ = ["GENERATORS", "STOP_M", "GeneratorConfig", "HumanLikeReaches", "make_generator", "minimum_jerk",
+__all__ = ["GENERATORS", "REACH_MODEL_SEED", "STOP_M", "reach_model", "GeneratorConfig", "HumanLikeReaches", "make_generator", "minimum_jerk",
            "minimum_jerk_speed"]
 
 GENERATORS = ("controller", "minimum-jerk", "via-point")
@@ -156,6 +156,16 @@ class HumanLikeReaches:
     def forward_kinematics(self, q) -> torch.Tensor:
         return self.base.forward_kinematics(q)
 
+    def _stepper(self):
+        """The body with a one-step controller: ``simulate(theta, x_target, q)`` returns q_{t+1}
+        = clamp(q + capped DLS step towards x_target) (the numba kernel on CPU tensors)."""
+        from camo_sbi.simulators.controller import ControllerConfig
+
+        g = self.generator
+        return self.base.with_config(ControllerConfig(
+            max_steps=2, tol=1e-9, gain=1.0, damping=g.damping, max_cartesian_step=1e3,
+            max_joint_step=g.max_joint_step, null_gain=0.0, early_stop=False))
+
     def desired_paths(self, x0: np.ndarray, goal: np.ndarray, T: int, rngs) -> tuple[np.ndarray, np.ndarray]:
         """Per reach the desired hand path (B, T, 3) (holding the goal after its end) and its
         duration D (B,) in steps: x0 (B, 3) the start's end-effector positions, goal (B, 3),
@@ -229,13 +239,11 @@ class HumanLikeReaches:
         x_out = torch.empty(B, T, 3, dtype=torch.float64)
         length = torch.full((B,), T, dtype=torch.int64)
         active = torch.ones(B, dtype=torch.bool)
-        lam2 = self.generator.damping**2
-        eye = torch.eye(3, dtype=torch.float64)
         x_prev = None
         last = T - 1
+        stepper = self._stepper()
+        x = self.chain.reference_fk(q)
         for t in range(T):
-            J6, pose = self.chain.reference_jacobian(q)
-            x = pose[:, :3, 3]
             q_out[:, t], x_out[:, t] = q, x
             if t > 0:
                 ended = t >= dur_t
@@ -247,14 +255,12 @@ class HumanLikeReaches:
                 last = t
                 break
             x_prev = x
-            e = path[:, min(t + 1, T - 1)] - x
-            J = J6[:, :3]
-            w = torch.linalg.solve(J @ J.transpose(1, 2) + lam2 * eye, e)
-            dq = (J.transpose(1, 2) @ w.unsqueeze(-1)).squeeze(-1)
-            m = dq.abs().amax(dim=-1, keepdim=True)
-            dq = dq * torch.where(m > self.generator.max_joint_step, self.generator.max_joint_step / m,
-                                  torch.ones_like(m))
-            q = torch.where(active.unsqueeze(-1), torch.minimum(torch.maximum(q + dq, lo), hi), q)
+            # one DLS step towards x_d(t+1), clamped into the limits: the kernel's controller step
+            # with gain 1, no step cap in Cartesian space, no null-space term (module docstring)
+            step = stepper.simulate(th, path[:, min(t + 1, T - 1)].contiguous(), q)
+            keep = active.unsqueeze(-1)
+            q = torch.where(keep, step.q[:, 1].to(torch.float64), q)
+            x = torch.where(keep, step.ee[:, 1].to(torch.float64), x)
         idx = torch.minimum(torch.arange(T).expand(B, T), (length - 1).unsqueeze(-1)).clamp(max=last)
         q_out = q_out.gather(1, idx.unsqueeze(-1).expand(B, T, n))
         x_out = x_out.gather(1, idx.unsqueeze(-1).expand(B, T, 3))
@@ -298,3 +304,16 @@ def misspecified_observations(task, generator, *, noise=None, seed: int = 0):
                                                                                               gen)) for o in obs)
     true_test = predict(generator, truth, task.test_starts, task.test_goals)
     return task.with_observations(obs), true_test
+
+
+REACH_MODEL_SEED = 0
+"""The inference model's own nuisance seed (unused with a fixed slowness: kept for the key)."""
+
+
+def reach_model(sim, name: str = "minimum-jerk") -> HumanLikeReaches:
+    """A human-like model to INFER with (issue 33): `HumanLikeReaches` of kind ``name`` whose
+    duration is normalised, not sampled: the slowness is fixed at the middle of the generator's
+    range (k = 3, D = ceil(3 L / max_cartesian_step)), no tremor. Same simulator contract, so
+    every method takes it as ``task.with_simulator(reach_model(sim))``."""
+    mid = 0.5 * sum(GeneratorConfig().slowness)
+    return HumanLikeReaches(sim, GeneratorConfig(kind=name, seed=REACH_MODEL_SEED, slowness=(mid, mid)))
