@@ -346,7 +346,13 @@ def test_import_time_is_measured_apart_from_wall_time(monkeypatch):
     the import lands on the first result only (a non-continual method reruns per k)."""
     from camo_sbi.inference import registry
     from camo_sbi.inference.baselines import NominalConfig, run_nominal
-    from camo_sbi.inference.registry import Capabilities, Implementation, MethodSpec, run_method, run_method_sequence
+    from camo_sbi.inference.registry import (
+        Capabilities,
+        Implementation,
+        MethodSpec,
+        run_method,
+        run_method_sequence,
+    )
     from tests.test_distributed import _toy_task
 
     state = {"imported": 0}

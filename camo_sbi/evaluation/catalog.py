@@ -40,7 +40,7 @@ class Metric:
     shown in degrees, `display_unit`); ``aggregate``: how the score is reduced to one
     value (module docstring); ``headline``: plotted in the figures; ``group``: what it
     measures ("prediction", "reachability", "posterior_predictive", "limits", "interval",
-    "reference", "cost", "design", "task", "allocation"); ``lower_is_better``: False for scores and shares where
+    "reference", "cost", "design", "task", "allocation", "model_check"); ``lower_is_better``: False for scores and shares where
     more is better; ``reference``: a value drawn as a line in figures (a nominal level),
     or None; ``claims``: tags of the claims that test it (`camo_sbi.evaluation.claims`);
     ``score``: the scoring function, None for a metric a command records itself.
@@ -224,6 +224,11 @@ METRICS: list[Metric] = [
     _M("binding_test_bound_min_fraction", "least share of held-out reaches one bound moves", "", "value",
        group="task"),
     _M("body_scale", "estimated body scale", "", "value", group="task"),
+    # the reproduction check of the final posterior (camo_sbi.diagnostics.misspecification, issue 33)
+    _M("model_check_p", "model check p-value (Holm over reaches)", "", "value", group="model_check",
+       lower_is_better=False),
+    _M("model_check_flagged", "recording flagged: the model does not reproduce it", "", "value",
+       group="model_check"),
     # block stacking (reproduce hrc): the allocation of the test blocks
     _M("precision", "precision", "", "value", group="allocation", lower_is_better=False, claims=("fig5",)),
     _M("recall", "recall", "", "value", group="allocation", lower_is_better=False, claims=("fig5",)),

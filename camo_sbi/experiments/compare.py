@@ -164,6 +164,10 @@ def run_cell(cell, out: str) -> list[dict]:
         # every metric of the catalog that applies, per-joint limit errors and costs included
         metrics = {**evaluate_result(task, res, true_test, binding, posterior_predictive_draws=PPC_DRAWS),
                    **informative}
+        if res is results[-1]:  # does the final posterior reproduce the observed reaches? (issue 33)
+            from camo_sbi.diagnostics.misspecification import check_metrics
+
+            metrics.update(check_metrics(task, res, seed=derive_seed(x["base_seed"], cell.seed, 33)))
         rows += [{**base, "n_tasks": res.n_tasks, "metric": k, "value": v, "status": res.status}
                  for k, v in metrics.items()]
     _save_posterior(out, cell, sim, task, results[-1])

@@ -40,6 +40,14 @@ best; every method is then run on that sequence. Rows carry ``design_simulations
 criterion's), ``design_method_simulations`` and ``design_fallbacks`` (steps whose design
 posterior had no draws to rank with, which fall back to the random design's goal).
 
+``--setting misspecified`` (issue 33: when the model is wrong): the informative design, but the
+subject reaches by ``--generator`` (`camo_sbi.scenarios.generators`): ``controller`` (the exact
+model, the reference), ``minimum-jerk`` or ``via-point`` (human-like paths tracked by IK inside
+the true limits, optional ``--tremor-mm``), while every method still conditions on the
+controller. The held-out truth (``cartesian_error_mm``, reachability) and the binding checks
+use the subject's generator, so the oracle (true limits, the controller) no longer scores 0:
+its error is the model's own share of the error.
+
 Every run records how informative it is: ``binding_test_fraction`` / ``binding_train_fraction``
 (and the counts ``binding_*_reaches``), the share of reaches whose true path moves by > 1 mm
 when the restriction is relaxed to the nominal limits (`scenarios.reaching.binding_reaches`).
@@ -92,6 +100,7 @@ class Setting:
         methods: default ``--methods``.
         workspace: "true" (goals inside the subject's limits) or "nominal" (the informative design).
         min_binding_test: with workspace "nominal", the least share of test goals that bind.
+        generator: the subject moves by ``--generator`` (issue 33), the methods assume the controller.
     """
 
     controller: dict | None
@@ -103,6 +112,7 @@ class Setting:
     methods: tuple[str, ...] = ()
     workspace: str = "true"
     min_binding_test: float | None = None
+    generator: bool = False
 
 
 AUTHORS_LENGTH_UNIT = 0.01
@@ -131,6 +141,12 @@ SETTINGS = {
               "distance": "dtw"},
         methods=("camo-js", "camo-cs", "camo-hull", "camo-seq", "camo-touched", "naive", "nominal", "oracle"),
         workspace="nominal", min_binding_test=0.5),
+    "misspecified": Setting(
+        controller=None, subjects="informative", fixed_goals=False, require_reached=False,
+        camo={"keep_best": 100, "bandwidth": 0.2, "bandwidth_mode": "fixed", "sampling": "uniform",
+              "distance": "dtw"},
+        methods=("camo-js", "camo-cs", "camo-hull", "naive", "nominal", "oracle"),
+        workspace="nominal", min_binding_test=0.5, generator=True),
 }
 """The designs of ``reproduce panda``. The paper setting's epsilons are the authors' ``THRESH``
 (0.02, joint) and ``THRESH_CARTESIAN`` (0.01 in the authors' units (cm) = 1e-4 m): with the grid
@@ -202,7 +218,20 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
     design = {}
     if getattr(args, "design", "random") == "active":
         task, design = active_observations(task, true_theta, args, run)
-    informative = task_binding_metrics(task)
+    if st.generator:  # issue 33: the subject moves by --generator, the methods assume the controller
+        from camo_sbi.evaluation.metrics import binding_bounds as _bb
+        from camo_sbi.scenarios.generators import make_generator, misspecified_observations
+
+        body = make_generator(sim, args.generator, seed=derive_seed(args.seed, run, 5), tremor_mm=args.tremor_mm)
+        task, true_test = misspecified_observations(task, body)
+        binding = _bb(body, true_theta, task.test_starts, task.test_goals, task.prior)
+        informative = task_binding_metrics(task, simulator=body)
+        if args.reach_model != "controller":  # the methods condition on a human-like model instead
+            from camo_sbi.scenarios.generators import reach_model
+
+            task = task.with_simulator(reach_model(sim, args.reach_model))
+    else:
+        informative = task_binding_metrics(task)
     rows = []
     for name in args.methods:
         results = run_method_sequence(name, task, budget=args.samples, seed=derive_seed(args.seed, run, 1),
@@ -211,6 +240,10 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
             # every metric of the catalog that applies, per-joint limit errors and costs included
             metrics = {**evaluate_result(task, res, true_test, binding, reachability=st.workspace == "nominal"),
                        **informative, **design}
+            if st.generator and res is results[-1]:  # the reproduction check of the final posterior (issue 33)
+                from camo_sbi.diagnostics.misspecification import check_metrics
+
+                metrics.update(check_metrics(task, res, seed=derive_seed(args.seed, run, 33)))
             for metric, value in metrics.items():
                 rows.append({"run": run, "model": model.name, "subject": subject, "method": name,
                              "n_tasks": res.n_tasks, "metric": metric, "value": value, "status": res.status})
@@ -342,12 +375,22 @@ def _make_figures(df, out: Path, formats) -> list[Path]:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--setting", choices=tuple(SETTINGS), default="toolkit",
                    help="toolkit: the toolkit's harder design (default); paper: the authors' published design; "
-                        "informative: goals from the nominal workspace, restrictions that bind (issue 23)")
+                        "informative: goals from the nominal workspace, restrictions that bind (issue 23); "
+                        "misspecified: the informative design, the subject moving by --generator (issue 33)")
     p.add_argument("--design", choices=("random", "active"), default="random",
                    help="training goals: random draws (default) or chosen one by one (active; --setting informative)")
     p.add_argument("--design-method", default=None,
                    help="--design active: the method whose posterior chooses the next reach (default: the first "
                         "of --methods with posterior draws)")
+    p.add_argument("--generator", choices=("controller", "minimum-jerk", "via-point"), default="controller",
+                   help="--setting misspecified: how the subject moves (controller: the exact model; minimum-jerk, "
+                        "via-point: human-like paths the methods do not assume; camo_sbi.scenarios.generators)")
+    p.add_argument("--tremor-mm", type=float, default=0.0,
+                   help="--setting misspecified: physiological tremor sd per coordinate [mm] on the human-like paths")
+    p.add_argument("--reach-model", choices=("controller", "minimum-jerk"), default="controller",
+                   help="--setting misspecified: the simulator every method conditions on and predicts with "
+                        "(minimum-jerk: camo_sbi.scenarios.generators.reach_model, its duration normalised to the "
+                        "generator's mean slowness)")
     add_model_arguments(p)
     p.add_argument("--runs", type=int, default=30, help="independent runs (paper: 30)")
     p.add_argument("--tasks", type=int, default=10, help="observed training goals per run")
@@ -399,6 +442,15 @@ def _check(args) -> None:
         cap = capabilities(args.design_method)
         if not cap.posterior or cap.baseline:
             raise ValueError(f"--design-method: {args.design_method} returns no posterior draws to design with")
+    if not _setting(args).generator and (getattr(args, "generator", "controller") != "controller"
+                                         or getattr(args, "tremor_mm", 0.0)):
+        raise ValueError("--generator: human-like reaches need --setting misspecified")
+    if not _setting(args).generator and getattr(args, "reach_model", "controller") != "controller":
+        raise ValueError("--reach-model: a human-like reach model needs --setting misspecified")
+    if not (getattr(args, "tremor_mm", 0.0) >= 0):
+        raise ValueError(f"--tremor-mm: must be >= 0, got {args.tremor_mm}")
+    if getattr(args, "tremor_mm", 0.0) and args.generator == "controller":
+        raise ValueError("--tremor-mm: tremor needs --generator minimum-jerk or via-point")
     if args.setting == "paper" and args.horizon is None:
         args.horizon = 21
     if args.horizon is not None and args.horizon < 2:
@@ -453,6 +505,10 @@ def grid_cells(args, model, subjects: list[str]) -> list:
             extras["design_method"] = args.design_method
         if args.setting == "paper":
             extras["paper_design"] = PAPER_DESIGN
+        if _setting(args).generator:  # the controller's settings keep the cell keys they always had
+            extras["generator"], extras["tremor_mm"] = args.generator, args.tremor_mm
+            if args.reach_model != "controller":
+                extras["reach_model"] = args.reach_model
         cells.append(Cell(model=model, subject=subjects[run % len(subjects)], seed=args.seed, budget=args.samples,
                           tasks=args.tasks, extras=extras, model_key=model_key, budget_key="samples"))
     return cells
@@ -464,7 +520,8 @@ def run_cell(cell, out: str) -> list[dict]:
     x = dict(cell.extras)
     args = argparse.Namespace(**{**x, "tasks": cell.tasks, "samples": cell.budget, "seed": cell.seed,
                                     "design": x.get("design", "random"), "design_method": x.get("design_method"),
-                                    "scheduler": None})
+                                    "generator": x.get("generator", "controller"), "tremor_mm": x.get("tremor_mm", 0.0),
+                                    "reach_model": x.get("reach_model", "controller"), "scheduler": None})
     return run_one(_simulator(args, cell.model), cell.model, cell.subject, x["run"], args)
 
 
@@ -479,6 +536,9 @@ def main(args) -> int:
         args.setting = "toolkit"
     if not hasattr(args, "design"):
         args.design = "random"
+    for name, default in (("generator", "controller"), ("tremor_mm", 0.0), ("reach_model", "controller")):
+        if not hasattr(args, name):
+            setattr(args, name, default)
     _check(args)
     formats = figure_formats(args)
     t0 = time.perf_counter()
@@ -495,7 +555,7 @@ def main(args) -> int:
         keys = [c.key for c in cells]
         df = store.write_table(keys=keys)
         figs = make_figures(df, out, formats)
-        claims = (informative_claims(df, setting=args.setting) if args.setting == "informative"
+        claims = (informative_claims(df, setting=args.setting) if args.setting in ("informative", "misspecified")
                   else manipulator_claims(df, setting=args.setting))
         atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     wall = time.perf_counter() - t0

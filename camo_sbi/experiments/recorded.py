@@ -77,10 +77,13 @@ def _add_noise_arguments(p: argparse.ArgumentParser) -> None:
 # ----------------------------------------------------------------------------- simulate-observations
 
 
-def simulate_recordings(sim, theta, n_reaches: int, *, seed: int, noise=None, rate_multiplier: float = 1.0):
+def simulate_recordings(sim, theta, n_reaches: int, *, seed: int, noise=None, rate_multiplier: float = 1.0,
+                        generator: str = "controller", tremor_mm: float = 0.0):
     """Synthetic recorded reaches of a subject with limits ``theta`` (2n,): a tuple of `Observation`.
 
-    Goals from `reachable_goals` (seed ``derive_seed(seed, 0)``); each reach resampled to
+    Goals from `reachable_goals` (seed ``derive_seed(seed, 0)``); the subject moves by
+    ``generator`` (`camo_sbi.scenarios.generators.make_generator`, nuisances seeded by
+    ``derive_seed(seed, 2)``; "controller": the model itself); each reach resampled to
     ``rate_multiplier`` times as many samples (linear interpolation in time); noise from
     ``noise.perturb`` (seed ``derive_seed(seed, 1)``) on every value, start included.
     """
@@ -89,6 +92,7 @@ def simulate_recordings(sim, theta, n_reaches: int, *, seed: int, noise=None, ra
 
     from camo_sbi._validation import derive_seed, torch_generator
     from camo_sbi.io.recordings import resample_to_controller
+    from camo_sbi.scenarios.generators import make_generator
     from camo_sbi.scenarios.reaching import observe, reachable_goals
     from camo_sbi.task import NoiseModel, Observation
 
@@ -97,7 +101,7 @@ def simulate_recordings(sim, theta, n_reaches: int, *, seed: int, noise=None, ra
         raise ValueError(f"rate_multiplier: expected a number > 0, got {rate_multiplier!r}")
     theta = torch.as_tensor(theta, dtype=torch.float64)
     goals = reachable_goals(sim, theta, n_reaches, torch_generator(derive_seed(seed, 0)))
-    exact = observe(sim, theta, goals)
+    exact = observe(make_generator(sim, generator, seed=derive_seed(seed, 2), tremor_mm=tremor_mm), theta, goals)
     if rate_multiplier != 1:
         exact = tuple(resample_to_controller(o, sim, mode="time", rate=1.0 / rate_multiplier) for o in exact)
     gen = torch_generator(derive_seed(seed, 1))
@@ -116,6 +120,11 @@ def add_simulate_arguments(p: argparse.ArgumentParser) -> None:
     _add_noise_arguments(p)
     p.add_argument("--rate-multiplier", type=float, default=1.0,
                    help="the recorder samples R times per controller step (default 1)")
+    p.add_argument("--generator", choices=("controller", "minimum-jerk", "via-point"), default="controller",
+                   help="how the subject moves: the model's controller (default) or human-like paths the methods "
+                        "do not assume (camo_sbi.scenarios.generators)")
+    p.add_argument("--tremor-mm", type=float, default=0.0,
+                   help="physiological tremor sd per coordinate [mm] on minimum-jerk / via-point paths")
     p.add_argument("--scale", type=float, default=1.0,
                    help="the subject's segments are F times as long as the model's (default 1; 0.85-1.15)")
     p.add_argument("--space", choices=("both", "joint", "cartesian"), default="both",
@@ -127,8 +136,10 @@ def simulate_main(args) -> int:
     import numpy as np
     import torch
 
+    from camo_sbi._validation import derive_seed
     from camo_sbi.evaluation.claims import FEW_REACHES
     from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.scenarios.generators import make_generator
     from camo_sbi.scenarios.reaching import binding_reaches
     from camo_sbi.task import Observation
 
@@ -139,6 +150,12 @@ def simulate_main(args) -> int:
     if args.seed < 0:
         raise ValueError("--seed: must be >= 0")
     noise = _noise(args)
+    tremor = getattr(args, "tremor_mm", 0.0)
+    generator = getattr(args, "generator", "controller")
+    if not (np.isfinite(tremor) and tremor >= 0):
+        raise ValueError(f"--tremor-mm: must be >= 0, got {tremor}")
+    if tremor and generator == "controller":
+        raise ValueError("--tremor-mm: tremor needs --generator minimum-jerk or via-point")
     model = model_from_args(args)
     if model.limits is None:
         raise ValueError("--limits: simulate-observations needs the subject's true limits (--limits FILE.json)")
@@ -149,15 +166,17 @@ def simulate_main(args) -> int:
     body = sim if args.scale == 1.0 else sim.scaled(args.scale)
     with tqdm(total=1, desc="simulate-observations", unit="file") as bar:
         obs = simulate_recordings(body, theta, args.reaches, seed=args.seed, noise=noise,
-                                  rate_multiplier=args.rate_multiplier)
+                                  rate_multiplier=args.rate_multiplier, generator=generator, tremor_mm=tremor)
         if args.space != "both":
             obs = tuple(Observation(o.start, o.goal, o.q if args.space == "joint" else None,
                                     o.ee if args.space == "cartesian" else None) for o in obs)
         path = save_recordings(args.out, obs, sim)
         bar.update()
     n = sum(o.length for o in obs)
-    print(f"{model.name}: {len(obs)} reaches, {n} samples -> {path}")
-    hit = binding_reaches(sim, theta, sim.bounds.reshape(-1), torch.stack([o.start for o in obs]),
+    print(f"{model.name}: {len(obs)} reaches, {n} samples ({generator}) -> {path}")
+    mover = sim if generator == "controller" else make_generator(body, generator, seed=derive_seed(args.seed, 2),
+                                                                 tremor_mm=tremor)
+    hit = binding_reaches(mover, theta, sim.bounds.reshape(-1), torch.stack([o.start for o in obs]),
                           torch.stack([o.goal for o in obs]))
     print(f"binding_train_fraction {float(hit.double().mean()):.2f}: {int(hit.sum())} of {len(obs)} reaches move "
           f"> 1 mm when the limits are relaxed to the nominal range"
@@ -468,20 +487,48 @@ def reach_figure(sim, o, results: dict, draws: dict):
     return fig
 
 
+MODEL_CHECK_STREAM = 33
+"""Seed stream of the reproduction check (`derive_seed(seed, MODEL_CHECK_STREAM)`)."""
+
+
+def _model_checks(task, results: dict, seed: int) -> dict:
+    """{method: `ReproductionCheck`}: does each posterior reproduce each observed reach (issue 33)?"""
+    from camo_sbi._validation import derive_seed
+    from camo_sbi.diagnostics.misspecification import check_reproduction
+
+    return {name: check_reproduction(task, res, seed=derive_seed(seed, MODEL_CHECK_STREAM))
+            for name, res in results.items()}
+
+
+def _check_html(checks: dict):
+    """The report's opening section: the warnings of the check, then its per-reach table."""
+    import pandas as pd
+
+    from camo_sbi.diagnostics.misspecification import reach_rows, verdict_lines
+    from camo_sbi.diagnostics.pages import join, part
+    from camo_sbi.diagnostics.report import table_html
+
+    lines = [w for c in checks.values() for w in verdict_lines(c)]
+    head = part("items", lines) if lines else part(
+        "meta", "every posterior checked reproduces every reach (Holm-adjusted p >= 0.05)")
+    return join([head, table_html(pd.DataFrame(reach_rows(checks)))])
+
+
 def _report(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
-            formats=None, speed: dict | None = None) -> Path:
-    """report.html: the limits table (degrees) and, per reach, observed vs posterior-predictive
-    paths; with ``formats`` (``--figure-format``) the figures also as files in
-    ``out/report_figures``."""
+            formats=None, speed: dict | None = None, checks: dict | None = None) -> Path:
+    """report.html: the model check (``checks``: does each posterior reproduce each reach?), the
+    limits table (degrees) and, per reach, observed vs posterior-predictive paths (``speed``: the
+    hand speed with the reach cuts); with ``formats`` (``--figure-format``) the figures also as
+    files in ``out/report_figures``."""
     from camo_sbi.diagnostics.report import figure_files
     from camo_sbi.diagnostics.style import paper_style
 
     with paper_style(), figure_files(out / "report_figures", formats):
-        return _report_page(out, task, results, notes, table, settings, seed, speed)
+        return _report_page(out, task, results, notes, table, settings, seed, speed, checks)
 
 
 def _report_page(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
-                 speed: dict | None = None) -> Path:
+                 speed: dict | None = None, checks: dict | None = None) -> Path:
     import pandas as pd
     import torch
 
@@ -510,7 +557,7 @@ def _report_page(out: Path, task, results: dict, notes: list[str], table, settin
         reach_html.append(part("meta", f"{more} more reaches not shown"))
     settings_html = part("wide", table_html(pd.DataFrame([{"setting": k, "value": str(v)}
                                                           for k, v in settings.items()])))
-    sections = [
+    sections = ([("model-check", "Does the model reproduce the recording?", _check_html(checks))] if checks else []) + [
         ("limits", "Estimated limits", _limits_html(table, sim)),
         ("settings", "Settings", settings_html + (part("items", notes) if notes else "")),
         ("limits-table", "All columns of limits.csv",
@@ -735,6 +782,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
     import camo_sbi
     from camo_sbi._validation import derive_seed
     from camo_sbi.diagnostics.arviz_io import observed_arrays, save_in_run, to_inference_data
+    from camo_sbi.diagnostics.misspecification import column_text, verdict_lines
     from camo_sbi.experiments.method_configs import method_config
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import save_recordings
@@ -755,7 +803,9 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
                                          "model_spec": model.to_json()})
         save_in_run(idata, out, name)  # posteriors/, or estimates/ for a point estimate
     bar.close()
+    checks = _model_checks(task, results, args.seed)
     table = limits_table(results, sim, task)
+    table["model_check"] = [column_text(checks[m]) for m in table["method"]]
     atomic_write_text(out / "limits.csv", table.to_csv(index=False))
     if goals is not None:
         s = obs[0].start if starts is None else starts
@@ -769,7 +819,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
                 "methods": ",".join(results), "budget": args.budget, "seed": args.seed,
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
                 "config": json.dumps(overrides, sort_keys=True), "suggest": args.suggest, **recording.info,
-                "warnings": list(recording.warnings)}
+                "warnings": list(recording.warnings) + [w for c in checks.values() for w in verdict_lines(c)]}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", "camo_sbi_version": camo_sbi.__version__,
                                                        **settings, "model_spec": json.loads(model.to_json())},
                                                       indent=2))
@@ -781,7 +831,16 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
         print(f"reaches: {len(recording.segments)} found ({recording.speed['rule']}) -> {out / 'reaches.csv'}")
     notes = notes + [f"warning: {w}" for w in recording.warnings]
     report = _report(out, task, results, notes, table, settings, args.seed,
-                     formats=None if formats == ("png",) else formats, speed=recording.speed)
+                     formats=None if formats == ("png",) else formats, speed=recording.speed,
+                     checks=checks)
+    print("model check (does each posterior reproduce each reach? camo_sbi.diagnostics.misspecification):")
+    for name, c in checks.items():
+        print(f"  {name}: {column_text(c)}"
+              + ("" if not c.checked else "; per reach: " + ", ".join(
+                  f"{i} {v} (p={c.p_adjusted[i]:.3f})" for i, v in enumerate(c.verdicts()))))
+    for c in checks.values():
+        for w in verdict_lines(c):
+            print(f"warning: {w}")
     print("limits [deg], " + WIDE_LIMITS_KEY.replace(" [deg]", "", 1))
     print(wide_limits(table).to_string())
     for name, res in results.items():

@@ -45,6 +45,7 @@ __all__ = [
     "check_tarp",
     "fit_density_estimator",
     "logistic_prior",
+    "mmd_misspecification_p",
     "nle_log_likelihood",
     "nre_log_ratio",
     "run_sbc",
@@ -351,6 +352,21 @@ def mmd(a: torch.Tensor, b: torch.Tensor) -> float:
     if a.shape[0] < 2 or b.shape[0] < 2:
         raise ValueError(f"a: the unbiased MMD needs at least 2 samples per set, got {a.shape[0]} and {b.shape[0]}")
     return float(unbiased_mmd_squared(torch.as_tensor(a, dtype=torch.float64), torch.as_tensor(b, dtype=torch.float64)))
+
+
+def mmd_misspecification_p(x_obs: torch.Tensor, x: torch.Tensor, *, seed: int, n_shuffle: int = 1000) -> float:
+    """p-value of ``sbi.diagnostics.misspecification.calc_misspecification_mmd`` in x-space (RBF
+    MMD, median-heuristic bandwidth, a permutation baseline of ``n_shuffle`` draws): is
+    ``x_obs`` (n_obs, d) out of the distribution of ``x`` (N, d)? Seeded (fork_rng)."""
+    check_sbi_version()
+    from sbi.diagnostics.misspecification import calc_misspecification_mmd
+
+    with torch.random.fork_rng(devices=[]), _quiet():
+        torch.manual_seed(int(seed))
+        p, _ = calc_misspecification_mmd(torch.as_tensor(x_obs, dtype=torch.float32),
+                                         torch.as_tensor(x, dtype=torch.float32), mode="x_space",
+                                         n_shuffle=int(n_shuffle), max_samples=x.shape[0])
+    return float(p)
 
 
 def _on_posterior(fn, thetas, xs, posterior, num_posterior_samples: int, seed: int):
