@@ -4,7 +4,7 @@ The first time in a process that numba compiles one of camo_sbi's kernels, `anno
 listener logs one line for each of the two kinds (the package's DTW and KDE kernels; a body
 model's generated chain kernels), e.g.
 
-    compiling camo_sbi's kernels (once, about 20 s; later runs load them from ~/.cache/camo_sbi; ...)
+    compiling camo_sbi's kernels (once, about <COMPILE_SECONDS> s; later runs load them from ...)
 
 through the ``camo_sbi`` logger at the warning level: the CLI shows it unless -q, and with no
 handler configured Python prints it on stderr. A kernel loaded from numba's cache fires no
