@@ -239,10 +239,10 @@ def test_readme_adding_a_method_example_runs_through_the_registry():
         exec(compile(_readme_example(), "docs/adding-a-method.md:nle", "exec"), module.__dict__)  # noqa: S102 - our README
         true = torch.tensor([-0.3, 0.4, -0.5, 0.6], dtype=torch.float64)
         task = make_reaching_task(ToySimulator(), true, n_train=2, n_test=1, seed=0, name="toy", subject="toy")
-        res = registry.run_method("nle", task, budget=300, seed=0)
-        again = registry.run_method("nle", task, budget=300, seed=0)
+        res = registry.run_method("my-nle", task, budget=300, seed=0)
+        again = registry.run_method("my-nle", task, budget=300, seed=0)
     finally:
-        registry._REGISTRY.pop("nle", None)
+        registry._REGISTRY.pop("my-nle", None)
         sys.modules.pop(module.__name__, None)
     assert res.samples.shape == (2000, 4) and res.weights is None and res.n_simulations == 600
     assert (res.samples >= task.prior.low.numpy() - 1e-9).all() and (res.samples <= task.prior.high.numpy() + 1e-9).all()
