@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from urllib.parse import urlsplit
 
-__all__ = ["CONNECT_TIMEOUT", "DEFAULT_RETRIES", "connect_early", "dask_client", "get_client", "map_ordered", "map_unordered", "parse_scheduler",
+__all__ = ["CONNECT_TIMEOUT", "DEFAULT_RETRIES", "connect_early", "dask_client", "get_client", "local_scheduler", "map_ordered", "map_unordered", "parse_scheduler",
            "run_chunks", "worker_count"]
 
 DEFAULT_RETRIES = 2
@@ -119,6 +119,22 @@ def _close(client, cluster) -> None:
     finally:
         if cluster is not None:
             cluster.close()
+
+
+@contextmanager
+def local_scheduler() -> Iterator[None]:
+    """Run the dask graphs built inside this block in this process (dask's synchronous scheduler).
+
+    Inside a Dask worker, xarray otherwise takes a *distributed* write lock named after its write
+    target, which an in-memory buffer cannot have ("Semaphore or Lock <BytesIO> not known"); a
+    write that stays in this process needs no cluster lock. Without dask: nothing to do."""
+    try:
+        import dask
+    except ImportError:  # dask is an optional dependency
+        yield
+        return
+    with dask.config.set(scheduler="synchronous"):
+        yield
 
 
 @contextmanager

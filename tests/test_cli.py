@@ -30,6 +30,7 @@ COMPARE = ["compare", "--model", "panda", "--methods", "camo,naive", "--budgets"
            "--tasks", "2", "--test-goals", "3", "--no-report"]
 COMPARE_METRICS = PREDICTION | BINDING | PER_JOINT | {"limit_error_deg", "n_simulations", *TIMINGS}
 PPC = {"ppc_cartesian_error_mm", "pp_mean_cartesian_error_mm"}  # posterior methods only
+MODEL_CHECK = {"model_check_p", "model_check_flagged"}  # the model check (issue 33) of the final posterior
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -235,7 +236,7 @@ def test_compare_row_for_every_cell(compare_table):
     assert set(sets.index) == {(m, s, k) for m in ("camo", *BASELINES) for s in (0, 1) for k in (1, 2)}
     for (m, s, k), metrics in sets.items():
         # the posterior's predictive scores; the model check (issue 33) of its final posterior
-        extra = (PPC | ({"model_check_p", "model_check_flagged"} if k == 2 else set())) if m == "camo" else set()
+        extra = (PPC | (MODEL_CHECK if k == 2 else set())) if m == "camo" else set()
         assert COMPARE_METRICS | extra <= metrics <= COMPARE_METRICS | extra | LIMIT_GROUPS
         assert metrics - extra == sets[("oracle", s, 1)]
     assert set(df.budget) == {100} and set(df.task) == {"panda"} and df.subject.nunique() == 1
@@ -354,10 +355,9 @@ def test_compare_with_abc_smc_and_npe(tmp_path):
     assert len(got) == len(set(got))
     sets = _metric_sets(df, ["method", "n_tasks"])
     assert set(sets.index) == {(m, k) for m in ("abc-smc", "npe", *BASELINES) for k in (1, 2)}
-    check = {"model_check_p", "model_check_flagged"}  # the model check (issue 33) of the final posterior
     for m in ("abc-smc", "npe"):  # posterior methods: the prediction metrics and the posterior-predictive ones
         for k in (1, 2):
-            extra = PPC | (check if k == 2 else set())
+            extra = PPC | (MODEL_CHECK if k == 2 else set())
             assert COMPARE_METRICS | extra <= sets[(m, k)] <= COMPARE_METRICS | extra | LIMIT_GROUPS
     v = df.set_index(["method", "n_tasks", "metric"]).value
     assert v.notna().all()

@@ -576,19 +576,10 @@ def netcdf_bytes(idata: az.InferenceData) -> bytes:
     """``idata`` as the bytes of the netCDF (HDF5) file arviz's ``to_netcdf`` writes: every group
     through h5netcdf into memory, zlib-compressed as arviz compresses (numbers and bytes)."""
     _check_idata(idata)
-    with _local_writes():
+    from camo_sbi.distributed import local_scheduler  # inside a Dask worker: no cluster lock on a buffer
+
+    with local_scheduler():
         return _netcdf_bytes(idata)
-
-
-def _local_writes():
-    """Inside a Dask worker xarray takes a *distributed* write lock named after the target, which
-    an in-memory buffer cannot have ("Semaphore or Lock <BytesIO> not known"): the write is local
-    to this process, so it runs under dask's synchronous scheduler (a no-op without dask)."""
-    try:
-        import dask
-    except ImportError:  # dask is optional here
-        return contextlib.nullcontext()
-    return dask.config.set(scheduler="synchronous")
 
 
 def _netcdf_bytes(idata: az.InferenceData) -> bytes:
