@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     p.add_argument("--runs", type=int, default=30)
     p.add_argument("--reaches", type=int, default=10)
     p.add_argument("--generators", default="controller,via-point,minimum-jerk")
-    p.add_argument("--statistic", default="path")
+    p.add_argument("--statistic", default="onset")
     p.add_argument("--test", default="rank")
     p.add_argument("--tolerance-mm", type=float, default=10.0)
     p.add_argument("--seed", type=int, default=0)

@@ -604,6 +604,11 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
                         "would tell about the limits (camo_sbi.design, the first posterior method's draws) and write "
                         "the best N to next_goals.csv")
     add_figure_format_argument(p)
+    p.add_argument("--reach-model", choices=("controller", "minimum-jerk"), default="controller",
+                   help="the reach law every method conditions on and predicts with: the differential-kinematics "
+                        "controller (the paper's) or a human-like minimum-jerk reach (bell-shaped speed, duration "
+                        "normalised; camo_sbi.scenarios.generators.reach_model); amortized estimators are skipped "
+                        "with minimum-jerk (trained on the controller)")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--force", action="store_true",
                    help="--out holds an infer run with other settings: replace it (its limits, posteriors, "
@@ -612,8 +617,8 @@ def add_infer_arguments(p: argparse.ArgumentParser) -> None:
 
 
 #: what an infer run writes into --out (removed when --force replaces a run of other settings)
-_INFER_OUTPUTS = ("limits.csv", "report.html", "config.json", "posteriors", "estimates", "predictions", "work", "figures",
-                  "starts.csv", "next_goals.csv", "subjects", "reaches.csv")
+_INFER_OUTPUTS = ("limits.csv", "model_check.csv", "report.html", "config.json", "posteriors", "estimates",
+                  "predictions", "work", "figures", "starts.csv", "next_goals.csv", "subjects", "reaches.csv")
 
 
 def _infer_settings(args, model, overrides: dict) -> dict:
@@ -741,7 +746,18 @@ def infer_main(args) -> int:
     if args.predict_goals is not None:
         goals, starts = load_goals(args.predict_goals, sim, degrees=args.degrees, noise=noise)
     task = _recorded_task(model, sim, obs, noise)
+    reach_law = getattr(args, "reach_model", "controller")
+    if reach_law != "controller":  # every method conditions on, and predicts with, a human-like reach law
+        from camo_sbi.scenarios.generators import reach_model
+
+        task = task.with_simulator(reach_model(sim, reach_law))
     plan, notes = _plan(methods, task, args.space, str(args.observations))
+    if reach_law != "controller":
+        from camo_sbi.inference.registry import capabilities
+
+        for name, _ in [p for p in plan if capabilities(p[0]).amortized]:
+            notes.append(f"{name}: skipped (trained on the controller's reaches, not on --reach-model {reach_law})")
+        plan = [p for p in plan if not capabilities(p[0]).amortized]
     if recording.scale != 1.0:  # an amortized estimator was trained on the model's own size
         from camo_sbi.inference.registry import capabilities
 
@@ -768,21 +784,23 @@ def infer_main(args) -> int:
         if run.replaced:  # --force: nothing of the replaced run stays beside the new limits.csv
             _clear_infer_outputs(out)
         _infer_into(out, args, model, sim, task, obs, goals, starts, plan, notes, overrides, formats, noise,
-                    recording)
+                    recording, reach_law)
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
     return 0
 
 
 def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, notes, overrides, formats,
-                noise, recording) -> None:
-    """Run the planned methods and write limits.csv, posteriors, predictions, starts.csv,
-    config.json, the report and (--suggest) next_goals.csv."""
+                noise, recording, reach_law: str = "controller") -> None:
+    """Run the planned methods and write limits.csv, model_check.csv (per method and reach: the
+    reproduction check), posteriors, predictions, starts.csv, config.json, the report and
+    (--suggest) next_goals.csv."""
+    import pandas as pd
     import torch
 
     import camo_sbi
     from camo_sbi._validation import derive_seed
     from camo_sbi.diagnostics.arviz_io import observed_arrays, save_in_run, to_inference_data
-    from camo_sbi.diagnostics.misspecification import column_text, verdict_lines
+    from camo_sbi.diagnostics.misspecification import column_text, reach_rows, verdict_lines
     from camo_sbi.experiments.method_configs import method_config
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import save_recordings
@@ -807,10 +825,11 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
     table = limits_table(results, sim, task)
     table["model_check"] = [column_text(checks[m]) for m in table["method"]]
     atomic_write_text(out / "limits.csv", table.to_csv(index=False))
+    atomic_write_text(out / "model_check.csv", pd.DataFrame(reach_rows(checks)).to_csv(index=False))
     if goals is not None:
         s = obs[0].start if starts is None else starts
         for name, res in results.items():
-            traj = predict(sim, res.estimate, s, goals)
+            traj = predict(task.simulator, res.estimate, s, goals)  # the reach law the methods assumed
             pred = [Observation((s if s.dim() == 1 else s[i]), goals[i], traj.trimmed(i, "joint").to(torch.float64),
                                 traj.trimmed(i, "cartesian").to(torch.float64)) for i in range(goals.shape[0])]
             save_recordings(out / "predictions" / f"{name}.csv", pred, sim)
@@ -818,15 +837,13 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
                 "samples": sum(o.length for o in obs), "spaces": ",".join(task.spaces),
                 "methods": ",".join(results), "budget": args.budget, "seed": args.seed,
                 "noise_joint_deg": noise.joint_deg, "noise_ee_mm": noise.ee_mm, "resample": args.resample,
-                "config": json.dumps(overrides, sort_keys=True), "suggest": args.suggest, **recording.info,
+                "config": json.dumps(overrides, sort_keys=True), "suggest": args.suggest, "reach_model": reach_law, **recording.info,
                 "warnings": list(recording.warnings) + [w for c in checks.values() for w in verdict_lines(c)]}
     atomic_write_text(out / "config.json", json.dumps({"experiment": "infer", "camo_sbi_version": camo_sbi.__version__,
                                                        **settings, "model_spec": json.loads(model.to_json())},
                                                       indent=2))
     write_starts(out / "starts.csv", obs, sim)
     if recording.segments:
-        import pandas as pd
-
         atomic_write_text(out / "reaches.csv", pd.DataFrame(list(recording.segments)).to_csv(index=False))
         print(f"reaches: {len(recording.segments)} found ({recording.speed['rule']}) -> {out / 'reaches.csv'}")
     notes = notes + [f"warning: {w}" for w in recording.warnings]
