@@ -589,16 +589,11 @@ def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, h
     """The table cut into the reaches ``spec`` finds (`camo_sbi.io.segment`): (the table of the
     reaches' rows with new reach ids, the reaches.csv rows, the speed figure's data)."""
     from camo_sbi.io.segment import (
-        ACTIVE_SPEED,
-        CUTOFF_HZ,
-        MIN_DURATION_S,
-        MIN_PEAK_SPEED,
-        NOISE_FACTOR,
-        ONSET_FRACTION,
         events_segments,
         hand_speed,
         parse_reaches,
         ranges_segments,
+        rule_text,
         segment_by_speed,
     )
 
@@ -631,11 +626,9 @@ def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, h
     else:
         segs = []
         for a, b in runs:
-            segs += [type(g)(g.first + a, g.last + a, g.rule, g.peak_speed) for g in segment_by_speed(t[a:b], speed[a:b])]
-        rule = (f"hand speed: {CUTOFF_HZ:g} Hz low-pass; movement = speed > {ACTIVE_SPEED:g} m/s with a peak > "
-                f"{MIN_PEAK_SPEED:g} m/s; cuts where the speed falls below max({ONSET_FRACTION:g} x peak, "
-                f"{NOISE_FACTOR:g} x the speed at rest), then on to its local minimum; at least "
-                f"{MIN_DURATION_S:g} s")
+            segs += [type(g)(g.first + a, g.last + a, g.rule, g.peak_speed)
+                     for g in segment_by_speed(t[a:b], speed[a:b], hand[a:b])]
+        rule = rule_text()
     if not segs:
         raise ValueError(f"--reaches: {spec} found no reach in {table.path} (rule: {rule}); give frame ranges "
                          f"(--reaches 0-120,121-260)")

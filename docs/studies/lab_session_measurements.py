@@ -29,7 +29,7 @@ def cuts(n_sessions: int = 30, rate: float = 100.0, noise_m: float = 0.001) -> N
         targets = rest + rng.uniform([0.1, -0.1, 0.0], [0.35, 0.25, 0.35], size=(5, 3))
         points = np.vstack([np.vstack([rest, t]) for t in targets] + [rest])
         time, x, truth = minimum_jerk_session(points, seed, rate=rate, noise_m=noise_m)
-        segs = segment_by_speed(time, hand_speed(time, x))
+        segs = segment_by_speed(time, hand_speed(time, x), x)
         total += len(truth)
         if len(segs) == len(truth):
             found += len(truth)
