@@ -32,13 +32,11 @@ Rule "speed" (`segment_by_speed`), with these stated thresholds, in two passes:
    t0 (the end likewise, in reversed time). With fewer than `MIN_REST_SAMPLES` samples at rest
    beside it (no pause between two movements) a cut keeps its first-pass place.
 
-Why the second pass: a speed threshold cannot place a smooth start. A movement of 0.1 m over
-1.2 s moves 0.07 mm in its first 50 ms, under the 1 mm marker noise, and its speed stays below
-the noise's speed (~10 mm/s after the filter) for about 80 ms; the first pass's cut then lands
-wherever the noise puts the local minimum (up to 120 ms off). The fit uses every sample of the
-rise up to 10% of the amplitude, where the displacement is far above the noise, and
-extrapolates the start. How close the cuts come to the true ones is measured in
-docs/guide/lab_session.md.
+Why the second pass: a threshold on speed cannot place a smooth start, whose speed stays under
+the noise's for a while; the first pass's cut then lands wherever the noise puts the local
+minimum. The fit uses every sample of the rise up to `FIT_FRACTION` of the amplitude, where the
+displacement stands clear of the noise, and extrapolates the start. The reasoning with numbers,
+and how close the cuts come to the true ones: docs/guide/lab_session.md.
 
 Each reach's goal is where the hand is at its end (free reaching), its start posture its
 first sample. The outward reach and the return to rest are both reaches (the return's goal is
