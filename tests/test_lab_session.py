@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -135,32 +136,71 @@ REAL_MAP = REAL.with_name("pyomeca_shoulder_map.json")
 
 def test_real_session_gives_joint_angles_and_reaches(body):
     """pyomeca's upper-limb trial (tests/data/pyomeca_shoulder.SOURCE.md): the wrist's ulnar
-    deviation goes past the model's 30 deg, which is refused naming the joint, the frame and what
-    to check (never --degrees), or clipped with a warning; two reaches are found by hand speed."""
-    with pytest.raises(ValueError) as err:
-        load_recording(REAL, body, markers="isb", marker_map=REAL_MAP, reaches="auto", resample=None)
-    msg = str(err.value)
-    assert "the ISB landmarks give wrist_deviation = " in msg and "frame " in msg and "--degrees" not in msg
+    deviation goes past the model's 30 deg. By default (out_of_range "auto": angles from ISB
+    landmarks) it is clipped onto the range with one loud warning naming the joint, the bound, how
+    many samples and by how much, and the bound is listed in ``clipped``; "error" refuses it naming
+    the joint, the frame and what to check (never --degrees); two reaches are found by hand speed."""
     rec = load_recording(REAL, body, markers="isb", marker_map=REAL_MAP, reaches="auto", resample=None,
-                         out_of_range="clip", noise=NoiseModel(joint_deg=1.0))
+                         noise=NoiseModel(joint_deg=1.0))
     assert len(rec.observations) == 2 and len(rec.segments) == 2
     assert [w.split(": ")[1] for w in rec.warnings] == ["wrist_deviation"]
+    w = rec.warnings[0]
+    assert "OUTSIDE THE MODEL'S RANGE [-30.0, 20.0] deg" in w and "below its lower bound -30.0 deg" in w
+    assert "--out-of-range auto" in w and "--out-of-range error stops instead" in w
+    [c] = rec.clipped
+    assert (c["joint"], c["bound"]) == ("wrist_deviation", "lower") and c["samples"] > 100 and 15 < c["beyond"] < 30
     q = np.degrees(np.concatenate([o.q.numpy() for o in rec.observations]))
+    assert q[:, JOINT_NAMES.index("wrist_deviation")].min() >= -30.0 - 1e-9  # clipped onto the range
     elbow = q[:, JOINT_NAMES.index("elbow_flexion")]
     assert elbow.min() < 20 and elbow.max() > 120  # the trial bends the elbow through most of its range
+    clip = load_recording(REAL, body, markers="isb", marker_map=REAL_MAP, reaches="auto", resample=None,
+                          noise=NoiseModel(joint_deg=1.0), out_of_range="clip")
+    assert clip.clipped == rec.clipped and "--out-of-range clip" in clip.warnings[0]
+    with pytest.raises(ValueError) as err:
+        load_recording(REAL, body, markers="isb", marker_map=REAL_MAP, reaches="auto", resample=None,
+                       out_of_range="error")
+    msg = str(err.value)
+    assert "the ISB landmarks give wrist_deviation = " in msg and "frame " in msg and "--degrees" not in msg
+    with pytest.raises(ValueError, match=r"^out_of_range: expected one of \('auto', 'clip', 'error'\)"):
+        load_recording(REAL, body, markers="isb", marker_map=REAL_MAP, out_of_range="warn")
+
+
+def test_limits_table_marks_the_bounds_the_recording_went_past(body):
+    """A clipped bound: limits.csv's clipped_samples and beyond_range on that bound's rows only,
+    and "!" on it (observed and every method) in the wide table."""
+    from camo_sbi.experiments.recorded import WIDE_LIMITS_KEY, _recorded_task, limits_table, wide_limits
+    from camo_sbi.inference.registry import run_method
+
+    rec = load_recording(REAL, body, markers="isb", marker_map=REAL_MAP, reaches="auto", resample=None,
+                         noise=NoiseModel(joint_deg=1.0))
+    task = _recorded_task(SimpleNamespace(name="human"), body, rec.observations, NoiseModel(joint_deg=1.0))
+    table = limits_table({"naive": run_method("naive", task, budget=1, seed=0)}, body, task, rec.clipped)
+    hit = (table.joint == "wrist_deviation") & (table.bound == "lower")
+    assert (table.loc[hit, "clipped_samples"] == rec.clipped[0]["samples"]).all()
+    assert table.loc[hit, "beyond_range"].iloc[0] == pytest.approx(rec.clipped[0]["beyond"])
+    assert (table.loc[~hit, "clipped_samples"] == 0).all() and table.loc[~hit, "beyond_range"].isna().all()
+    wide = wide_limits(table)
+    assert wide.loc["wrist_deviation", "observed"].startswith("-30.0! .. ")
+    assert wide.loc["wrist_deviation", "naive"].startswith("-30.0! .. ")
+    assert "!" not in "".join(wide.drop(index="wrist_deviation").to_numpy().ravel())
+    assert "! = the recording went past the model's range" in WIDE_LIMITS_KEY
 
 
 @pytest.mark.slow
 def test_the_done_when_command_on_the_real_session(tmp_path):
-    """The issue's command on the real trial, with --out-of-range clip (its wrist goes past the
-    model's ulnar deviation) and small budgets: exit 0, two reaches, every method's rows."""
+    """The issue's command on the real trial exactly as the done-when writes it (no --out-of-range:
+    its wrist goes past the model's ulnar deviation, which the default clips and marks), small
+    budgets: exit 0, two reaches, every method's rows, the clipped bound marked."""
     out = tmp_path / "out"
     npe = json.dumps({"max_epochs": 3, "num_transforms": 1, "hidden_features": 8, "training_batch_size": 20,
                       "n_posterior_samples": 200, "is_rounds": 1})
     assert main(["infer", "--observations", str(REAL), "--model", "human", "--markers", "isb", "--marker-map",
-                 str(REAL_MAP), "--reaches", "auto", "--side", "right", "--out-of-range", "clip", "--methods",
+                 str(REAL_MAP), "--reaches", "auto", "--side", "right", "--methods",
                  "naive,camo-seq,camo-touched,npe", "--budget", "60", "--noise-joint-deg", "1", "--config",
                  f"npe={npe}", "--out", str(out)]) == 0
     assert len(pd.read_csv(out / "reaches.csv")) == 2
     limits = pd.read_csv(out / "limits.csv")
     assert set(limits.method) == {"naive", "camo-seq", "camo-touched", "npe"} and limits.observed_min_deg.notna().all()
+    past = limits[limits.clipped_samples > 0]
+    assert set(zip(past.joint, past.bound)) == {("wrist_deviation", "lower")} and len(past) == 4
+    assert "! = the recording went past" in (out / "report.html").read_text()

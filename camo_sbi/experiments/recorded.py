@@ -197,7 +197,7 @@ OBSERVED_RANGE_METHODS = ("naive",)
 ``exercised`` is left empty (the observed range is the range used in the task, never a limit)."""
 
 
-def limits_table(results: dict, sim, task=None):
+def limits_table(results: dict, sim, task=None, clipped=()):
     """One row per method, joint and bound: estimate [rad], [deg], the joint's observed range
     [deg], posterior median [deg], the 90% central interval [deg], identifiability, exercised,
     the calibration verdict and the status.
@@ -224,6 +224,10 @@ def limits_table(results: dict, sim, task=None):
       over-confident posterior (CAMO's, see ``calibration``) narrows bounds no reach touched,
       which is exactly the misreading "not exercised" guards against. An unexercised bound is
       not evidence of an impairment: the data say nothing about it.
+    * ``clipped_samples``, ``beyond_range``: from ``clipped`` (`Recording.clipped`): how many
+      recorded samples went past the model's range on this side and were clipped onto it, and
+      the most beyond (degrees; metres for a prismatic joint); 0 and empty otherwise. Such a
+      bound's estimate is the model's range, not the person's (the wide table marks it "!").
     """
     import numpy as np
     import pandas as pd
@@ -244,6 +248,7 @@ def limits_table(results: dict, sim, task=None):
             q_hi = np.stack([q.max(axis=0) for q in qs])
         allow += K_SIGMA * task.noise.sigma("joint") if task.noise is not None else 0.0
         prior_w = INTERVAL * (task.prior.high - task.prior.low).numpy()
+    past = {(c["joint"], c["bound"]): c for c in clipped}
     rows = []
     for name, res in results.items():
         w = res.normalized_weights()
@@ -280,11 +285,13 @@ def limits_table(results: dict, sim, task=None):
                              "lower_90_deg": deg(lo[k]), "upper_90_deg": deg(hi[k]), "identifiability": ident,
                              "margin_deg": deg(margin) if task is not None else float("nan"),
                              "reaches_at_bound": touching, "exercised": exercised, "calibration": verdict,
-                             "status": res.status})
+                             "clipped_samples": int(past[(joint, bound)]["samples"]) if (joint, bound) in past else 0,
+                             "beyond_range": float(past[(joint, bound)]["beyond"]) if (joint, bound) in past
+                             else float("nan"), "status": res.status})
     return pd.DataFrame(rows, columns=["method", "joint", "bound", "estimate_rad", "estimate_deg",
                                        "observed_min_deg", "observed_max_deg", "median_deg", "lower_90_deg",
                                        "upper_90_deg", "identifiability", "margin_deg", "reaches_at_bound",
-                                       "exercised", "calibration", "status"])
+                                       "exercised", "calibration", "clipped_samples", "beyond_range", "status"])
 
 
 FALLBACK_MARK = "\u2020"
@@ -293,14 +300,23 @@ WIDE_LIMITS_KEY = ("lower .. upper [deg] of the model's joint angles (not ISB cl
                    "range recorded in these reaches (the functional range of the task, not the person's maximal "
                    "range; naive is that range); * = not exercised: no recorded angle came within the margin "
                    "(limits.csv: margin_deg) of the estimate, so the data say nothing about that bound; "
-                   "\u2020 = the method fell back or failed (its status in limits.csv)")
+                   "\u2020 = the method fell back or failed (its status in limits.csv); ! = the recording went "
+                   "past the model's range on this side and was clipped onto it (--out-of-range; limits.csv: "
+                   "clipped_samples, beyond_range): that estimate is the model's range, not the person's")
+
+
+def _past_mark(row) -> str:
+    """"!" for a bound the recording went past (clipped onto the model's range), else ""."""
+    n = row.get("clipped_samples", 0)
+    return "!" if n == n and int(n or 0) > 0 else ""  # n == n: not NaN
 
 
 def wide_limits(table):
     """The limits as a person reads them: one row per joint, the observed range first (when the
     recording has joint angles), then one column per method, each cell "lower .. upper" in degrees
-    with 1 decimal; a bound no reach exercised is marked "*", a method whose status is not "ok"
-    carries `FALLBACK_MARK` after its name."""
+    with 1 decimal; a bound no reach exercised is marked "*", a bound the recording went past (its
+    samples clipped onto the model's range, ``clipped_samples``) "!", and a method whose status is
+    not "ok" carries `FALLBACK_MARK` after its name."""
     import numpy as np
     import pandas as pd
 
@@ -311,14 +327,15 @@ def wide_limits(table):
             v = r["estimate_deg"] if np.isfinite(r["estimate_deg"]) else r["estimate_rad"]
             ex = r["exercised"]
             mark = "*" if ex is not None and not (isinstance(ex, float) and np.isnan(ex)) and not bool(ex) else ""
-            parts.append(f"{v:.1f}{mark}")
+            parts.append(f"{v:.1f}{mark}{_past_mark(r)}")
         return " .. ".join(parts)
 
     joints = list(dict.fromkeys(table["joint"]))
     out = {}
     if "observed_min_deg" in table and table["observed_min_deg"].notna().any():
-        first = table.drop_duplicates("joint").set_index("joint")
-        out["observed"] = [f"{first.loc[j, 'observed_min_deg']:.1f} .. {first.loc[j, 'observed_max_deg']:.1f}"
+        first = table.drop_duplicates(["joint", "bound"]).set_index(["joint", "bound"])
+        out["observed"] = [f"{first.loc[(j, 'lower'), 'observed_min_deg']:.1f}{_past_mark(first.loc[(j, 'lower')])} .. "
+                           f"{first.loc[(j, 'upper'), 'observed_max_deg']:.1f}{_past_mark(first.loc[(j, 'upper')])}"
                            for j in joints]
     for m in dict.fromkeys(table["method"]):
         t = table[table["method"] == m]
@@ -822,7 +839,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
         save_in_run(idata, out, name)  # posteriors/, or estimates/ for a point estimate
     bar.close()
     checks = _model_checks(task, results, args.seed)
-    table = limits_table(results, sim, task)
+    table = limits_table(results, sim, task, recording.clipped)
     table["model_check"] = [column_text(checks[m]) for m in table["method"]]
     atomic_write_text(out / "limits.csv", table.to_csv(index=False))
     atomic_write_text(out / "model_check.csv", pd.DataFrame(reach_rows(checks)).to_csv(index=False))
@@ -904,9 +921,11 @@ def add_recording_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--marker-map", type=Path, default=None,
                    help='JSON {"IJ": "<label>", "PX": ..., "C7": ..., "T8": ..., "AC": ..., "EL": ..., "EM": ..., '
                         '"RS": ..., "US": ..., "MC2": ..., "MC5": ...}: the file\'s marker for each ISB landmark')
-    p.add_argument("--out-of-range", choices=("error", "clip"), default="error",
-                   help="a joint angle beyond the model's range (more than the noise allowance): error, or clip it "
-                        "onto the range with a warning per joint (a person beyond the normative range)")
+    p.add_argument("--out-of-range", choices=("auto", "clip", "error"), default="auto",
+                   help="a joint angle beyond the model's range (more than the noise allowance): clip = clip it onto "
+                        "the range with a warning per joint and mark the bound (!) in limits.csv and the report; "
+                        "error = exit 2 naming it; auto = clip the angles of --markers isb (a person beyond the "
+                        "model's normative range), error for every other file (a BVH map, a unit, a sign)")
     p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
                    help="free: estimate the body's segment-length scale s in [0.85, 1.15] from the joint and "
                         "end-effector columns and infer on the scaled body")
@@ -942,7 +961,7 @@ def load_from_args(args, path, sim, noise, start):
                           max_reaches=getattr(args, "max_reaches", MAX_REACHES), reaches=getattr(args, "reaches", None),
                           side=getattr(args, "side", None), markers=getattr(args, "markers", None),
                           marker_map=getattr(args, "marker_map", None),
-                          out_of_range=getattr(args, "out_of_range", "error"))
+                          out_of_range=getattr(args, "out_of_range", "auto"))
 
 
 def _height_from_file(args) -> None:

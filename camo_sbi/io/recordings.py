@@ -23,7 +23,12 @@ effector (within `START_TOL_M` plus the noise allowance).
 Noise allowance: joint values may lie beyond the model's range by at most
 ``K_SIGMA * sigma`` (sigma from the `NoiseModel`, plus `BOUND_SLACK` for rounding); such
 values are clipped onto the bound (the limits can never lie outside the model's range),
-farther ones are an error. ``degrees=True`` reads the revolute joint columns in degrees
+farther ones are an error, or (``out_of_range``, the CLI's ``--out-of-range``, `OUT_OF_RANGE_MODES`)
+clipped onto the range with a warning per joint and the bound marked (``Recording.clipped``;
+limits.csv's ``clipped_samples``). The default, "auto", clips the joint angles computed from
+anatomical landmarks (``markers="isb"``: a person beyond the model's normative range is a
+finding, not a file error) and refuses every other file (a BVH channel map's sign or offset, a
+CSV's unit or a .mot's convention is the likelier cause there). ``degrees=True`` reads the revolute joint columns in degrees
 (prismatic ones stay in metres). Joint values beyond the range that would fit it after a
 degrees-to-radians conversion are reported as "use --degrees".
 
@@ -79,7 +84,7 @@ from camo_sbi.io.text import read_text
 from camo_sbi.simulators.controller import ControllerConfig
 from camo_sbi.task import NoiseModel, Observation
 
-__all__ = ["BOUND_SLACK", "EE_COLUMNS", "EE_UNITS", "GOAL_COLUMNS", "GOAL_MODES", "K_SIGMA", "RESAMPLE_MODES",
+__all__ = ["BOUND_SLACK", "EE_COLUMNS", "EE_UNITS", "GOAL_COLUMNS", "GOAL_MODES", "K_SIGMA", "OUT_OF_RANGE_MODES", "RESAMPLE_MODES",
            "START_TOL_M", "Recording", "estimate_body_scale", "estimate_rate", "estimate_starts", "load_goals", "load_recording",
            "load_recordings", "reach_radius", "resample_to_controller", "save_recordings"]
 
@@ -94,6 +99,8 @@ UNITS_FACTOR = 10.0
 hint when it would fit in millimetres)."""
 GOAL_COLUMNS = ("goal_x", "goal_y", "goal_z")
 EE_COLUMNS = ("ee_x", "ee_y", "ee_z")
+OUT_OF_RANGE_MODES = ("auto", "clip", "error")
+"""``out_of_range``: "auto" (clip the ISB landmarks' angles, refuse other files), "clip", "error"."""
 K_SIGMA = 4.0
 """Values may exceed the model's range by K_SIGMA noise standard deviations (4: one in ~16 000
 noise-free samples at a bound is wrongly refused)."""
@@ -248,8 +255,8 @@ def _read_c3d_isb(path: Path, simulator, markers: str, marker_map, side, ee_mark
     cols = {REACH: np.unique(run_id, return_inverse=True)[1].astype(np.float64), TIME: d["time"][present],
             **{j: q[:, k] for k, j in enumerate(JOINT_NAMES)}}
     src = {j: {"what": "the ISB landmarks", "entry": f"--marker-map {marker_map} and --side {side or 'right'}; a "
-                                                   f"person beyond the model's normative range: --out-of-range "
-                                                   f"clip (or a larger --noise-joint-deg)"}
+                                                   f"person beyond the model's normative range: drop --out-of-range "
+                                                   f"error (the default clips and marks the bound)"}
            for j in JOINT_NAMES}
     return _Table(path, cols, d["frames"][present], "frame", sources=src), d
 
@@ -339,10 +346,12 @@ def _reaches(table: _Table, goal: str = "columns") -> list[np.ndarray]:
 
 
 def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel,
-                  clip_warnings: list | None = None) -> np.ndarray:
+                  clip_warnings: list | None = None, clipped: list | None = None, why: str = "clip") -> np.ndarray:
     """(rows, n) joint values in radians, checked against the model's range and clipped within noise.
-    With ``clip_warnings`` (a list; ``out_of_range="clip"``) values beyond the range are clipped onto
-    it too, one warning per joint (how many samples, by how much at most) appended to the list."""
+    With ``clip_warnings`` (a list; ``out_of_range`` "clip", or "auto" on the ISB landmarks' angles:
+    ``why`` names it) values beyond the range are clipped onto it too, one warning per joint (how
+    many samples, by how much at most, which frames) appended to the list, and one row per bound
+    ({"joint", "bound", "samples", "beyond"}: the most beyond, degrees or metres) appended to ``clipped``."""
     names = list(simulator.joint_names)
     types = _joint_types(simulator)
     b = simulator.bounds.to(torch.float64).numpy()
@@ -355,12 +364,25 @@ def _joint_values(table: _Table, simulator, degrees: bool, noise: NoiseModel,
     outside = below | above
     if outside.any() and clip_warnings is not None:
         for j in np.flatnonzero(outside.any(axis=0)):
-            excess = np.maximum(b[j, 0] - q[:, j], q[:, j] - b[j, 1]).max()
             unit, f = ("deg", np.degrees) if rev[j] else ("m", float)
+            sides = []
+            for bound, mask, excess in (("lower", below[:, j], b[j, 0] - q[:, j]), ("upper", above[:, j], q[:, j] - b[j, 1])):
+                if not mask.any():
+                    continue
+                rows = table.rows[np.flatnonzero(mask)]
+                sides.append(f"{int(mask.sum())} {'below' if bound == 'lower' else 'above'} its {bound} bound "
+                             f"{f(b[j, 0 if bound == 'lower' else 1]):.1f} {unit} (at most {f(excess.max()):.1f} "
+                             f"{unit} beyond; {table.row_word}s {int(rows.min())}-{int(rows.max())})")
+                if clipped is not None:
+                    clipped.append({"joint": names[j], "bound": bound, "samples": int(mask.sum()),
+                                    "beyond": float(f(excess.max()))})
             clip_warnings.append(
-                f"{table.path}: {names[j]}: {int(outside[:, j].sum())} of {q.shape[0]} samples beyond the model's "
-                f"range [{f(b[j, 0]):.1f}, {f(b[j, 1]):.1f}] {unit} (at most {f(excess):.1f} {unit}), clipped onto "
-                f"it (--out-of-range clip): that bound's estimate is the model's range, not the person's")
+                f"{table.path}: {names[j]}: OUTSIDE THE MODEL'S RANGE [{f(b[j, 0]):.1f}, {f(b[j, 1]):.1f}] {unit} in "
+                f"{int(outside[:, j].sum())} of {q.shape[0]} samples: {'; '.join(sides)}; clipped onto it "
+                f"(--out-of-range {why}): that bound's estimate is the model's range, not the person's (marked ! in "
+                f"the limits table, limits.csv: clipped_samples); if no person could go there, check "
+                f"{table.sources[names[j]]['entry'].split(';')[0] if table.sources and names[j] in table.sources else 'the file'}"
+                f"; --out-of-range error stops instead")
         return np.clip(q, b[:, 0], b[:, 1])
     if outside.any():
         i, j = (int(v) for v in np.argwhere(outside)[0])
@@ -542,6 +564,7 @@ class Recording:
     scale: float = 1.0  # the body's segment-length scale (body_scale="free"), else 1
     segments: tuple[dict, ...] = ()  # reaches found by --reaches (reaches.csv rows), else ()
     speed: dict | None = None  # {"time", "speed", "cuts": [(t0, t1)], "rule"} for the report's speed figure
+    clipped: tuple[dict, ...] = ()  # bounds the recording went past, clipped: {"joint", "bound", "samples", "beyond"}
 
 
 BODY_SCALE_RANGE = (0.85, 1.15)
@@ -589,16 +612,11 @@ def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, h
     """The table cut into the reaches ``spec`` finds (`camo_sbi.io.segment`): (the table of the
     reaches' rows with new reach ids, the reaches.csv rows, the speed figure's data)."""
     from camo_sbi.io.segment import (
-        ACTIVE_SPEED,
-        CUTOFF_HZ,
-        MIN_DURATION_S,
-        MIN_PEAK_SPEED,
-        NOISE_FACTOR,
-        ONSET_FRACTION,
         events_segments,
         hand_speed,
         parse_reaches,
         ranges_segments,
+        rule_text,
         segment_by_speed,
     )
 
@@ -631,11 +649,9 @@ def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, h
     else:
         segs = []
         for a, b in runs:
-            segs += [type(g)(g.first + a, g.last + a, g.rule, g.peak_speed) for g in segment_by_speed(t[a:b], speed[a:b])]
-        rule = (f"hand speed: {CUTOFF_HZ:g} Hz low-pass; movement = speed > {ACTIVE_SPEED:g} m/s with a peak > "
-                f"{MIN_PEAK_SPEED:g} m/s; cuts where the speed falls below max({ONSET_FRACTION:g} x peak, "
-                f"{NOISE_FACTOR:g} x the speed at rest), then on to its local minimum; at least "
-                f"{MIN_DURATION_S:g} s")
+            segs += [type(g)(g.first + a, g.last + a, g.rule, g.peak_speed)
+                     for g in segment_by_speed(t[a:b], speed[a:b], hand[a:b])]
+        rule = rule_text()
     if not segs:
         raise ValueError(f"--reaches: {spec} found no reach in {table.path} (rule: {rule}); give frame ranges "
                          f"(--reaches 0-120,121-260)")
@@ -668,7 +684,7 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                    ee_units: str | None = None, goal: str = "columns", frame: Frame | None = None,
                    ee_markers=None, frame_markers: dict | None = None, body_scale: str = "fixed",
                    bvh_map=None, max_reaches: int | None = MAX_REACHES, reaches: str | None = None, side: str | None = None,
-                   markers: str | None = None, marker_map=None, out_of_range: str = "error") -> Recording:
+                   markers: str | None = None, marker_map=None, out_of_range: str = "auto") -> Recording:
     """The observed reaches in the recording file ``path`` (CSV, .npz or .c3d), for ``simulator``.
 
     Args:
@@ -703,10 +719,14 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         markers: "isb": a C3D's joint angles from its anatomical landmarks (`camo_sbi.io.isb`),
             named by ``marker_map`` (a JSON file {ISB landmark: the file's label}); the model
             must be the human model. Frames missing a landmark separate reaches.
-        out_of_range: "error" (default): a joint value beyond the model's range by more than the
-            noise allowance is an error naming it; "clip": it is clipped onto the range with a
-            warning per joint (a person beyond the model's normative range, or a marker set's
-            offset: the bound's estimate is then the model's range, say so when reading it).
+        out_of_range: what a joint value beyond the model's range by more than the noise
+            allowance does. "error": an error naming it (file, frame or line, joint, what to
+            check). "clip": it is clipped onto the range with a warning per joint, and the bound
+            is listed in ``Recording.clipped`` (the bound's estimate is then the model's range,
+            not the person's: limits.csv and the limits table mark it). "auto" (default): "clip"
+            for the joint angles of ``markers="isb"`` (a person beyond the model's normative
+            range), "error" for every other file (BVH, CSV, NPZ, .mot: there a channel map, a
+            unit or a sign convention is the likelier cause).
         body_scale: "fixed" (the model's body) or "free": the segment-length scale s of the
             recorded body is estimated from the joint and end-effector columns
             (`estimate_body_scale`) and ``Recording.scale`` holds it; the checks use the
@@ -734,8 +754,9 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
     if max_reaches is not None and (isinstance(max_reaches, bool) or not isinstance(max_reaches, int)
                                     or max_reaches < 1):
         raise ValueError(f"--max-reaches: expected a whole number >= 1, got {max_reaches!r}")
-    if out_of_range not in ("error", "clip"):
-        raise ValueError(f"out_of_range: expected 'error' or 'clip', got {out_of_range!r}")
+    if out_of_range not in OUT_OF_RANGE_MODES:
+        raise ValueError(f"out_of_range: expected one of {OUT_OF_RANGE_MODES}, got {out_of_range!r}")
+    clip = out_of_range == "clip" or (out_of_range == "auto" and markers is not None)
     if body_scale not in ("fixed", "free"):
         raise ValueError(f"body_scale: expected 'fixed' or 'free', got {body_scale!r}")
     path = Path(path)
@@ -829,14 +850,15 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                 np.unique(table.columns[REACH]).size > 1:
             raise ValueError(f"--reaches: the --bvh-map file lists reaches already ({bvh_map}); give one or the other")
         table, segments, speed = _resegment(table, simulator, reaches, side, events, has_q, has_ee, degrees, noise,
-                                            clip=out_of_range == "clip")
+                                            clip=clip)
         info["reaches"] = f"{len(segments)} found ({speed['rule']})"
     reaches = _reaches(table, goal)
     if max_reaches is not None and len(reaches) > max_reaches:
         raise ValueError(f"--max-reaches: {path} holds {len(reaches):,} reaches, more than {max_reaches:,}: every "
                          f"reach is a task of every method (--budget simulations each) and, when the recording "
                          f"has no joint columns, an IK problem; give --max-reaches {len(reaches)} to run them all")
-    q_all = _joint_values(table, simulator, degrees, noise, warns if out_of_range == "clip" else None) \
+    clipped: list[dict] = []
+    q_all = _joint_values(table, simulator, degrees, noise, warns if clip else None, clipped, out_of_range) \
         if has_q else None
     ee_all = np.stack([table.columns[c] for c in EE_COLUMNS], axis=1) if has_ee else None
     if goal == "final":
@@ -926,13 +948,13 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
         obs.append(Observation(st, torch.from_numpy(goal_all[idx[0]].copy()), q, ee))
     obs = tuple(obs)
     if resample is None:
-        return Recording(obs, tuple(warns), info, scale, segments, speed)
+        return Recording(obs, tuple(warns), info, scale, segments, speed, tuple(clipped))
     r = estimate_rate(obs, simulator) if rate is None else float(rate)
     if not (math.isfinite(r) and r > 0):
         raise ValueError(f"rate: expected a number > 0, got {rate!r}")
     info["rate"] = round(r, 4)
     return Recording(tuple(resample_to_controller(o, simulator, mode=resample, rate=r) for o in obs),
-                     tuple(warns), info, scale, segments, speed)
+                     tuple(warns), info, scale, segments, speed, tuple(clipped))
 
 
 def _read(path) -> _Table:

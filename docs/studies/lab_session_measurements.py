@@ -29,7 +29,7 @@ def cuts(n_sessions: int = 30, rate: float = 100.0, noise_m: float = 0.001) -> N
         targets = rest + rng.uniform([0.1, -0.1, 0.0], [0.35, 0.25, 0.35], size=(5, 3))
         points = np.vstack([np.vstack([rest, t]) for t in targets] + [rest])
         time, x, truth = minimum_jerk_session(points, seed, rate=rate, noise_m=noise_m)
-        segs = segment_by_speed(time, hand_speed(time, x))
+        segs = segment_by_speed(time, hand_speed(time, x), x)
         total += len(truth)
         if len(segs) == len(truth):
             found += len(truth)
@@ -39,6 +39,28 @@ def cuts(n_sessions: int = 30, rate: float = 100.0, noise_m: float = 0.001) -> N
           f"mean error start {np.mean(np.asarray(errs)[:, 0]) * 1000:+.1f} ms, end "
           f"{np.mean(np.asarray(errs)[:, 1]) * 1000:+.1f} ms; |error| median {np.median(e):.0f} ms, "
           f"within 50 ms {np.mean(e <= 50) * 100:.1f}%, max {e.max():.0f} ms")
+
+
+def cuts_markers(n_sessions: int = 10, rate: float = 100.0, noise_mm: float = 1.0) -> None:
+    """--reaches auto on the synthetic marker session (ISB landmarks -> angles -> the hand by FK)."""
+    import pandas as pd
+
+    body = human(1.75, "male")
+    errs, found, total = [], 0, 0
+    for seed in range(n_sessions):
+        with tempfile.TemporaryDirectory() as d:
+            f = synthetic_session(d, seed=seed, reaches=4, noise_mm=noise_mm, rate=rate)
+            rec = load_recording(f["c3d"], body, markers="isb", marker_map=f["map"], reaches="auto", resample=None,
+                                 noise=NoiseModel(joint_deg=1.0))
+            truth = pd.read_csv(f["truth"])
+        total += len(truth)
+        if len(rec.segments) == len(truth):
+            found += len(truth)
+            errs += [[r["start_s"] - a, r["end_s"] - b] for r, (a, b) in
+                     zip(rec.segments, truth[["start_s", "end_s"]].to_numpy(), strict=True)]
+    e = np.abs(np.asarray(errs)) * 1000
+    print(f"cuts on the marker session, {n_sessions} seeds at {rate:g} Hz, noise {noise_mm:g} mm: {found}/{total} "
+          f"movements found; within 50 ms {np.mean(e <= 50) * 100:.1f}%, max {e.max():.0f} ms")
 
 
 def isb(seeds=(1, 2), n: int = 500) -> None:
@@ -72,6 +94,8 @@ def mot_vs_markers(seeds=(0, 1), noise_mm: float = 1.0) -> None:
 if __name__ == "__main__":
     cuts()
     cuts(rate=200.0)
+    cuts_markers()
+    cuts_markers(rate=200.0)
     isb()
     mot_vs_markers()
     mot_vs_markers(noise_mm=0.0)
