@@ -38,6 +38,8 @@ def main(argv=None) -> int:
     p.add_argument("--statistic", default="onset")
     p.add_argument("--test", default="rank")
     p.add_argument("--tolerance-mm", type=float, default=10.0)
+    p.add_argument("--prior-share", type=float, default=None, help="share of prior draws in the reference "
+                   "(default: the check's own default)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
@@ -56,9 +58,10 @@ def main(argv=None) -> int:
                 task, _ = misspecified_observations(task, make_generator(sim, g, seed=derive_seed(args.seed, run, 5)))
             res = run_method(args.method, task, budget=args.budget, seed=derive_seed(args.seed, run, 1))
             c = check_reproduction(task, res, seed=derive_seed(args.seed, run, 2), statistic=args.statistic,
-                                   test=args.test, tolerance_mm=args.tolerance_mm)
+                                   test=args.test, tolerance_mm=args.tolerance_mm,
+                                   **({} if args.prior_share is None else {"prior_share": args.prior_share}))
             rows.append({"model": args.model, "generator": g, "run": run, "subject": subject, "method": args.method,
-                         "statistic": args.statistic, "test": args.test, "status": c.status,
+                         "statistic": args.statistic, "test": args.test, "prior_share": args.prior_share, "status": c.status,
                          "p_recording": c.p_recording, "p_pooled": c.p_pooled, "flagged": c.flagged,
                          "flagged_pooled": bool(c.p_pooled < c.alpha), "reaches_flagged": len(c.flagged_reaches),
                          "min_p_reach": float(np.min(c.p_reach)), "median_distance_mm": float(np.median(c.distance_mm)),

@@ -1,6 +1,12 @@
 """Issue 33's measurement table from ``reproduce panda --setting misspecified`` runs.
 
     python benchmarks/summarize_misspecification.py DIR/panda_controller DIR/panda_minimum-jerk ... > table.md
+    python benchmarks/summarize_misspecification.py --compact S0 S1 > readme_table.md
+
+``--compact``: each argument is a folder of one seed's ``<body>_<generator>`` run folders; one
+table per body, one row per method: each metric's mean over all seeds' runs (exact model ->
+minimum-jerk -> via-point), and per human-like generator and seed the paired ratio to the exact
+model of the binding-bound error with its Wilcoxon p (the README's table).
 
 Each argument is an ``--out`` folder (its ``results.csv``, or the finished cells of a run still
 going). Per body, generator and method after all tasks: the mean +- sd over runs of
@@ -31,7 +37,61 @@ def load(folder: Path) -> pd.DataFrame:
     return df[df.n_tasks == df.n_tasks.max()]
 
 
+def _paired(exact: pd.DataFrame, other: pd.DataFrame, method: str, metric: str) -> tuple[float, float, int]:
+    """(mean ratio other / exact, Wilcoxon p, runs) over the runs both finished."""
+    a = exact[(exact.method == method) & (exact.metric == metric)].set_index("run").value
+    c = other[(other.method == method) & (other.metric == metric)].set_index("run").value
+    common = a.index.intersection(c.index)
+    if len(common) < 2 or a[common].mean() == 0:
+        return float("nan"), float("nan"), len(common)
+    d = c[common] - a[common]
+    p = wilcoxon(d).pvalue if np.any(d != 0) else 1.0
+    return c[common].mean() / a[common].mean(), p, len(common)
+
+
+def compact(seed_dirs: list[Path]) -> str:
+    frames = []
+    for k, sd in enumerate(seed_dirs):
+        for f in sorted(p for p in sd.iterdir() if p.is_dir()):
+            df = load(f)
+            df["seed_dir"] = k
+            frames.append(df)
+    df = pd.concat(frames, ignore_index=True)
+    gens = ["controller", "minimum-jerk", "via-point"]
+    lines = []
+    for body, b in df.groupby("model"):
+        runs = b.groupby(["seed_dir", "generator"]).run.nunique()
+        lines.append(f"\n**{body}** ({len(seed_dirs)} seeds x {int(runs.min())}-{int(runs.max())} runs per generator; "
+                     "exact model -> minimum-jerk -> via-point)\n")
+        lines.append("| method | binding-bound error [deg] | ratio to exact (Wilcoxon p), minimum-jerk, per seed | "
+                     "ratio to exact (p), via-point, per seed | Cartesian error [mm] | reachability F1 | "
+                     "recordings flagged by the model check |")
+        lines.append("|---|---|---|---|---|---|---|")
+        for m in b.method.unique():
+            cells = []
+            for metric, fmt in (("limit_error_binding_deg", "{:.1f}"), ("cartesian_error_mm", "{:.0f}"),
+                                ("reachability_f1", "{:.2f}"), ("model_check_flagged", "{:.0%}")):
+                vals = []
+                for g in gens:
+                    v = b[(b.generator == g) & (b.method == m) & (b.metric == metric)].value
+                    vals.append("n/a" if v.empty else fmt.format(v.mean()))
+                cells.append(" -> ".join(vals) if set(vals) != {"n/a"} else "n/a")
+            ratios = []
+            for g in gens[1:]:
+                per = []
+                for k in range(len(seed_dirs)):
+                    x = b[b.seed_dir == k]
+                    r, p, n = _paired(x[x.generator == "controller"], x[x.generator == g], m, "limit_error_binding_deg")
+                    per.append("n/a" if np.isnan(r) else f"{r:.2f} ({p:.2g})")
+                ratios.append("; ".join(per))
+            lines.append(f"| {m} | {cells[0]} | {ratios[0]} | {ratios[1]} | {cells[1]} | {cells[2]} | {cells[3]} |")
+    return "\n".join(lines)
+
+
 def main(argv) -> int:
+    if argv and argv[0] == "--compact":
+        print(compact([Path(a) for a in argv[1:]]))
+        return 0
     df = pd.concat([load(Path(a)) for a in argv], ignore_index=True)
     lines = []
     for body, b in df.groupby("model"):
