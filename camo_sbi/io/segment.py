@@ -9,8 +9,8 @@
 
 Hand speed (`hand_speed`): the hand's path low-pass filtered with a zero-phase 2nd-order
 Butterworth at `CUTOFF_HZ` (6 Hz, the usual choice for upper-limb kinematics), differentiated by
-central differences. The path is the most directly measured one: the end-effector track (a C3D's
-``--ee-marker``, a CSV's ee_* columns); for a marker session (``--markers isb``) the mean of the
+central differences. The path comes as directly from the recording as it allows: the end-effector
+track (a C3D's ``--ee-marker``, a CSV's ee_* columns); for a marker session (``--markers isb``) the mean of the
 wrist's and hand's landmarks (`camo_sbi.io.isb.HAND_TRACK`), which carries only the markers' own
 noise, where the model's forward kinematics of the computed joint angles would add the angles'
 estimation error through the arm's lever; the forward kinematics only for joint angles without
