@@ -99,6 +99,8 @@ if __name__ == "__main__":
     cuts(rate=200.0)
     cuts_markers()
     cuts_markers(rate=200.0)
+    cuts_markers(40, first_seed=10)  # seeds the tests do not use
+    cuts_markers(40, rate=200.0, first_seed=10)
     isb()
     mot_vs_markers()
     mot_vs_markers(noise_mm=0.0)
