@@ -53,6 +53,48 @@ def test_markers_and_mot_give_the_same_session(body, exact):
     assert a.info["goal"] == "final" and a.info["joint_angles"].startswith("ISB landmarks")
 
 
+def _cuts(rec) -> np.ndarray:
+    return np.array([[r["start_s"], r["end_s"]] for r in rec.segments])
+
+
+@pytest.mark.parametrize("seed, rate", [(0, 100.0), (2, 100.0), (5, 100.0), (8, 100.0), (2, 200.0)])
+def test_auto_reaches_on_the_marker_session_cut_within_50_ms(body, tmp_path, seed, rate):
+    """The issue's done-when on the synthetic marker session (1 mm landmark noise, 4 reaches out and
+    back): every movement found, every cut within 50 ms of the true start and end. The speed comes
+    from the hand's markers (RS, US, MC2, MC5), named in reaches.csv's hand_track and the rule."""
+    files = synthetic_session(tmp_path, seed=seed, reaches=4, noise_mm=1.0, rate=rate)
+    rec = load_recording(files["c3d"], body, markers="isb", marker_map=files["map"], reaches="auto", resample=None,
+                         noise=NoiseModel(joint_deg=1.0))
+    truth = pd.read_csv(files["truth"])[["start_s", "end_s"]].to_numpy()
+    got = _cuts(rec)
+    assert got.shape == truth.shape == (8, 2)
+    assert np.abs(got - truth).max() <= 0.050
+    labels = ", ".join(MARKER_LABELS[k] for k in ("RS", "US", "MC2", "MC5"))
+    assert {r["hand_track"] for r in rec.segments} == {rec.speed["source"]}
+    assert f"mean of {labels} (ISB RS, US, MC2, MC5)" in rec.speed["source"]
+    assert rec.speed["rule"].endswith(f"; hand track: {rec.speed['source']}")
+
+
+def test_the_angles_forward_kinematics_would_miss_a_cut(body, tmp_path):
+    """Why the hand's markers: on seed 2 the hand computed by forward kinematics from the ISB angles
+    (the angles' error through the arm's lever) puts a cut more than 50 ms off with the same rule,
+    where the markers' own track puts every cut within 50 ms (the test above)."""
+    import torch
+
+    from camo_sbi.io.segment import hand_speed, segment_by_speed
+
+    files = synthetic_session(tmp_path, seed=2, reaches=4, noise_mm=1.0)
+    whole = load_recording(files["c3d"], body, markers="isb", marker_map=files["map"], resample=None,
+                           noise=NoiseModel(joint_deg=1.0))
+    [obs] = whole.observations  # no gap in the landmarks: the whole trial, every frame
+    t = np.arange(obs.q.shape[0]) / 100.0
+    hand = body.forward_kinematics(obs.q.to(torch.float64)).to(torch.float64).numpy()
+    segs = segment_by_speed(t, hand_speed(t, hand), hand)
+    truth = pd.read_csv(files["truth"])[["start_s", "end_s"]].to_numpy()
+    got = np.array([[t[g.first], t[g.last]] for g in segs])
+    assert got.shape == truth.shape and np.abs(got - truth).max() > 0.050
+
+
 def test_missing_landmark_in_the_map_is_named(body, exact, tmp_path):
     m = dict(MARKER_LABELS)
     del m["US"]

@@ -17,6 +17,11 @@ hand", J Biomech 38:981-992), named in a map file (``--marker-map MAP.json``,
 SC, AA, TS and AI (the clavicle's and scapula's) may be in the map; this computation does not
 use them (`NEEDED` lists the ones it needs; a missing one is one error naming it).
 
+The hand's measured track (`HAND_TRACK`): the mean of the wrist's and the hand's landmarks
+(RS, US, MC2, MC5) in the lab frame. ``--reaches auto`` cuts a marker session by its speed: it
+carries only the markers' own noise, where the model's forward kinematics of the computed angles
+carries the angles' estimation error through the arm's lever.
+
 Segment frames (each right-handed, in the lab frame), as Wu et al. define them and then
 relabelled to the model's axes (x forward, y left, z up/proximal at the anatomical posture):
 
@@ -55,12 +60,15 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["GH_BELOW_AC_M", "LANDMARKS", "NEEDED", "UP", "isb_joint_angles", "load_marker_map", "model_landmarks", "segment_frames"]
+__all__ = ["GH_BELOW_AC_M", "HAND_TRACK", "LANDMARKS", "NEEDED", "UP", "isb_joint_angles", "load_marker_map",
+           "model_landmarks", "segment_frames"]
 
 LANDMARKS = ("IJ", "PX", "C7", "T8", "SC", "AC", "AA", "TS", "AI", "EL", "EM", "RS", "US", "MC2", "MC5")
 """The ISB landmark names a ``--marker-map`` may use."""
 NEEDED = ("IJ", "PX", "C7", "T8", "AC", "EL", "EM", "RS", "US", "MC2", "MC5")
 """The landmarks `isb_joint_angles` needs."""
+HAND_TRACK = ("RS", "US", "MC2", "MC5")
+"""The landmarks (all in `NEEDED`) whose mean is the hand's measured track (``--reaches auto``)."""
 GH_BELOW_AC_M = 0.06
 """The glenohumeral centre's fixed offset below the AC landmark along the thorax's long axis [m]."""
 UP = np.array([0.0, 0.0, 1.0])

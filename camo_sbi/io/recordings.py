@@ -227,7 +227,7 @@ def _read_c3d(path: Path, ee_markers, frame_markers) -> tuple[_Table, dict]:
 def _read_c3d_isb(path: Path, simulator, markers: str, marker_map, side, ee_markers, frame_markers):
     """The human model's joint angles per frame from a C3D's ISB landmarks: (table, info dict)."""
     from camo_sbi.io.c3d import read_c3d_points
-    from camo_sbi.io.isb import NEEDED, isb_joint_angles, load_marker_map
+    from camo_sbi.io.isb import HAND_TRACK, NEEDED, isb_joint_angles, load_marker_map
 
     if markers != "isb":
         raise ValueError(f"--markers: expected isb (ISB upper-limb landmarks), got {markers!r}")
@@ -254,6 +254,10 @@ def _read_c3d_isb(path: Path, simulator, markers: str, marker_map, side, ee_mark
     run_id = np.cumsum(np.r_[True, ~present[:-1]] & present)[present]  # a new reach after every gap
     cols = {REACH: np.unique(run_id, return_inverse=True)[1].astype(np.float64), TIME: d["time"][present],
             **{j: q[:, k] for k, j in enumerate(JOINT_NAMES)}}
+    # the hand's measured track for --reaches auto: only the markers' noise, not the angles' error through FK
+    d["hand_track"] = np.mean([pts[k][present] for k in HAND_TRACK], axis=0)
+    d["hand_track_source"] = (f"the hand's markers: mean of {', '.join(mapping[k] for k in HAND_TRACK)} "
+                              f"(ISB {', '.join(HAND_TRACK)}), lab frame")
     src = {j: {"what": "the ISB landmarks", "entry": f"--marker-map {marker_map} and --side {side or 'right'}; a "
                                                    f"person beyond the model's normative range: drop --out-of-range "
                                                    f"error (the default clips and marks the bound)"}
@@ -608,9 +612,12 @@ def _hint_body_scale(table: _Table, simulator, q, ee, reaches, noise) -> None:
 
 
 def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, has_ee: bool, degrees: bool,
-               noise: NoiseModel, clip: bool = False):
+               noise: NoiseModel, clip: bool = False, track: tuple[np.ndarray, str] | None = None):
     """The table cut into the reaches ``spec`` finds (`camo_sbi.io.segment`): (the table of the
-    reaches' rows with new reach ids, the reaches.csv rows, the speed figure's data)."""
+    reaches' rows with new reach ids, the reaches.csv rows, the speed figure's data). ``track``:
+    (an (F, 3) measured hand path [m], row for row with the table; what it is): the hand speed and
+    the cuts come from it instead of the end-effector columns or the forward kinematics (a marker
+    session's hand markers); the start and goal positions stay the model's."""
     from camo_sbi.io.segment import (
         events_segments,
         hand_speed,
@@ -630,13 +637,20 @@ def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, h
     else:
         q = _joint_values(table, simulator, degrees, noise, [] if clip else None)  # warned when loaded
         hand = simulator.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()
+    source = "end-effector track" if has_ee else "forward kinematics of the joint angles"
+    moving = hand
+    if track is not None:
+        moving, source = np.asarray(track[0], dtype=np.float64), str(track[1])
+        if moving.shape != hand.shape:
+            raise ValueError(f"track: expected shape {hand.shape} (one hand position per row of {table.path}), got "
+                             f"{moving.shape}")
     # the file's own runs (C3D gaps, a CSV's reach ids): speed is computed within each, never across a gap
     rid = table.columns[REACH]
     starts = np.flatnonzero(np.r_[True, rid[1:] != rid[:-1]])
     runs = list(zip(starts, np.r_[starts[1:], rid.shape[0]], strict=True))
     speed = np.zeros(t.shape[0])
     for a, b in runs:
-        speed[a:b] = hand_speed(t[a:b], hand[a:b])
+        speed[a:b] = hand_speed(t[a:b], moving[a:b])
     what = str(table.path)
     if kind == "frames":
         segs = ranges_segments(table.rows, ranges, what)
@@ -650,8 +664,8 @@ def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, h
         segs = []
         for a, b in runs:
             segs += [type(g)(g.first + a, g.last + a, g.rule, g.peak_speed)
-                     for g in segment_by_speed(t[a:b], speed[a:b], hand[a:b])]
-        rule = rule_text()
+                     for g in segment_by_speed(t[a:b], speed[a:b], moving[a:b])]
+        rule = rule_text(track=source)
     if not segs:
         raise ValueError(f"--reaches: {spec} found no reach in {table.path} (rule: {rule}); give frame ranges "
                          f"(--reaches 0-120,121-260)")
@@ -668,9 +682,9 @@ def _resegment(table: _Table, simulator, spec: str, side, events, has_q: bool, h
                      "duration_s": round(float(t[g.last] - t[g.first]), 4), "peak_speed_m_s": round(peak, 4),
                      **{f"start_{c}": round(float(v), 5) for c, v in zip("xyz", hand[g.first], strict=True)},
                      **{f"goal_{c}": round(float(v), 5) for c, v in zip("xyz", hand[g.last], strict=True)},
-                     "rule": g.rule})
+                     "rule": g.rule, **({"hand_track": source} if kind == "auto" else {})})
     fig = {"time": t, "speed": speed, "cuts": [(float(t[g.first]), float(t[g.last])) for g in segs], "rule": rule,
-           "source": "end-effector track" if has_ee else "forward kinematics of the joint angles"}
+           "source": source}
     return out, tuple(rows), fig
 
 
@@ -763,6 +777,7 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
     info: dict = {"goal": goal}
     warns: list[str] = []
     events = None
+    track = None  # a measured hand path for --reaches auto (a marker session's hand markers)
     if path.suffix.lower() == ".c3d":
         if ee_units is not None:
             raise ValueError(f"--ee-units: a C3D file's units come from its POINT:UNITS ({path}); drop --ee-units")
@@ -770,6 +785,7 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
             raise ValueError(f"{path}: no such file")
         if markers is not None:
             table, c3d = _read_c3d_isb(path, simulator, markers, marker_map, side, ee_markers, frame_markers)
+            track = (c3d["hand_track"], c3d["hand_track_source"])
             info["joint_angles"] = (f"ISB landmarks ({marker_map}), {side or 'right'} arm, relative to the "
                                     f"thorax (camo_sbi.io.isb)")
         else:
@@ -850,7 +866,7 @@ def load_recording(path, simulator, *, degrees: bool = False, noise: NoiseModel 
                 np.unique(table.columns[REACH]).size > 1:
             raise ValueError(f"--reaches: the --bvh-map file lists reaches already ({bvh_map}); give one or the other")
         table, segments, speed = _resegment(table, simulator, reaches, side, events, has_q, has_ee, degrees, noise,
-                                            clip=clip)
+                                            clip=clip, track=track)
         info["reaches"] = f"{len(segments)} found ({speed['rule']})"
     reaches = _reaches(table, goal)
     if max_reaches is not None and len(reaches) > max_reaches:

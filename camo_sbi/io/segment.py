@@ -7,10 +7,15 @@
                           reach runs from one event of the side's context (or "General") to the next
     0-120,121-260         explicit inclusive frame ranges (the file's frame numbers)
 
-Hand speed (`hand_speed`): the hand's path (the end-effector track, or the model's forward
-kinematics of the joint angles) low-pass filtered with a zero-phase 2nd-order Butterworth at
-`CUTOFF_HZ` (6 Hz, the usual choice for upper-limb kinematics), differentiated by central
-differences.
+Hand speed (`hand_speed`): the hand's path low-pass filtered with a zero-phase 2nd-order
+Butterworth at `CUTOFF_HZ` (6 Hz, the usual choice for upper-limb kinematics), differentiated by
+central differences. The path comes as directly from the recording as it allows: the end-effector
+track (a C3D's ``--ee-marker``, a CSV's ee_* columns); for a marker session (``--markers isb``) the mean of the
+wrist's and hand's landmarks (`camo_sbi.io.isb.HAND_TRACK`), which carries only the markers' own
+noise, where the model's forward kinematics of the computed joint angles would add the angles'
+estimation error through the arm's lever; the forward kinematics only for joint angles without
+markers (BVH, ``.mot``, a CSV's joint columns). ``reaches.csv`` (column ``hand_track``) and the
+rule's text name the path used.
 
 Rule "speed" (`segment_by_speed`), with these stated thresholds, in two passes:
 
@@ -64,14 +69,15 @@ REST_WINDOW_S = 0.5
 MIN_REST_SAMPLES = 3
 
 
-def rule_text(refined: bool = True) -> str:
-    """The rule "speed" in one line (reaches.csv's run settings, the report)."""
+def rule_text(refined: bool = True, track: str | None = None) -> str:
+    """The rule "speed" in one line (reaches.csv's run settings, the report); ``track``: which hand
+    path the speed came from (the end-effector track, the hand's markers, the forward kinematics)."""
     first = (f"hand speed: {CUTOFF_HZ:g} Hz low-pass; movement = speed > {ACTIVE_SPEED:g} m/s with a peak > "
              f"{MIN_PEAK_SPEED:g} m/s; first cuts where the speed falls below max({ONSET_FRACTION:g} x peak, "
              f"{NOISE_FACTOR:g} x the speed at rest), then on to its local minimum")
     second = (f"; refined by the start (end) of a cubic fitted to the displacement from the rest position up to "
               f"{FIT_FRACTION:g} of the amplitude") if refined else ""
-    return f"{first}{second}; at least {MIN_DURATION_S:g} s"
+    return f"{first}{second}; at least {MIN_DURATION_S:g} s" + ("" if track is None else f"; hand track: {track}")
 
 
 @dataclass(frozen=True)
