@@ -5,15 +5,22 @@ Per recording: a subject of the model's informative design (goals from the nomin
 10 observed reaches, moved by ``--generators``; the method's posterior on them; the check.
 
     python benchmarks/bench_misspecification_detector.py --model panda --method camo-js --runs 30 \\
-        --out docs/guide/misspecification_detector_panda.csv
+        --out docs/guide/detector/panda_camo-js_s0.csv
 
 Prints per generator the share of recordings flagged (Holm-adjusted recording p < 0.05, and the
 pooled p < 0.05), and writes one row per recording.
+
+    python benchmarks/bench_misspecification_detector.py --summarize ROWS.csv [ROWS.csv ...]
+
+prints the guide's table from such files: per body, method and base seed, the share of recordings
+flagged under each generator (the exact model's share is the false-alarm rate), with a 95%
+Wilson interval.
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import time
 
 import numpy as np
@@ -27,7 +34,43 @@ from camo_sbi.scenarios.reaching import make_reaching_task
 from camo_sbi.simulators import registry
 
 
+def _wilson(k: int, n: int) -> tuple[float, float]:
+    z = 1.959964
+    c = (k + z * z / 2) / (n + z * z)
+    h = z * np.sqrt(k * (n - k) / n + z * z / 4) / (n + z * z)
+    return c - h, c + h
+
+
+def summarize(paths) -> str:
+    frames = []
+    for path in paths:
+        x = pd.read_csv(path)
+        if "seed" not in x:  # rows written before the column existed: the base seed from the name (..._s<seed>.csv)
+            m = re.search(r"_s(\d+)\.csv$", str(path))
+            x["seed"] = int(m.group(1)) if m else 0
+        frames.append(x)
+    df = pd.concat(frames, ignore_index=True)
+    lines = ["| body | method | base seed | exact model (false alarms) | minimum-jerk | via-point |", "|---|---|---|---|---|---|"]
+    for (body, method, seed), x in df.groupby(["model", "method", "seed"], sort=False):
+        cells = []
+        for g in ("controller", "minimum-jerk", "via-point"):
+            f = x[x.generator == g].flagged.astype(bool)
+            if f.empty:
+                cells.append("n/a")
+                continue
+            lo, hi = _wilson(int(f.sum()), len(f))
+            cells.append(f"{int(f.sum())}/{len(f)} = {f.mean():.0%} ({lo:.0%}-{hi:.0%})")
+        lines.append(f"| {body} | {method} | {seed} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
+    import sys
+
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "--summarize":
+        print(summarize(argv[1:]))
+        return 0
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", default="panda")
     p.add_argument("--method", default="camo-js")
@@ -60,7 +103,7 @@ def main(argv=None) -> int:
             c = check_reproduction(task, res, seed=derive_seed(args.seed, run, 2), statistic=args.statistic,
                                    test=args.test, tolerance_mm=args.tolerance_mm,
                                    **({} if args.prior_share is None else {"prior_share": args.prior_share}))
-            rows.append({"model": args.model, "generator": g, "run": run, "subject": subject, "method": args.method,
+            rows.append({"model": args.model, "generator": g, "run": run, "subject": subject, "method": args.method, "seed": args.seed,
                          "statistic": args.statistic, "test": args.test, "prior_share": args.prior_share, "status": c.status,
                          "p_recording": c.p_recording, "p_pooled": c.p_pooled, "flagged": c.flagged,
                          "flagged_pooled": bool(c.p_pooled < c.alpha), "reaches_flagged": len(c.flagged_reaches),
