@@ -192,7 +192,7 @@ def test_svg_and_pdf_are_written_and_parse(tmp_path):
 
 @pytest.mark.parametrize("maker", ["compare", "manipulator", "coverage"])
 def test_paper_figures_have_no_text_below_8_pt(maker, tmp_path):
-    from camo_sbi.experiments import manipulator
+    from camo_sbi.experiments import reproduce_panda
 
     seen = []
     orig = style.save_figures
@@ -211,7 +211,7 @@ def test_paper_figures_have_no_text_below_8_pt(maker, tmp_path):
         if maker == "compare":
             compare.make_figures(pd.DataFrame(rows), tmp_path)
         elif maker == "manipulator":
-            manipulator.make_figures(pd.DataFrame(rows), tmp_path)
+            reproduce_panda.make_figures(pd.DataFrame(rows), tmp_path)
         else:
             cov = pd.DataFrame({"method": ["camo"] * 2, "alpha": [0.1, 0.9], "coverage": [0.1, 0.8]})
             fig = calibration.plot_coverage(cov)

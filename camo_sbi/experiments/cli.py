@@ -140,8 +140,8 @@ COMMANDS = (
             ("camo-sbi reference --model panda --setting informative --observations 10 --out refs/panda-informative",
              "camo-sbi compare --reference refs/panda-informative --methods camo-seq,npe,exact-likelihood "
              "--budgets 1000,10000 --out runs/vs-reference")),
-    Command("run", "run a whole comparison described in a study file (TOML)", "study:add_arguments",
-            "study:main", ("methods", "subjects"),
+    Command("run", "run a whole comparison described in a study file (TOML)", "run:add_arguments",
+            "run:main", ("methods", "subjects"),
             ("camo-sbi run study.toml", "camo-sbi run docs/study_example.toml --json")),
     Command("calibrate", "coverage and SBC of each method over synthetic subjects", "calibrate:add_arguments",
             "calibrate:main", ("methods",),
@@ -159,11 +159,11 @@ COMMANDS = (
             ("camo-sbi describe --model human --out runs/describe",
              "camo-sbi describe --urdf tests/data/arm7.urdf --ee tool --out runs/describe")),
     Command("simulate-observations", "write synthetic recorded reaches of a subject (recording format)",
-            "recorded:add_simulate_arguments", "recorded:simulate_main", (),
+            "infer:add_simulate_arguments", "infer:simulate_main", (),
             (f"camo-sbi simulate-observations {_OBS} --limits tests/data/arm7_limits.json --reaches 5 "
              "--seed 0 --noise-joint-deg 1 --noise-ee-mm 5 --out obs.csv",)),
-    Command("infer", "infer joint limits from recorded reaches", "recorded:add_infer_arguments",
-            "recorded:infer_main", ("methods",),
+    Command("infer", "infer joint limits from recorded reaches", "infer:add_infer_arguments",
+            "infer:infer_main", ("methods",),
             (f"camo-sbi infer --observations obs.csv {_OBS} --noise-joint-deg 1 --noise-ee-mm 5 "
              "--methods camo,naive,nominal,npe --budget 1000 --seed 0 --out inferred",)),
     Command("robustness", "every method under observation noise, a faster recorder and a mis-sized model",
@@ -172,15 +172,15 @@ COMMANDS = (
     Command("warmup", "compile the numba kernels now, once per user (a first run would compile them)",
             "warmup:add_arguments", "warmup:main", (),
             ("camo-sbi warmup", "camo-sbi warmup --models panda,human")),
-    Command("render-scene", "render the block-stacking scene to a PNG", "hrc:add_render_arguments",
-            "hrc:render_main", ("human",), ("camo-sbi render-scene --subject frozen_shoulder --out scene.png",)),
+    Command("render-scene", "render the block-stacking scene to a PNG", "reproduce_hrc:add_render_arguments",
+            "reproduce_hrc:render_main", ("human",), ("camo-sbi render-scene --subject frozen_shoulder --out scene.png",)),
 )
 REPRODUCE = (
     Command("panda", "manipulator experiment (paper Fig. 2-3); --model human also works",
-            "manipulator:add_arguments", "manipulator:main", ("methods", "subjects"),
+            "reproduce_panda:add_arguments", "reproduce_panda:main", ("methods", "subjects"),
             ("camo-sbi reproduce panda --setting paper --runs 30 --out runs/paper",
              "camo-sbi reproduce panda --runs 5 --tasks 5 --out runs/toolkit")),
-    Command("hrc", "human-robot block stacking (paper Fig. 5)", "hrc:add_arguments", "hrc:main", ("human",),
+    Command("hrc", "human-robot block stacking (paper Fig. 5)", "reproduce_hrc:add_arguments", "reproduce_hrc:main", ("human",),
             ("camo-sbi reproduce hrc --runs 10 --out runs/hrc",
              "camo-sbi reproduce hrc --runs 10 --observe carry --fix-torso --out runs/hrc-carry")),
 )
