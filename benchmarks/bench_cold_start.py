@@ -59,7 +59,11 @@ def child(recording: str, out: str) -> None:
         t[name] = [w - marks[0], c - marks[1]]
         marks[:] = [w, c]
 
-    from camo_sbi.experiments import infer  # noqa: F401  (what `camo-sbi infer` imports)
+    from camo_sbi.experiments import (  # what `camo-sbi infer` imports
+        infer,
+        infer_limits,
+        infer_report,
+    )
     from camo_sbi.experiments.models import ModelSpec
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import load_recordings
@@ -88,14 +92,14 @@ def child(recording: str, out: str) -> None:
     for m in METHODS:
         results[m] = run_method(m, task, budget=BUDGET, seed=0, config={})
         lap(m)
-    table = infer.limits_table(results, sim)
+    table = infer_limits.limits_table(results, sim)
     Path(out).mkdir(parents=True, exist_ok=True)
     (Path(out) / "limits.csv").write_text(table.to_csv(index=False))
     lap("write")
     t["first result"] = [sum(v[i] for v in t.values()) for i in (0, 1)]
     t["scipy.stats loaded"] = [float("scipy.stats" in sys.modules)] * 2
     marks[:] = [time.perf_counter(), time.process_time()]
-    infer._report(Path(out), task, results, [], table, {"observations": recording}, 0)
+    infer_report.write_infer_report(Path(out), task, results, [], table, {"observations": recording}, 0)
     lap("report")
     kernel(np.float64, torch.float64)  # only with --predict-goals: task.predict simulates in float64
     lap("kernel f64")

@@ -118,10 +118,10 @@ def test_light_copies_agree_with_their_sources():
     assert HUMAN_PROFILES == tuple(IMPAIRED_PROFILES) == tuple(subject_names("human"))
     assert reproduce_hrc.OBSERVED_MOTIONS == OBSERVED_MOTIONS
     assert reproduce_hrc.CAMO_BANDWIDTH == CamoConfig().bandwidth
-    from camo_sbi.experiments import infer
+    from camo_sbi.experiments import recording_args
     from camo_sbi.io import recordings
 
-    assert infer.MAX_REACHES == recordings.MAX_REACHES
+    assert recording_args.MAX_REACHES == recordings.MAX_REACHES
 
 
 def test_version_and_python_dash_m(capsys):

@@ -95,8 +95,8 @@ def _fuzz(n: int):
 @pytest.fixture(scope="module")
 def goods(sim, tmp_path_factory):
     """A valid file of every kind (bytes), and the BVH map that goes with the BVH."""
-    from camo_sbi.experiments.infer import simulate_recordings
     from camo_sbi.experiments.models import load_limits
+    from camo_sbi.experiments.simulate import simulate_recordings
     from camo_sbi.io.recordings import save_recordings
     from camo_sbi.task import Observation
     from tests.test_mocap import write_bvh

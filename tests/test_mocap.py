@@ -16,8 +16,8 @@ import pandas as pd
 import pytest
 
 from camo_sbi.experiments.cli import main
-from camo_sbi.experiments.infer import simulate_recordings
 from camo_sbi.experiments.models import load_limits
+from camo_sbi.experiments.simulate import simulate_recordings
 from camo_sbi.io.frames import frame_from_markers, load_frame
 from camo_sbi.io.recordings import load_recording, save_recordings
 from camo_sbi.task import Observation

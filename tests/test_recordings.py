@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from camo_sbi.experiments.infer import simulate_recordings
 from camo_sbi.experiments.models import ModelSpec, load_limits
+from camo_sbi.experiments.simulate import simulate_recordings
 from camo_sbi.io.recordings import (
     K_SIGMA,
     estimate_rate,

@@ -98,7 +98,7 @@ def coverage90(result, truth, prior) -> float:
 
 
 def _observations(sim, theta, n, seed, cond: Condition):
-    from camo_sbi.experiments.infer import simulate_recordings
+    from camo_sbi.experiments.simulate import simulate_recordings
     from camo_sbi.io.recordings import estimate_rate, resample_to_controller
 
     obs = simulate_recordings(sim, theta, n, seed=seed, noise=cond.noise, rate_multiplier=cond.rate)
