@@ -97,7 +97,7 @@ def goods(sim, tmp_path_factory):
     """A valid file of every kind (bytes), and the BVH map that goes with the BVH."""
     from camo_sbi.experiments.models import load_limits
     from camo_sbi.experiments.simulate import simulate_recordings
-    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.io.schema import save_recordings
     from camo_sbi.task import Observation
     from tests.test_mocap import write_bvh
 

@@ -21,7 +21,8 @@ from camo_sbi.experiments.infer_limits import (
 )
 from camo_sbi.experiments.infer_report import reach_figure
 from camo_sbi.inference.result import PosteriorResult
-from camo_sbi.io.recordings import K_SIGMA, load_recording
+from camo_sbi.io.recordings import load_recording
+from camo_sbi.io.schema import K_SIGMA
 from camo_sbi.priors import BoxPrior
 from camo_sbi.task import NoiseModel, Observation
 from tests.test_infer_cli import DATA, JOINTS

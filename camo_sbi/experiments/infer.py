@@ -347,7 +347,7 @@ def _infer_into(out: Path, args, model, sim, task, obs, goals, starts, plan, not
     from camo_sbi.diagnostics.misspecification import column_text, reach_rows, verdict_lines
     from camo_sbi.experiments.method_configs import method_config
     from camo_sbi.inference.registry import run_method
-    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.io.schema import save_recordings
     from camo_sbi.task import Observation, predict
 
     results = {}

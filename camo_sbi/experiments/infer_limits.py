@@ -60,7 +60,7 @@ def limits_table(results: dict, sim, task=None, clipped=()):
 
     from camo_sbi.diagnostics.verdicts import calibration_verdict
     from camo_sbi.inference.result import weighted_quantile
-    from camo_sbi.io.recordings import BOUND_SLACK, K_SIGMA
+    from camo_sbi.io.schema import BOUND_SLACK, K_SIGMA
 
     a = (1.0 - INTERVAL) / 2
     types = getattr(getattr(sim, "spec", None), "joint_types", ("revolute",) * sim.n_joints)

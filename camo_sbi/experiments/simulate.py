@@ -36,7 +36,7 @@ def simulate_recordings(sim, theta, n_reaches: int, *, seed: int, noise=None, ra
     import torch
 
     from camo_sbi._validation import derive_seed, torch_generator
-    from camo_sbi.io.recordings import resample_to_controller
+    from camo_sbi.io.resample import resample_to_controller
     from camo_sbi.scenarios.generators import make_generator
     from camo_sbi.scenarios.reaching import observe, reachable_goals
     from camo_sbi.task import NoiseModel, Observation
@@ -83,7 +83,7 @@ def main(args) -> int:
 
     from camo_sbi._validation import derive_seed
     from camo_sbi.evaluation.claims import FEW_REACHES
-    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.io.schema import save_recordings
     from camo_sbi.scenarios.generators import make_generator
     from camo_sbi.scenarios.reaching import binding_reaches
     from camo_sbi.task import Observation
