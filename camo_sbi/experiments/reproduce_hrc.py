@@ -313,12 +313,11 @@ def make_figure(df, out: Path, formats=("png",)) -> Path:
 
 
 def _make_figure(df, out: Path, formats) -> Path:
+    from camo_sbi.diagnostics.plot_primitives import figure_legend, plot_lines
     from camo_sbi.diagnostics.style import (
         band_label,
-        figure_legend,
         metric_label,
         new_figure,
-        plot_lines,
         run_counts,
         save_figures,
     )

@@ -235,11 +235,10 @@ def make_figure(df: pd.DataFrame, out: Path, formats=("png",)) -> Path:
 def _make_figure(df: pd.DataFrame, out: Path, formats) -> Path:
     import numpy as np
 
+    from camo_sbi.diagnostics.plot_primitives import figure_legend, jitter
     from camo_sbi.diagnostics.style import (
         band_label,
         few_runs,
-        figure_legend,
-        jitter,
         method_order,
         method_style,
         metric_label,
