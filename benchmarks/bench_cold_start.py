@@ -59,7 +59,11 @@ def child(recording: str, out: str) -> None:
         t[name] = [w - marks[0], c - marks[1]]
         marks[:] = [w, c]
 
-    from camo_sbi.experiments import recorded  # noqa: F401  (what `camo-sbi infer` imports)
+    from camo_sbi.experiments import (  # what `camo-sbi infer` imports
+        infer,
+        infer_limits,
+        infer_report,
+    )
     from camo_sbi.experiments.models import ModelSpec
     from camo_sbi.inference.registry import run_method
     from camo_sbi.io.recordings import load_recordings
@@ -82,20 +86,20 @@ def child(recording: str, out: str) -> None:
     kernel(np.float32, torch.float32)  # CAMO's candidates (CamoConfig.sim_dtype) and the report
     lap("kernel f32")
     obs = load_recordings(recording, sim)
-    task = recorded._recorded_task(ModelSpec(kind="urdf", urdf=str(URDF), ee="tool"), sim, obs, NoiseModel())
+    task = infer._recorded_task(ModelSpec(kind="urdf", urdf=str(URDF), ee="tool"), sim, obs, NoiseModel())
     lap("load")
     results = {}
     for m in METHODS:
         results[m] = run_method(m, task, budget=BUDGET, seed=0, config={})
         lap(m)
-    table = recorded.limits_table(results, sim)
+    table = infer_limits.limits_table(results, sim)
     Path(out).mkdir(parents=True, exist_ok=True)
     (Path(out) / "limits.csv").write_text(table.to_csv(index=False))
     lap("write")
     t["first result"] = [sum(v[i] for v in t.values()) for i in (0, 1)]
     t["scipy.stats loaded"] = [float("scipy.stats" in sys.modules)] * 2
     marks[:] = [time.perf_counter(), time.process_time()]
-    recorded._report(Path(out), task, results, [], table, {"observations": recording}, 0)
+    infer_report.write_infer_report(Path(out), task, results, [], table, {"observations": recording}, 0)
     lap("report")
     kernel(np.float64, torch.float64)  # only with --predict-goals: task.predict simulates in float64
     lap("kernel f64")

@@ -24,7 +24,7 @@ import torch
 from camo_sbi.evaluation.evaluate import evaluate_result, true_test_trajectories
 from camo_sbi.experiments.subjects import subject_theta
 from camo_sbi.inference.registry import run_method
-from camo_sbi.io.recordings import estimate_rate, resample_to_controller
+from camo_sbi.io.resample import estimate_rate, resample_to_controller
 from camo_sbi.scenarios.reaching import make_reaching_task
 from camo_sbi.simulators import panda
 from camo_sbi.task import NoiseModel, Observation

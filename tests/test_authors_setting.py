@@ -172,11 +172,11 @@ def test_nonfinite_candidates_are_a_method_failure_not_an_input_error():
 def test_overflowing_controller_gain_in_a_reproduce_run_exits_0(tmp_path, monkeypatch, capsys):
     """The CLI: a controller setting that forces non-finite float32 candidates (gain 1e39 is inf in
     float32; the subject, simulated in float64, stays finite) gives exit 0 and non-ok statuses."""
-    from camo_sbi.experiments import manipulator
+    from camo_sbi.experiments import reproduce_panda
     from camo_sbi.experiments.cli import main
 
-    paper = manipulator.SETTINGS["paper"]
-    monkeypatch.setitem(manipulator.SETTINGS, "paper", manipulator.Setting(
+    paper = reproduce_panda.SETTINGS["paper"]
+    monkeypatch.setitem(reproduce_panda.SETTINGS, "paper", reproduce_panda.Setting(
         **{**paper.__dict__, "controller": {**paper.controller, "gain": 1e39, "max_cartesian_step": 0.05}}))
     out = tmp_path / "run"
     rc = main(["reproduce", "panda", "--setting", "paper", "--runs", "1", "--tasks", "2", "--test-goals", "2",

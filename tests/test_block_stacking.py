@@ -260,10 +260,10 @@ def test_render_writes_a_non_blank_png_and_leaves_the_scene_as_it_was(scene, sim
 
 
 def _args(out, seed=0):
-    from camo_sbi.experiments import hrc
+    from camo_sbi.experiments import reproduce_hrc
 
     parser = argparse.ArgumentParser()
-    hrc.add_arguments(parser)
+    reproduce_hrc.add_arguments(parser)
     return parser.parse_args(["--runs", "1", "--tasks", "2", "--test-trials", "3", "--samples", "150",
                               "--keep-best", "15", "--seed", str(seed), "--out", str(out)])
 
@@ -272,10 +272,10 @@ def _args(out, seed=0):
 def test_hrc_experiment_small_is_seeded(tmp_path):
     import pandas as pd
 
-    from camo_sbi.experiments import hrc
+    from camo_sbi.experiments import reproduce_hrc
 
-    assert hrc.main(_args(tmp_path / "a")) == 0
-    assert hrc.main(_args(tmp_path / "b")) == 0
+    assert reproduce_hrc.main(_args(tmp_path / "a")) == 0
+    assert reproduce_hrc.main(_args(tmp_path / "b")) == 0
     a = pd.read_csv(tmp_path / "a" / "results.csv")
     b = pd.read_csv(tmp_path / "b" / "results.csv")
     pd.testing.assert_frame_equal(a, b)
@@ -299,22 +299,22 @@ def test_hrc_experiment_small_is_seeded(tmp_path):
 def test_hrc_no_hull_and_cartesian_space_run_only_the_paper_camo(tmp_path):
     import pandas as pd
 
-    from camo_sbi.experiments import hrc
+    from camo_sbi.experiments import reproduce_hrc
 
     args = _args(tmp_path / "c")
     args.no_hull, args.priors = True, "strong"
-    assert hrc.main(args) == 0
+    assert reproduce_hrc.main(args) == 0
     c = pd.read_csv(tmp_path / "c" / "results.csv")
     assert set(c["method"]) == {"camo-js", "naive", "nominal", "oracle", "majority", "truth"}
     args = _args(tmp_path / "d")
     args.space, args.priors = "cartesian", "strong"
-    assert hrc.run_methods(args) == ["camo-cs", "naive", "nominal", "oracle"]  # naive reads the joints
+    assert reproduce_hrc.run_methods(args) == ["camo-cs", "naive", "nominal", "oracle"]  # naive reads the joints
     args.space = "joint"
-    assert hrc.run_methods(args) == ["camo-js", "camo-hull", "naive", "nominal", "oracle"]
+    assert reproduce_hrc.run_methods(args) == ["camo-js", "camo-hull", "naive", "nominal", "oracle"]
 
 
 def test_strong_prior_fixes_torso_and_wrist_to_the_truth(sim):
-    from camo_sbi.experiments.hrc import STRONG_PRIOR_FIXED, make_prior
+    from camo_sbi.experiments.reproduce_hrc import STRONG_PRIOR_FIXED, make_prior
 
     theta = impaired_limits(sim, "frozen_shoulder")
     strong = make_prior(sim, theta, "strong")
@@ -335,11 +335,11 @@ def test_hrc_paper_scale_allocation_matches_the_paper(tmp_path):
     and its F1 averaged over tasks 1-10 beats the naive baseline's by >= 0.15 (measured 0.24)."""
     import pandas as pd
 
-    from camo_sbi.experiments import hrc
+    from camo_sbi.experiments import reproduce_hrc
 
     parser = argparse.ArgumentParser()
-    hrc.add_arguments(parser)
-    assert hrc.main(parser.parse_args(["--out", str(tmp_path)])) == 0
+    reproduce_hrc.add_arguments(parser)
+    assert reproduce_hrc.main(parser.parse_args(["--out", str(tmp_path)])) == 0
     df = pd.read_csv(tmp_path / "results.csv")
     means = df.groupby(["prior", "method", "n_tasks", "metric"])["value"].mean()
     for prior in ("strong", "weak"):

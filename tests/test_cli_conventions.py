@@ -108,7 +108,7 @@ def test_top_level_help_lists_commands_methods_and_examples():
 
 def test_light_copies_agree_with_their_sources():
     """Names repeated in light modules so that --help needs no torch or pybullet."""
-    from camo_sbi.experiments import hrc
+    from camo_sbi.experiments import reproduce_hrc
     from camo_sbi.experiments.subjects import subject_names
     from camo_sbi.inference.camo import CamoConfig
     from camo_sbi.scenarios.block_stacking import OBSERVED_MOTIONS
@@ -116,12 +116,12 @@ def test_light_copies_agree_with_their_sources():
     from camo_sbi.simulators.registry import HUMAN_PROFILES
 
     assert HUMAN_PROFILES == tuple(IMPAIRED_PROFILES) == tuple(subject_names("human"))
-    assert hrc.OBSERVED_MOTIONS == OBSERVED_MOTIONS
-    assert hrc.CAMO_BANDWIDTH == CamoConfig().bandwidth
-    from camo_sbi.experiments import recorded
+    assert reproduce_hrc.OBSERVED_MOTIONS == OBSERVED_MOTIONS
+    assert reproduce_hrc.CAMO_BANDWIDTH == CamoConfig().bandwidth
+    from camo_sbi.experiments import recording_args
     from camo_sbi.io import recordings
 
-    assert recorded.MAX_REACHES == recordings.MAX_REACHES
+    assert recording_args.MAX_REACHES == recordings.MAX_REACHES
 
 
 def test_version_and_python_dash_m(capsys):
@@ -146,7 +146,7 @@ def test_pybullet_banner_is_silenced():
 
 
 def test_in_process_main_installs_no_signal_handler(monkeypatch, tmp_path):
-    from camo_sbi.experiments import study
+    from camo_sbi.experiments import run
 
     seen = {}
 
@@ -155,7 +155,7 @@ def test_in_process_main_installs_no_signal_handler(monkeypatch, tmp_path):
         seen["sigint"] = signal.getsignal(signal.SIGINT)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(study, "main", fake)
+    monkeypatch.setattr(run, "main", fake)
     before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
     with pytest.raises(KeyboardInterrupt):  # propagates to the caller, not taken for exit 130
         main(["run", str(tmp_path / "s.toml")])
@@ -474,7 +474,7 @@ def test_bad_study_file_exits_2_naming_file_and_key(edit, needle, tmp_path, caps
 
 
 def test_the_documented_study_example_is_a_valid_study(capsys, tmp_path):
-    from camo_sbi.experiments.study import EXAMPLE, compare_argvs, load_study
+    from camo_sbi.experiments.run import EXAMPLE, compare_argvs, load_study
 
     path = ROOT / "docs" / "study_example.toml"
     assert path.read_text().split("\n", 1)[1] in (ROOT / "docs" / "commands" / "index.md").read_text()  # shown there

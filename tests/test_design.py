@@ -145,7 +145,7 @@ def test_infer_suggest_bad_options_exit_2(extra, needle, recording, tmp_path, ca
 
 def test_reproduce_informative_active_design(tmp_path):
     """--design active runs to completion and counts the design's simulations."""
-    from camo_sbi.experiments import manipulator
+    from camo_sbi.experiments import reproduce_panda
 
     out = tmp_path / "active"
     argv = ["reproduce", "panda", "--setting", "informative", "--methods", "camo-seq", "--runs", "1",
@@ -153,7 +153,7 @@ def test_reproduce_informative_active_design(tmp_path):
     assert main([*argv, "--design", "active", "--out", str(out)]) == 0
     df = pd.read_csv(out / "results.csv")
     last = df[(df.n_tasks == 3) & (df.method == "camo-seq")].set_index("metric").value
-    assert last["design_simulations"] == 2 * manipulator.DESIGN_CANDIDATES * manipulator.DESIGN_DRAWS
+    assert last["design_simulations"] == 2 * reproduce_panda.DESIGN_CANDIDATES * reproduce_panda.DESIGN_DRAWS
     assert last["design_fallbacks"] == 0 and last["design_method_simulations"] > 0
     assert last["binding_test_fraction"] >= 0.5 and "reachability_f1" in last and "limit_error_binding_deg" in last
     assert set(df.method) >= {"camo-seq", "naive", "nominal", "oracle"}

@@ -647,13 +647,13 @@ def test_reproduce_hrc_refuses_other_settings(tmp_path, capsys):
     """The fast hrc check: a manifest with hrc's resolved settings, then a run with another --tasks."""
     import argparse
 
-    from camo_sbi.experiments import hrc
+    from camo_sbi.experiments import reproduce_hrc
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
 
     p = argparse.ArgumentParser()
-    hrc.add_arguments(p)
+    reproduce_hrc.add_arguments(p)
     args = p.parse_args(HRC[2:])
-    args.priors = hrc._parse_priors(args.priors)
+    args.priors = reproduce_hrc._parse_priors(args.priors)
     out = tmp_path / "run"
     with RunDirectory(out, "reproduce hrc", run_settings(args, ignore=("scene_png",))):
         pass

@@ -96,8 +96,8 @@ def _fuzz(n: int):
 def goods(sim, tmp_path_factory):
     """A valid file of every kind (bytes), and the BVH map that goes with the BVH."""
     from camo_sbi.experiments.models import load_limits
-    from camo_sbi.experiments.recorded import simulate_recordings
-    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.experiments.simulate import simulate_recordings
+    from camo_sbi.io.schema import save_recordings
     from camo_sbi.task import Observation
     from tests.test_mocap import write_bvh
 
@@ -120,7 +120,7 @@ def goods(sim, tmp_path_factory):
 
 def _readers(sim, goods):
     from camo_sbi.experiments.models import ModelSpec, load_limits
-    from camo_sbi.experiments.study import load_study
+    from camo_sbi.experiments.run import load_study
     from camo_sbi.io.bvh import load_bvh_map
     from camo_sbi.io.frames import load_frame, load_marker_positions
     from camo_sbi.io.recordings import load_recording

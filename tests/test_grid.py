@@ -8,7 +8,7 @@ import pickle
 import pandas as pd
 import pytest
 
-from camo_sbi.experiments import calibrate, compare, hrc, manipulator, robustness
+from camo_sbi.experiments import calibrate, compare, reproduce_hrc, reproduce_panda, robustness
 from camo_sbi.experiments.grid import Cell, run_grid
 from camo_sbi.experiments.models import ModelSpec
 from camo_sbi.experiments.store import ResultStore
@@ -60,13 +60,13 @@ def _parse(mod, argv):
 
 def _keys(command, argv):
     if command == "reproduce panda":
-        args = _parse(manipulator, argv)
-        manipulator._check(args)
-        return [c.key for c in manipulator.grid_cells(args, *manipulator.model_and_subjects(args))]
+        args = _parse(reproduce_panda, argv)
+        reproduce_panda._check(args)
+        return [c.key for c in reproduce_panda.grid_cells(args, *reproduce_panda.model_and_subjects(args))]
     if command == "reproduce hrc":
-        args = _parse(hrc, argv)
-        args.priors = hrc._parse_priors(args.priors)
-        return [c.key for c in hrc.grid_cells(args)]
+        args = _parse(reproduce_hrc, argv)
+        args.priors = reproduce_hrc._parse_priors(args.priors)
+        return [c.key for c in reproduce_hrc.grid_cells(args)]
     if command == "compare":
         return [c.key for c in compare.grid_cells(_parse(compare, argv), build=False)]
     if command == "calibrate":

@@ -237,19 +237,19 @@ def test_start_posture_ik_on_the_kernel_equals_the_reference_fk(sim, monkeypatch
 
     import torch
 
-    from camo_sbi.io import recordings
+    from camo_sbi.io import geometry
 
     rng = np.random.default_rng(4)
     q_true = sim.start.double().numpy() + rng.uniform(-0.2, 0.2, size=(4, sim.n_joints))  # near the start
     targets = sim.forward_kinematics(torch.from_numpy(q_true)).to(torch.float64).numpy()
-    monkeypatch.setattr(recordings, "IK_PROGRESS_MIN", 2)
-    monkeypatch.setattr(recordings, "IK_ITERATIONS", 40)  # the reference FK is slow: 40 of the 300 iterations
-    with caplog.at_level(logging.INFO, logger="camo_sbi.io.recordings"):
-        q_kernel, res_kernel = recordings.estimate_starts(sim, targets, sim.start)
+    monkeypatch.setattr(geometry, "IK_PROGRESS_MIN", 2)
+    monkeypatch.setattr(geometry, "IK_ITERATIONS", 40)  # the reference FK is slow: 40 of the 300 iterations
+    with caplog.at_level(logging.INFO, logger="camo_sbi.io.geometry"):
+        q_kernel, res_kernel = geometry.estimate_starts(sim, targets, sim.start)
     assert re.search(r"start postures: IK of 4 reaches .*about [\d.e+-]+ s at most", caplog.text), caplog.text
-    monkeypatch.setattr(recordings, "_fk_numpy", lambda s: (
+    monkeypatch.setattr(geometry, "_fk_numpy", lambda s: (
         lambda q: s.forward_kinematics(torch.from_numpy(q)).to(torch.float64).numpy()))
-    q_ref, res_ref = recordings.estimate_starts(sim, targets, sim.start)
+    q_ref, res_ref = geometry.estimate_starts(sim, targets, sim.start)
     np.testing.assert_allclose(q_kernel, q_ref, atol=1e-9)
     np.testing.assert_allclose(res_kernel, res_ref, atol=1e-9)
     assert res_kernel.max() < 0.2 * np.linalg.norm(targets - sim.forward_kinematics(sim.start).double().numpy(),

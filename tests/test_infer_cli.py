@@ -13,7 +13,8 @@ import pytest
 
 from camo_sbi.experiments.cli import main
 from camo_sbi.experiments.models import ModelSpec, load_limits
-from camo_sbi.io.recordings import K_SIGMA, load_recordings
+from camo_sbi.io.recordings import load_recordings
+from camo_sbi.io.schema import K_SIGMA
 from tests.test_recordings import csv_to_degrees
 
 DATA = Path(__file__).parent / "data"
@@ -398,7 +399,7 @@ def test_reaches_from_different_starts(tmp_path, sim, capsys):
     inside the limits, so every estimate contains every observed start."""
     import torch
 
-    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.io.schema import save_recordings
     from camo_sbi.scenarios.reaching import observe, reachable_goals
 
     theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)
@@ -422,7 +423,7 @@ def test_ee_only_reaches_from_five_start_postures_are_inferred(tmp_path, sim, ca
     estimated by IK (starts.csv), and every method's limits contain every estimated start."""
     import torch
 
-    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.io.schema import save_recordings
     from camo_sbi.scenarios.reaching import observe, reachable_goals
     from camo_sbi.task import Observation
 
@@ -515,7 +516,7 @@ def test_infer_with_an_amortized_estimator(recording, sim, tmp_path, capsys):
     another noise model; reaches chained from posture to posture, as `simulate-observations`
     writes them) is skipped with a note beside other methods, and refused, naming the reason,
     when it is the only method."""
-    from camo_sbi.io.recordings import save_recordings
+    from camo_sbi.io.schema import save_recordings
     from camo_sbi.scenarios.reaching import make_reaching_task
 
     theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)

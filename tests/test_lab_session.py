@@ -210,7 +210,8 @@ def test_real_session_gives_joint_angles_and_reaches(body):
 def test_limits_table_marks_the_bounds_the_recording_went_past(body):
     """A clipped bound: limits.csv's clipped_samples and beyond_range on that bound's rows only,
     and "!" on it (observed and every method) in the wide table."""
-    from camo_sbi.experiments.recorded import WIDE_LIMITS_KEY, _recorded_task, limits_table, wide_limits
+    from camo_sbi.experiments.infer import _recorded_task
+    from camo_sbi.experiments.infer_limits import WIDE_LIMITS_KEY, limits_table, wide_limits
     from camo_sbi.inference.registry import run_method
 
     rec = load_recording(REAL, body, markers="isb", marker_map=REAL_MAP, reaches="auto", resample=None,

@@ -13,15 +13,16 @@ import numpy as np
 import pytest
 import torch
 
-from camo_sbi.experiments.recorded import (
+from camo_sbi.experiments.infer_limits import (
     EXERCISED_MARGIN_DEG,
     FALLBACK_MARK,
     limits_table,
-    reach_figure,
     wide_limits,
 )
+from camo_sbi.experiments.infer_report import reach_figure
 from camo_sbi.inference.result import PosteriorResult
-from camo_sbi.io.recordings import K_SIGMA, load_recording
+from camo_sbi.io.recordings import load_recording
+from camo_sbi.io.schema import K_SIGMA
 from camo_sbi.priors import BoxPrior
 from camo_sbi.task import NoiseModel, Observation
 from tests.test_infer_cli import DATA, JOINTS
@@ -179,7 +180,7 @@ def test_limits_figure_legend_fits_the_figure(sim):
 
 def test_bvh_channel_out_of_range_names_channel_frame_and_entry(sim, tmp_path):
     from camo_sbi.experiments.models import load_limits
-    from camo_sbi.experiments.recorded import simulate_recordings
+    from camo_sbi.experiments.simulate import simulate_recordings
     from tests.test_mocap import write_bvh
 
     theta = load_limits(DATA / "arm7_limits.json", sim).reshape(-1)

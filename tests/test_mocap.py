@@ -17,9 +17,10 @@ import pytest
 
 from camo_sbi.experiments.cli import main
 from camo_sbi.experiments.models import load_limits
-from camo_sbi.experiments.recorded import simulate_recordings
+from camo_sbi.experiments.simulate import simulate_recordings
 from camo_sbi.io.frames import frame_from_markers, load_frame
-from camo_sbi.io.recordings import load_recording, save_recordings
+from camo_sbi.io.recordings import load_recording
+from camo_sbi.io.schema import save_recordings
 from camo_sbi.task import Observation
 from tests import test_infer_cli
 from tests.test_infer_cli import DATA, MODEL

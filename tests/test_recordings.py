@@ -13,16 +13,10 @@ import pytest
 import torch
 
 from camo_sbi.experiments.models import ModelSpec, load_limits
-from camo_sbi.experiments.recorded import simulate_recordings
-from camo_sbi.io.recordings import (
-    K_SIGMA,
-    estimate_rate,
-    load_goals,
-    load_recording,
-    load_recordings,
-    resample_to_controller,
-    save_recordings,
-)
+from camo_sbi.experiments.simulate import simulate_recordings
+from camo_sbi.io.recordings import load_goals, load_recording, load_recordings
+from camo_sbi.io.resample import estimate_rate, resample_to_controller
+from camo_sbi.io.schema import K_SIGMA, save_recordings
 from camo_sbi.task import NoiseModel, Observation
 
 DATA = Path(__file__).parent / "data"

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from matplotlib.colors import to_hex
 
-from camo_sbi.diagnostics import calibration, style
+from camo_sbi.diagnostics import calibration, plot_primitives, style
 from camo_sbi.experiments import compare, demo
 
 
@@ -25,9 +25,9 @@ def _line_colors(ax) -> dict[str, str]:
 
 def test_a_method_has_the_same_colour_in_every_figure():
     """Before: colours were the position in each figure's legend, so naive changed colour."""
-    a = style.plot_lines(_tidy(["camo", "naive", "abc-smc"], [1, 2, 3]))
-    b = style.plot_lines(_tidy(["camo-js", "camo-cs", "camo-hull", "naive", "oracle"], [1, 2, 3]))
-    bars = style.plot_bars(_tidy(["naive", "npe"], [1]))
+    a = plot_primitives.plot_lines(_tidy(["camo", "naive", "abc-smc"], [1, 2, 3]))
+    b = plot_primitives.plot_lines(_tidy(["camo-js", "camo-cs", "camo-hull", "naive", "oracle"], [1, 2, 3]))
+    bars = plot_primitives.plot_bars(_tidy(["naive", "npe"], [1]))
     cov = pd.DataFrame({"method": ["naive (point estimate)", "naive (point estimate)", "camo", "camo"],
                         "alpha": [0.1, 0.9, 0.1, 0.9], "coverage": [0.1, 0.1, 0.1, 0.8]})
     cov_ax = calibration.plot_coverage(cov).axes[0]
@@ -57,16 +57,16 @@ def test_baselines_are_grey_and_unknown_names_deterministic():
 
 def test_task_axes_have_integer_ticks_only():
     for xs in ([1, 2, 3], list(range(1, 26))):
-        ax = style.plot_lines(_tidy(["camo", "naive"], xs, seeds=2))
+        ax = plot_primitives.plot_lines(_tidy(["camo", "naive"], xs, seeds=2))
         ticks = [t for t in ax.get_xticks() if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]]
         assert ticks and all(float(t).is_integer() for t in ticks), ticks
 
 
 def test_log_axis_only_with_two_budgets(tmp_path):
     one = _tidy(["camo", "naive"], [500], x="budget")
-    assert style.plot_lines(one, x="budget", logx=True).get_xscale() == "linear"
+    assert plot_primitives.plot_lines(one, x="budget", logx=True).get_xscale() == "linear"
     two = _tidy(["camo", "naive"], [100, 1000], x="budget")
-    ax = style.plot_lines(two, x="budget", logx=True)
+    ax = plot_primitives.plot_lines(two, x="budget", logx=True)
     assert ax.get_xscale() == "log" and sorted(ax.get_xticks()) == [100, 1000]
     # compare's figures: one budget -> no error-vs-budget figure, wall time as bars
     rows = [{"method": m, "budget": 500, "seed": s, "n_tasks": k, "metric": metric, "value": 1.0 + s + k}
@@ -80,14 +80,14 @@ def test_log_axis_only_with_two_budgets(tmp_path):
 
 
 def test_legend_title_names_the_interval():
-    ax = style.plot_lines(_tidy(["camo", "naive"], [1, 2], seeds=6))
+    ax = plot_primitives.plot_lines(_tidy(["camo", "naive"], [1, 2], seeds=6))
     title = ax.get_legend().get_title().get_text()
     assert "95% CI of the mean" in title and "over 6 runs" in title and "Student t" in title
     assert style.band_label([5, 7]).endswith("over 5–7 runs (Student t)")
     assert "no interval" in style.band_label(1)
-    bars = style.plot_bars(_tidy(["camo", "naive"], [1], seeds=5))
+    bars = plot_primitives.plot_bars(_tidy(["camo", "naive"], [1], seeds=5))
     assert "95% CI of the mean over 5 runs" in bars.get_xlabel()
-    few = style.plot_lines(_tidy(["camo", "naive"], [1, 2], seeds=2)).get_legend().get_title().get_text()
+    few = plot_primitives.plot_lines(_tidy(["camo", "naive"], [1, 2], seeds=2)).get_legend().get_title().get_text()
     assert "each of 2 runs" in few and "no CI band" in few and "Student" not in few
     assert "each of 3–4 runs" in style.band_label([3, 4])
 
@@ -109,7 +109,7 @@ def _dots(ax) -> np.ndarray:
 def test_a_figure_of_few_seeds_draws_its_points_not_bands(seeds):
     """Before: 2 seeds drew a Student-t band (t with 1 dof: 12.7 sd wide, below 0 for errors)."""
     df = _tidy(["camo", "npe", "naive"], [1, 2, 3], seeds=seeds)
-    ax = style.plot_lines(df)
+    ax = plot_primitives.plot_lines(df)
     assert _bands(ax) == 0  # no fill_between
     dots = _dots(ax)
     assert len(dots) == len(df)  # every run is drawn
@@ -119,12 +119,12 @@ def test_a_figure_of_few_seeds_draws_its_points_not_bands(seeds):
     assert np.all(np.abs(dots[:, 0] - np.round(dots[:, 0])) < 0.5)  # still next to their x
     camo = next(ln for ln in ax.get_lines() if ln.get_label() == "camo")  # the line is the mean
     np.testing.assert_allclose(camo.get_ydata(), df[df.method == "camo"].groupby("n_tasks")["value"].mean())
-    bars = style.plot_bars(df[df.n_tasks == 3])
+    bars = plot_primitives.plot_bars(df[df.n_tasks == 3])
     assert all(c.errorbar is None for c in bars.containers if hasattr(c, "errorbar"))
     assert not [ln for ln in bars.get_lines() if ln.get_label().startswith("_") and len(ln.get_xdata()) == 2
                 and ln.get_xdata()[0] == ln.get_xdata()[1]]  # no error-bar segments
     assert len(_dots(bars)) == 3 * seeds
-    many = style.plot_lines(_tidy(["camo", "npe"], [1, 2, 3], seeds=5))
+    many = plot_primitives.plot_lines(_tidy(["camo", "npe"], [1, 2, 3], seeds=5))
     assert _bands(many) == 2 and len(_dots(many)) == 0  # 5 seeds: bands, as before
 
 
@@ -192,7 +192,7 @@ def test_svg_and_pdf_are_written_and_parse(tmp_path):
 
 @pytest.mark.parametrize("maker", ["compare", "manipulator", "coverage"])
 def test_paper_figures_have_no_text_below_8_pt(maker, tmp_path):
-    from camo_sbi.experiments import manipulator
+    from camo_sbi.experiments import reproduce_panda
 
     seen = []
     orig = style.save_figures
@@ -211,7 +211,7 @@ def test_paper_figures_have_no_text_below_8_pt(maker, tmp_path):
         if maker == "compare":
             compare.make_figures(pd.DataFrame(rows), tmp_path)
         elif maker == "manipulator":
-            manipulator.make_figures(pd.DataFrame(rows), tmp_path)
+            reproduce_panda.make_figures(pd.DataFrame(rows), tmp_path)
         else:
             cov = pd.DataFrame({"method": ["camo"] * 2, "alpha": [0.1, 0.9], "coverage": [0.1, 0.8]})
             fig = calibration.plot_coverage(cov)
@@ -225,21 +225,21 @@ def test_paper_figures_have_no_text_below_8_pt(maker, tmp_path):
 def test_robust_scale_clips_a_dwarfing_baseline():
     df = _tidy(["camo", "abc-smc", "naive"], [1, 2, 3], seeds=2, scale={"camo": 100, "abc-smc": 150,
                                                                         "naive": 250_000})
-    ax = style.plot_lines(df)
+    ax = plot_primitives.plot_lines(df)
     methods_top = df[df.method != "naive"]["value"].max()
     assert ax.get_ylim()[1] < 3 * methods_top  # the methods fill the axis
     texts = " ".join(t.get_text() for t in ax.texts)
     assert "naive off scale" in texts
     assert "camo" not in texts
-    raw = style.plot_lines(df, robust=False)
+    raw = plot_primitives.plot_lines(df, robust=False)
     assert raw.get_ylim()[1] > 200_000  # without it the baseline flattens every method
     # no clipping when nothing dwarfs
-    calm = style.plot_lines(_tidy(["camo", "naive"], [1, 2], scale={"naive": 200}))
+    calm = plot_primitives.plot_lines(_tidy(["camo", "naive"], [1, 2], scale={"naive": 200}))
     assert not calm.texts
-    bars = style.plot_bars(df[df.n_tasks == 3])
+    bars = plot_primitives.plot_bars(df[df.n_tasks == 3])
     assert bars.get_ylim()[1] < 3 * methods_top and any("off scale" in t.get_text() for t in bars.texts)
     with pytest.raises(ValueError, match="^factor:"):
-        style.robust_ylim(ax, {}, factor=1)
+        plot_primitives.robust_ylim(ax, {}, factor=1)
 
 
 def test_demo_out_path_is_a_file_or_a_directory(tmp_path):

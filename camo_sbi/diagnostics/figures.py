@@ -21,13 +21,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from camo_sbi.diagnostics.style import (
-    figure_legend,
-    method_order,
-    method_style,
-    new_figure,
-    paper_figure,
-)
+from camo_sbi.diagnostics.plot_primitives import figure_legend
+from camo_sbi.diagnostics.style import method_order, method_style, new_figure, paper_figure
 
 __all__ = ["plot_limits", "plot_predictive", "plot_speed"]
 

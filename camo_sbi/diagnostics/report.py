@@ -376,13 +376,12 @@ def _xy_figures(res: pd.DataFrame | None, why: str, x: str, fixed: str, xlabel: 
 
 def _xy_panels(sub: pd.DataFrame, shown: list[str], x: str, xlabel: str) -> Figure:
     """One panel per metric of ``shown`` against ``x``, one legend below."""
+    from camo_sbi.diagnostics.plot_primitives import figure_legend, plot_lines
     from camo_sbi.diagnostics.style import (
         band_label,
-        figure_legend,
         method_style,
         metric_label,
         new_figure,
-        plot_lines,
         run_counts,
     )
 

@@ -140,8 +140,8 @@ COMMANDS = (
             ("camo-sbi reference --model panda --setting informative --observations 10 --out refs/panda-informative",
              "camo-sbi compare --reference refs/panda-informative --methods camo-seq,npe,exact-likelihood "
              "--budgets 1000,10000 --out runs/vs-reference")),
-    Command("run", "run a whole comparison described in a study file (TOML)", "study:add_arguments",
-            "study:main", ("methods", "subjects"),
+    Command("run", "run a whole comparison described in a study file (TOML)", "run:add_arguments",
+            "run:main", ("methods", "subjects"),
             ("camo-sbi run study.toml", "camo-sbi run docs/study_example.toml --json")),
     Command("calibrate", "coverage and SBC of each method over synthetic subjects", "calibrate:add_arguments",
             "calibrate:main", ("methods",),
@@ -150,8 +150,8 @@ COMMANDS = (
             "amortize:add_arguments", "amortize:main", (),
             ("camo-sbi amortize --model panda --simulations 200000 --out panda.pt",
              "camo-sbi amortize --model panda --fast --threads 2 --out panda-fast.pt")),
-    Command("report", "write a self-contained HTML report of a run directory", "cli:_report_arguments",
-            "cli:_report", (), ("camo-sbi report runs/tiny", "camo-sbi report runs/tiny -o tiny.html")),
+    Command("report", "write a self-contained HTML report of a run directory", "report:add_arguments",
+            "report:main", (), ("camo-sbi report runs/tiny", "camo-sbi report runs/tiny -o tiny.html")),
     Command("demo", "simulate a batch of reaches and plot them", "cli:_demo_arguments", "demo:main", (),
             ("camo-sbi demo --model human --out demo.png",)),
     Command("describe", "describe a body model: joints, axes, signs, ranges, frames, and a figure",
@@ -159,11 +159,11 @@ COMMANDS = (
             ("camo-sbi describe --model human --out runs/describe",
              "camo-sbi describe --urdf tests/data/arm7.urdf --ee tool --out runs/describe")),
     Command("simulate-observations", "write synthetic recorded reaches of a subject (recording format)",
-            "recorded:add_simulate_arguments", "recorded:simulate_main", (),
+            "simulate:add_arguments", "simulate:main", (),
             (f"camo-sbi simulate-observations {_OBS} --limits tests/data/arm7_limits.json --reaches 5 "
              "--seed 0 --noise-joint-deg 1 --noise-ee-mm 5 --out obs.csv",)),
-    Command("infer", "infer joint limits from recorded reaches", "recorded:add_infer_arguments",
-            "recorded:infer_main", ("methods",),
+    Command("infer", "infer joint limits from recorded reaches", "infer:add_arguments",
+            "infer:main", ("methods",),
             (f"camo-sbi infer --observations obs.csv {_OBS} --noise-joint-deg 1 --noise-ee-mm 5 "
              "--methods camo,naive,nominal,npe --budget 1000 --seed 0 --out inferred",)),
     Command("robustness", "every method under observation noise, a faster recorder and a mis-sized model",
@@ -172,15 +172,15 @@ COMMANDS = (
     Command("warmup", "compile the numba kernels now, once per user (a first run would compile them)",
             "warmup:add_arguments", "warmup:main", (),
             ("camo-sbi warmup", "camo-sbi warmup --models panda,human")),
-    Command("render-scene", "render the block-stacking scene to a PNG", "hrc:add_render_arguments",
-            "hrc:render_main", ("human",), ("camo-sbi render-scene --subject frozen_shoulder --out scene.png",)),
+    Command("render-scene", "render the block-stacking scene to a PNG", "render_scene:add_arguments",
+            "render_scene:main", ("human",), ("camo-sbi render-scene --subject frozen_shoulder --out scene.png",)),
 )
 REPRODUCE = (
     Command("panda", "manipulator experiment (paper Fig. 2-3); --model human also works",
-            "manipulator:add_arguments", "manipulator:main", ("methods", "subjects"),
+            "reproduce_panda:add_arguments", "reproduce_panda:main", ("methods", "subjects"),
             ("camo-sbi reproduce panda --setting paper --runs 30 --out runs/paper",
              "camo-sbi reproduce panda --runs 5 --tasks 5 --out runs/toolkit")),
-    Command("hrc", "human-robot block stacking (paper Fig. 5)", "hrc:add_arguments", "hrc:main", ("human",),
+    Command("hrc", "human-robot block stacking (paper Fig. 5)", "reproduce_hrc:add_arguments", "reproduce_hrc:main", ("human",),
             ("camo-sbi reproduce hrc --runs 10 --out runs/hrc",
              "camo-sbi reproduce hrc --runs 10 --observe carry --fix-torso --out runs/hrc-carry")),
 )
@@ -265,17 +265,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _report_arguments(p: argparse.ArgumentParser) -> None:
-    from camo_sbi.experiments.figure_options import add_corner_argument, add_figure_format_argument
-
-    p.add_argument("run_dir", help="a run directory (compare, reproduce, calibrate, robustness, infer)")
-    p.add_argument("-o", "--output", default=None, help="HTML path (default: RUN_DIR/report.html)")
-    p.add_argument("--force", action="store_true",
-                   help="rebuild even if the report on disk was built from the same inputs")
-    add_figure_format_argument(p)
-    add_corner_argument(p)
-
-
 def _demo_arguments(p: argparse.ArgumentParser) -> None:
     from camo_sbi.experiments.figure_options import add_figure_format_argument
     from camo_sbi.experiments.models import add_model_arguments
@@ -285,21 +274,6 @@ def _demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/demo", help="a .png path, or a directory for demo.png")
     add_figure_format_argument(p)
-
-
-def _report(args) -> int:
-    from pathlib import Path
-
-    from camo_sbi.diagnostics.report import report_is_current, write_report
-    from camo_sbi.experiments.figure_options import corner_limits, figure_formats
-
-    out = Path(args.output) if args.output else Path(args.run_dir) / "report.html"
-    formats = figure_formats(args)  # png alone: the figures live in the page only
-    options = {"corner_limits": corner_limits(args), "figure_formats": None if formats == ("png",) else formats}
-    current = not args.force and Path(args.run_dir).is_dir() and report_is_current(args.run_dir, out, **options)
-    path = write_report(args.run_dir, out, force=args.force, progress=True, **options)
-    print(f"report: {path}" + (" (unchanged: built from the same inputs; --force rebuilds it)" if current else ""))
-    return 0
 
 
 # ----------------------------------------------------------------------------- messages

@@ -203,14 +203,8 @@ def make_figures(df, out: Path, formats=("png",)) -> list[Path]:
 def headline_panels(sub, x: str, title, **kw):
     """A figure of one panel per headline metric in ``sub`` (tidy rows) against ``x``, one
     legend below; ``title(label)`` the panels' titles. Returns (figure, the metrics drawn)."""
-    from camo_sbi.diagnostics.style import (
-        band_label,
-        figure_legend,
-        metric_label,
-        new_figure,
-        plot_lines,
-        run_counts,
-    )
+    from camo_sbi.diagnostics.plot_primitives import figure_legend, plot_lines
+    from camo_sbi.diagnostics.style import band_label, metric_label, new_figure, run_counts
     from camo_sbi.evaluation import catalog
 
     metrics = catalog.headline(sub.metric.unique())
@@ -228,13 +222,8 @@ def headline_panels(sub, x: str, title, **kw):
 
 
 def _make_figures(df, out: Path, formats) -> list[Path]:
-    from camo_sbi.diagnostics.style import (
-        metric_label,
-        new_figure,
-        plot_bars,
-        plot_lines,
-        save_figures,
-    )
+    from camo_sbi.diagnostics.plot_primitives import plot_bars, plot_lines
+    from camo_sbi.diagnostics.style import metric_label, new_figure, save_figures
 
     paths = []
     last = df[df.n_tasks == df.n_tasks.max()]

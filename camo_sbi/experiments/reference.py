@@ -5,7 +5,7 @@
     camo-sbi compare --reference REFS --methods camo-seq,npe,exact-likelihood --budgets 1000,10000 --out CMP
 
 The benchmark set (sbibm's idea: one reference posterior per observation). Observation i is a
-synthetic subject of the setting (`manipulator.SETTINGS`: its controller, its subjects, cycled
+synthetic subject of the setting (`reproduce_panda.SETTINGS`: its controller, its subjects, cycled
 over i, its goal design) observed on ``--tasks`` reaches (`make_reaching_task`, seed
 ``derive_seed(--seed, i)``; the paper setting's fixed goals: ``derive_seed(--seed)``), and the
 recorded values perturbed by the noise model (``--noise-joint-deg`` / ``--noise-ee-mm``, 1 deg / 5 mm
@@ -70,7 +70,7 @@ PROVENANCE = "reference.json"
 def setting_simulator(model, setting: str):
     """The simulator of ``model`` (a `ModelSpec`) under ``setting``'s controller (the paper setting's
     fixed horizon of 21 points, as ``reproduce panda --setting paper``)."""
-    from camo_sbi.experiments.manipulator import SETTINGS
+    from camo_sbi.experiments.reproduce_panda import SETTINGS
 
     sim = model.build()
     changes = dict(SETTINGS[setting].controller or {})
@@ -80,7 +80,7 @@ def setting_simulator(model, setting: str):
 
 
 def _setting_subjects(model, setting: str, given: str | None) -> list[str]:
-    from camo_sbi.experiments.manipulator import SETTINGS
+    from camo_sbi.experiments.reproduce_panda import SETTINGS
     from camo_sbi.simulators.registry import get_model
 
     st = SETTINGS[setting]
@@ -100,7 +100,7 @@ def reference_task(sim, model, subject: str, index: int, *, setting: str, tasks:
                    noise, base_seed: int):
     """Observation ``index`` of the benchmark set: the task with its noisy reaches (module docstring)."""
     from camo_sbi._validation import derive_seed, torch_generator
-    from camo_sbi.experiments.manipulator import SETTINGS
+    from camo_sbi.experiments.reproduce_panda import SETTINGS
     from camo_sbi.scenarios.reaching import make_reaching_task
     from camo_sbi.task import Observation
 
@@ -215,7 +215,7 @@ def load_observation(refs: Path, entry: dict):
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from camo_sbi.experiments.manipulator import SETTINGS
+    from camo_sbi.experiments.reproduce_panda import SETTINGS
 
     p.add_argument("--setting", choices=tuple(SETTINGS), default="informative",
                    help="the design the observations come from (reproduce panda's settings)")

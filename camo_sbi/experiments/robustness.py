@@ -13,7 +13,7 @@ Conditions (each seed's subject and goals are the same in every condition, so re
   (`KinematicSimulator.scaled`); observations and the true held-out reaches come from that
   body, inference and predictions from the model. With ``--body-scale free`` the model is
   first rescaled by the scale s estimated from the observations (joint and end-effector
-  recordings together, `camo_sbi.io.recordings.estimate_body_scale`), for every method; the
+  recordings together, `camo_sbi.io.geometry.estimate_body_scale`), for every method; the
   ``body_scale`` metric records s.
 
 Per (seed, condition, method): every metric of the one scorer (`evaluate_result`, with the
@@ -98,8 +98,8 @@ def coverage90(result, truth, prior) -> float:
 
 
 def _observations(sim, theta, n, seed, cond: Condition):
-    from camo_sbi.experiments.recorded import simulate_recordings
-    from camo_sbi.io.recordings import estimate_rate, resample_to_controller
+    from camo_sbi.experiments.simulate import simulate_recordings
+    from camo_sbi.io.resample import estimate_rate, resample_to_controller
 
     obs = simulate_recordings(sim, theta, n, seed=seed, noise=cond.noise, rate_multiplier=cond.rate)
     if cond.rate != 1.0:  # what the recording loader does with a faster recorder
@@ -131,7 +131,7 @@ def run_cell(cell, out: str) -> list[dict]:
     obs = _observations(body, theta, cell.tasks, derive_seed(x["base_seed"], cell.seed), cond)
     scale = 1.0
     if x.get("body_scale") == "free":
-        from camo_sbi.io.recordings import estimate_body_scale
+        from camo_sbi.io.geometry import estimate_body_scale
 
         q = np.concatenate([o.q.numpy() for o in obs])
         ee = np.concatenate([o.ee.numpy() for o in obs])
@@ -235,11 +235,10 @@ def make_figure(df: pd.DataFrame, out: Path, formats=("png",)) -> Path:
 def _make_figure(df: pd.DataFrame, out: Path, formats) -> Path:
     import numpy as np
 
+    from camo_sbi.diagnostics.plot_primitives import figure_legend, jitter
     from camo_sbi.diagnostics.style import (
         band_label,
         few_runs,
-        figure_legend,
-        jitter,
         method_order,
         method_style,
         metric_label,
@@ -293,7 +292,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         + ", ".join(c.name for c in CONDITIONS).replace("%", "%%") + ")")
     p.add_argument("--body-scale", choices=("fixed", "free"), default="fixed",
                    help="free: estimate the observed body's segment-length scale s from its joint and end-effector "
-                        "recordings (io.recordings.estimate_body_scale) and infer and predict on model.scaled(s)")
+                        "recordings (io.geometry.estimate_body_scale) and infer and predict on model.scaled(s)")
     add_figure_format_argument(p)
     add_run_options(p, out="runs/robustness")
 

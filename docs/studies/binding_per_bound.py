@@ -11,8 +11,8 @@ import sys
 import numpy as np
 
 from camo_sbi._validation import derive_seed
-from camo_sbi.experiments.manipulator import SETTINGS
 from camo_sbi.experiments.models import ModelSpec, subject_limits
+from camo_sbi.experiments.reproduce_panda import SETTINGS
 from camo_sbi.scenarios.reaching import make_reaching_task, task_binding_metrics
 
 model = ModelSpec(kind=sys.argv[1])

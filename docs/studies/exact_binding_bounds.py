@@ -24,9 +24,9 @@ import pandas as pd
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.evaluation.metrics import binding_bounds
-from camo_sbi.experiments.manipulator import SETTINGS, method_config
 from camo_sbi.experiments.models import ModelSpec, subject_limits
 from camo_sbi.experiments.reference import reference_task
+from camo_sbi.experiments.reproduce_panda import SETTINGS, method_config
 from camo_sbi.inference.registry import get_method, run_method
 from camo_sbi.inference.result import weighted_quantile
 from camo_sbi.scenarios.reaching import make_reaching_task

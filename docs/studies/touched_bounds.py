@@ -15,8 +15,8 @@ import numpy as np
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.evaluation.metrics import binding_bounds
-from camo_sbi.experiments.manipulator import SETTINGS, method_config
 from camo_sbi.experiments.models import ModelSpec, subject_limits
+from camo_sbi.experiments.reproduce_panda import SETTINGS, method_config
 from camo_sbi.inference.registry import run_method
 from camo_sbi.inference.touched import touched_bounds
 from camo_sbi.scenarios.reaching import make_reaching_task

@@ -16,8 +16,8 @@ import torch
 
 from camo_sbi._validation import derive_seed
 from camo_sbi.evaluation.metrics import binding_bounds
-from camo_sbi.experiments.manipulator import SETTINGS, method_config
 from camo_sbi.experiments.models import ModelSpec, subject_limits
+from camo_sbi.experiments.reproduce_panda import SETTINGS, method_config
 from camo_sbi.inference.registry import run_method
 from camo_sbi.inference.touched import touched_bounds
 from camo_sbi.priors import BoxPrior

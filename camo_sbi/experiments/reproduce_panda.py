@@ -322,15 +322,8 @@ def make_figures(df, out: Path, formats=("png",)) -> list[Path]:
 
 
 def _make_figures(df, out: Path, formats) -> list[Path]:
-    from camo_sbi.diagnostics.style import (
-        band_label,
-        figure_legend,
-        metric_label,
-        new_figure,
-        plot_bars,
-        plot_lines,
-        save_figures,
-    )
+    from camo_sbi.diagnostics.plot_primitives import figure_legend, plot_bars, plot_lines
+    from camo_sbi.diagnostics.style import band_label, metric_label, new_figure, save_figures
     from camo_sbi.evaluation import catalog
 
     band = band_label(df.run.nunique())

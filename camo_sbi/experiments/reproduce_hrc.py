@@ -76,14 +76,14 @@ __all__ = [
     "PRIORS",
     "STRONG_PRIOR_FIXED",
     "add_arguments",
-    "add_render_arguments",
+    "check_subject",
     "collect_run",
     "grid_cells",
     "main",
     "make_figure",
     "make_prior",
+    "positive_int",
     "run_methods",
-    "render_main",
     "run_cell",
     "run_one",
 ]
@@ -313,12 +313,11 @@ def make_figure(df, out: Path, formats=("png",)) -> Path:
 
 
 def _make_figure(df, out: Path, formats) -> Path:
+    from camo_sbi.diagnostics.plot_primitives import figure_legend, plot_lines
     from camo_sbi.diagnostics.style import (
         band_label,
-        figure_legend,
         metric_label,
         new_figure,
-        plot_lines,
         run_counts,
         save_figures,
     )
@@ -339,7 +338,9 @@ def _make_figure(df, out: Path, formats) -> Path:
     return save_figures(fig, out / "fig5_allocation.png", formats)[0]
 
 
-def _positive(name: str):
+def positive_int(name: str):
+    """An argparse type: an integer >= 1 (an error naming the option ``name`` otherwise)."""
+
     def parse(text: str) -> int:
         try:
             v = int(text)
@@ -352,14 +353,14 @@ def _positive(name: str):
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--runs", type=_positive("--runs"), default=10, help="independent runs (paper: 10)")
-    p.add_argument("--tasks", type=_positive("--tasks"), default=10, help="observed training tasks per run")
+    p.add_argument("--runs", type=positive_int("--runs"), default=10, help="independent runs (paper: 10)")
+    p.add_argument("--tasks", type=positive_int("--tasks"), default=10, help="observed training tasks per run")
     p.add_argument("--task-unit", choices=TASK_UNITS, default="pick",
                    help="what one observed task is: one picked block (paper code) or one whole trial")
-    p.add_argument("--test-trials", type=_positive("--test-trials"), default=20,
+    p.add_argument("--test-trials", type=positive_int("--test-trials"), default=20,
                    help="unseen test trials (4 blocks each)")
-    p.add_argument("--samples", type=_positive("--samples"), default=5000, help="CAMO LHS draws per task")
-    p.add_argument("--keep-best", type=_positive("--keep-best"), default=500,
+    p.add_argument("--samples", type=positive_int("--samples"), default=5000, help="CAMO LHS draws per task")
+    p.add_argument("--keep-best", type=positive_int("--keep-best"), default=500,
                    help="CAMO keeps at most the k best draws per task")
     p.add_argument("--epsilon", type=float, default=None, help="CAMO DTW acceptance threshold (default: none)")
     p.add_argument("--bandwidth", type=float, default=CAMO_BANDWIDTH, help="CAMO kernel variance h [rad^2]")
@@ -390,7 +391,8 @@ def _parse_priors(text) -> list[str]:
     return priors
 
 
-def _check_subject(name: str) -> None:
+def check_subject(name: str) -> None:
+    """``--subject``: a known impairment profile of the person (ValueError naming the known ones)."""
     known = subject_names()
     if name not in known:
         raise ValueError(f"--subject: unknown profile {name!r}; known: {', '.join(known)}")
@@ -456,7 +458,7 @@ def main(args) -> int:
 
     args.priors = _parse_priors(args.priors)
     formats = figure_formats(args)
-    _check_subject(args.subject)
+    check_subject(args.subject)
     for name in ("runs", "tasks", "test_trials", "samples", "keep_best", "workers"):
         if getattr(args, name, 1) < 1:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")
@@ -504,31 +506,4 @@ def main(args) -> int:
           .to_string(index=False))
     print(f"table: {out / 'results.csv'}  claims: {out / 'claims.csv'}  figure: {fig}")
     print(f"wall time: {wall:.1f} s")
-    return 0
-
-
-def add_render_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=Path("scene.png"), help="PNG path")
-    p.add_argument("--subject", default="frozen_shoulder", help="impairment profile of the person")
-    p.add_argument("--seed", type=int, default=0, help="layout seed")
-    p.add_argument("--width", type=_positive("--width"), default=800)
-    p.add_argument("--height", type=_positive("--height"), default=600)
-    p.add_argument("--no-region", action="store_true", help="do not tint the reachable tabletop region")
-
-
-def render_main(args) -> int:
-    """Render one random trial with the subject's true allocation and reachable region."""
-    from camo_sbi.scenarios.block_stacking import COLOURS, PERSON, ROBOT, BlockStackingScene
-    from camo_sbi.simulators import human, impaired_limits
-
-    _check_subject(args.subject)
-    sim = human()
-    theta = impaired_limits(sim, args.subject)
-    with BlockStackingScene(sim, seed=args.seed) as scene:
-        labels = scene.labels(theta)
-        path = scene.render(args.out, {c: PERSON if a else ROBOT for c, a in zip(COLOURS, labels, strict=True)},
-                            region_theta=None if args.no_region else theta, width=args.width,
-                            height=args.height,
-                            title=f"{args.subject}: true allocation (white: person, black: robot)")
-    print(f"scene: {path}")
     return 0
