@@ -1,7 +1,7 @@
 """Compare two folders of `reproduce` runs made by two versions of the code (issue 37: reproduce
 panda and reproduce hrc moved onto the grid runner). For each experiment folder present in both:
 the cell file names (the cell keys), results.csv with the timing rows left out (metric
-`wall_time` / `compile_time` / `design_wall_time`: they differ between any two runs) and claims.csv, exactly.
+`wall_time` / `compile_time` / `design_wall_time` / `import_time`: they differ between any two runs) and claims.csv, exactly.
 
     python docs/studies/experiments_identity.py BASE_DIR BRANCH_DIR
 
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pandas as pd
 
-TIMINGS = ("wall_time", "compile_time", "design_wall_time")
+TIMINGS = ("wall_time", "compile_time", "design_wall_time", "import_time")
 
 
 def compare(a: Path, b: Path) -> list[str]:
