@@ -138,7 +138,7 @@ def _check_html(checks: dict):
     lines = [w for c in checks.values() for w in verdict_lines(c)]
     head = part("items", lines) if lines else part(
         "meta", "every posterior checked reproduces every reach (Holm-adjusted p >= 0.05)")
-    return join([head, table_html(pd.DataFrame(reach_rows(checks)))])
+    return join([head, part("wide", table_html(pd.DataFrame(reach_rows(checks))))])
 
 
 def write_infer_report(out: Path, task, results: dict, notes: list[str], table, settings: dict, seed: int,
