@@ -203,7 +203,8 @@ class ReproductionCheck:
         n_draws: posterior draws per reach.  n_simulations: simulations the check ran.
         distance_mm: per reach the observed path's distance to the posterior-predictive mean
             (mm in Cartesian space, degrees in joint space) and ``replicate_mm`` the replicates'
-            median distance (reported whatever the statistic).  statistic: "onset", "timing" or
+            median distance (reported whatever the statistic; posterior draws only, never the
+            reference's prior draws, as for the errors below).  statistic: "onset", "timing" or
             "path".  onset_observed / onset_replicates: per reach the observed path's onset share
             (`onset_share`) and the replicates' median one.  predictive_error_mm: per reach the
             posterior-predictive Cartesian error: the mean over the draws of the mean distance per
@@ -320,6 +321,7 @@ def check_reproduction(task, result, *, seed: int, n_draws: int = CHECK_DRAWS, a
                                  alpha=alpha)
     rng = np.random.default_rng(derive_seed(seed, 0))
     n_prior = int(round(prior_share * n_draws))
+    n_post = n_draws - n_prior  # the reported distances and predictive errors use these draws only
     draws = result.sample((n_draws - n_prior,), seed=rng).numpy()
     if n_prior:
         draws = np.concatenate([draws, task.prior.sample(n_prior, derive_seed(seed, 3)).numpy()])
@@ -344,7 +346,7 @@ def check_reproduction(task, result, *, seed: int, n_draws: int = CHECK_DRAWS, a
         if jitter > 0:
             z = z + jitter * torch.randn(z.shape, generator=noise_gen, dtype=torch.float64)
         hand = (o.ee if o.ee is not None else task.simulator.forward_kinematics(o.q)).to(torch.float64)
-        hands = [pred.trimmed(s * m + i, "cartesian").to(torch.float64) for s in range(n_draws)]
+        hands = [pred.trimmed(s * m + i, "cartesian").to(torch.float64) for s in range(n_post)]  # posterior only
         held = _held([hand, *hands], max(hand.shape[0], max(h.shape[0] for h in hands)))
         pred_err[i] = 1e3 * float((held[1:] - held[:1]).norm(dim=-1).mean())
         shaped = torch.stack([_normalised_time(h) for h in (hand, *hands)])
@@ -356,13 +358,13 @@ def check_reproduction(task, result, *, seed: int, n_draws: int = CHECK_DRAWS, a
             stat = _feature_statistics(jittered[:, None])
             p[i] = _rank(stat, rng, 1e-9)
             member_stats.append(stat)
-            stat = rank_p_values(z, rng)[1]  # the reported distances: the paths'
+            stat = rank_p_values(z[:1 + n_post], rng)[1]  # the reported distances: the posterior's paths'
         elif test == "rank" and statistic == "timing":
             f = np.stack([timing_features(y.to(torch.float64))] + [timing_features(r) for r in reps])
             stat = _feature_statistics(f)
             p[i] = _rank(stat, rng, 1e-6)
             member_stats.append(stat)
-            stat = rank_p_values(z, rng)[1]  # the reported distances: the paths'
+            stat = rank_p_values(z[:1 + n_post], rng)[1]  # the reported distances: the posterior's paths'
         elif test == "rank":
             p[i], stat = rank_p_values(z, rng)
             member_stats.append(stat)
@@ -370,7 +372,7 @@ def check_reproduction(task, result, *, seed: int, n_draws: int = CHECK_DRAWS, a
             from camo_sbi.inference.sbi_adapter import mmd_misspecification_p
 
             p[i] = mmd_misspecification_p(z[:1].flatten(1), z[1:].flatten(1), seed=derive_seed(seed, 2, i))
-            stat = rank_p_values(z, rng)[1]
+            stat = rank_p_values(z[:1 + n_post], rng)[1]
         dist[i], rep[i] = stat[0] * scale, float(np.median(stat[1:])) * scale
     adj = holm(p)
     pooled = _pooled_p(np.stack(member_stats), rng) if member_stats else float("nan")
