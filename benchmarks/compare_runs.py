@@ -29,6 +29,18 @@ def load(folder: Path) -> pd.DataFrame:
     return df[df.n_tasks == df.n_tasks.max()]
 
 
+def paired(a: pd.DataFrame, b: pd.DataFrame, method: str, metric: str) -> tuple[float, float, float, int]:
+    """(mean in A, mean in B, two-sided Wilcoxon p of B - A, runs) over the runs of ``method`` that
+    both tidy tables hold for ``metric``; NaNs and the count when fewer than 2 runs pair."""
+    x = a[(a.method == method) & (a.metric == metric)].set_index("run").value
+    y = b[(b.method == method) & (b.metric == metric)].set_index("run").value
+    common = x.index.intersection(y.index)
+    if len(common) < 2:
+        return float("nan"), float("nan"), float("nan"), len(common)
+    d = y[common] - x[common]
+    return x[common].mean(), y[common].mean(), (wilcoxon(d).pvalue if np.any(d != 0) else 1.0), len(common)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("a", type=Path)
@@ -39,15 +51,10 @@ def main(argv=None) -> int:
     rows = []
     for metric in args.metrics.split(","):
         for m in a.method.unique():
-            x = a[(a.method == m) & (a.metric == metric)].set_index("run").value
-            y = b[(b.method == m) & (b.metric == metric)].set_index("run").value
-            common = x.index.intersection(y.index)
-            if len(common) < 2:
+            mean_a, mean_b, pval, n = paired(a, b, m, metric)
+            if n < 2:
                 continue
-            d = y[common] - x[common]
-            pval = wilcoxon(d).pvalue if np.any(d != 0) else 1.0
-            mean_a, mean_b = x[common].mean(), y[common].mean()
-            rows.append({"metric": metric, "method": m, "runs": len(common), "A": round(mean_a, 3),
+            rows.append({"metric": metric, "method": m, "runs": n, "A": round(mean_a, 3),
                          "B": round(mean_b, 3), "B / A": round(mean_b / mean_a, 3) if mean_a else float("nan"),
                          "wilcoxon_p": float(f"{pval:.3g}")})
     print(f"A = {args.a}\nB = {args.b}")

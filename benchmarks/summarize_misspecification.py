@@ -24,30 +24,26 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy.stats import wilcoxon
+from compare_runs import load as load_results  # a sibling script: python benchmarks/<this file>
+from compare_runs import paired
 
 METRICS = ("limit_error_binding_deg", "cartesian_error_mm", "reachability_f1", "model_check_flagged")
 
 
 def load(folder: Path) -> pd.DataFrame:
-    res = folder / "results.csv"
-    files = [res] if res.exists() else sorted((folder / "cells").glob("*.csv"))
-    df = pd.concat([pd.read_csv(f) for f in files], ignore_index=True)
-    gen = folder.name.split("_", 1)[1]
-    df["generator"] = gen
-    return df[df.n_tasks == df.n_tasks.max()]
+    """The folder's rows after its last task (`compare_runs.load`), its generator from its name."""
+    df = load_results(folder)
+    df["generator"] = folder.name.split("_", 1)[1]
+    return df
 
 
 def _paired(exact: pd.DataFrame, other: pd.DataFrame, method: str, metric: str) -> tuple[float, float, int]:
-    """(mean ratio other / exact, Wilcoxon p, runs) over the runs both finished."""
-    a = exact[(exact.method == method) & (exact.metric == metric)].set_index("run").value
-    c = other[(other.method == method) & (other.metric == metric)].set_index("run").value
-    common = a.index.intersection(c.index)
-    if len(common) < 2 or a[common].mean() == 0:
-        return float("nan"), float("nan"), len(common)
-    d = c[common] - a[common]
-    p = wilcoxon(d).pvalue if np.any(d != 0) else 1.0
-    return c[common].mean() / a[common].mean(), p, len(common)
+    """(mean ratio other / exact, Wilcoxon p, runs) over the runs both finished (NaNs when fewer
+    than 2 pair or the exact model's mean is 0)."""
+    mean_exact, mean_other, p, n = paired(exact, other, method, metric)
+    if n < 2 or mean_exact == 0:
+        return float("nan"), float("nan"), n
+    return mean_other / mean_exact, p, n
 
 
 def compact(seed_dirs: list[Path]) -> str:
@@ -124,16 +120,8 @@ def main(argv) -> int:
                 row = [g, m]
                 n_runs = None
                 for metric in ("limit_error_binding_deg", "cartesian_error_mm"):
-                    a = exact[(exact.method == m) & (exact.metric == metric)].set_index("run").value
-                    c = b[(b.generator == g) & (b.method == m) & (b.metric == metric)].set_index("run").value
-                    common = a.index.intersection(c.index)
-                    n_runs = len(common)
-                    if n_runs < 2 or a[common].mean() == 0:
-                        row += ["n/a", "n/a"]
-                        continue
-                    d = c[common] - a[common]
-                    p = wilcoxon(d).pvalue if np.any(d != 0) else 1.0
-                    row += [f"{c[common].mean() / a[common].mean():.2f}", f"{p:.3g}"]
+                    ratio, p, n_runs = _paired(exact, b[b.generator == g], m, metric)
+                    row += ["n/a", "n/a"] if np.isnan(ratio) else [f"{ratio:.2f}", f"{p:.3g}"]
                 lines.append(f"| {row[0]} | {row[1]} | {n_runs} | " + " | ".join(row[2:]) + " |")
     print("\n".join(lines))
     return 0

@@ -545,6 +545,13 @@ def test_infer_with_an_amortized_estimator(recording, sim, tmp_path, capsys):
     assert main(["infer", "--observations", str(tall), *MODEL, "--methods", "naive,npe-amortized", "--amortized",
                  str(clean), "--body-scale", "free", "--out", str(tmp_path / "scaled")]) == 0
     assert "npe-amortized: skipped (trained on the model's own size" in capsys.readouterr().out
+    line = _exit_2(["infer", "--observations", str(tall), *MODEL, "--methods", "npe-amortized", "--amortized",
+                    str(clean), "--body-scale", "free", "--out", str(tmp_path / "scaled_alone")], capsys)
+    assert line.startswith("camo-sbi: error: --body-scale: npe-amortized was trained on the model's own size")
+    assert main(["infer", "--observations", str(rec), *MODEL, "--methods", "naive,npe-amortized", "--amortized",
+                 str(clean), "--reach-model", "minimum-jerk", "--out", str(tmp_path / "mj")]) == 0
+    assert "npe-amortized: skipped (trained on the controller's reaches, not on --reach-model minimum-jerk)" in \
+        capsys.readouterr().out
     line = _exit_2([*base, "--methods", "npe-amortized", "--out", str(tmp_path / "d")], capsys)
     assert line.startswith("camo-sbi: error: --amortized: npe-amortized needs a trained estimator file")
     line = _exit_2([*base, "--methods", "npe-amortized", "--amortized", str(tmp_path / "missing.pt"), "--out",

@@ -90,6 +90,20 @@ def _plan(methods: list[str], task, space_arg: str | None, file_name: str) -> tu
     return plan, notes
 
 
+def _without_amortized(plan: list, notes: list[str], why: str, alone: str | None = None) -> list:
+    """``plan`` without its amortized estimators (trained once, on the controller's reaches of the
+    model's own body), each with a note "NAME: skipped (WHY)"; ``alone``: raise this ValueError
+    instead (``{name}`` filled in), for when that estimator is the only method asked for."""
+    from camo_sbi.inference.registry import capabilities
+
+    for name, _ in plan:
+        if capabilities(name).amortized:
+            if alone is not None:
+                raise ValueError(alone.format(name=name))
+            notes.append(f"{name}: skipped ({why})")
+    return [p for p in plan if not capabilities(p[0]).amortized]
+
+
 def _check_amortized(plan: list, notes: list[str], task, obs, overrides: dict, path, only: bool) -> list:
     """Point amortized methods at ``--amortized`` and check, before anything runs, that the
     estimator fits this recording (model, noise, start, number of reaches); one that does not is
@@ -297,21 +311,12 @@ def main(args) -> int:
         task = task.with_simulator(reach_model(sim, reach_law))
     plan, notes = _plan(methods, task, args.space, str(args.observations))
     if reach_law != "controller":
-        from camo_sbi.inference.registry import capabilities
-
-        for name, _ in [p for p in plan if capabilities(p[0]).amortized]:
-            notes.append(f"{name}: skipped (trained on the controller's reaches, not on --reach-model {reach_law})")
-        plan = [p for p in plan if not capabilities(p[0]).amortized]
+        plan = _without_amortized(plan, notes, f"trained on the controller's reaches, not on --reach-model {reach_law}")
     if recording.scale != 1.0:  # an amortized estimator was trained on the model's own size
-        from camo_sbi.inference.registry import capabilities
-
-        for name, _ in [p for p in plan if capabilities(p[0]).amortized]:
-            if len(methods) == 1:
-                raise ValueError(f"--body-scale: {name} was trained on the model's own size; with --body-scale free "
-                                 f"use a per-task method (camo, abc-smc, npe)")
-            notes.append(f"{name}: skipped (trained on the model's own size, not on the scaled body of "
-                         f"--body-scale free)")
-        plan = [p for p in plan if not capabilities(p[0]).amortized]
+        plan = _without_amortized(
+            plan, notes, "trained on the model's own size, not on the scaled body of --body-scale free",
+            alone=("--body-scale: {name} was trained on the model's own size; with --body-scale free use a "
+                   "per-task method (camo, abc-smc, npe)") if len(methods) == 1 else None)
     plan = _check_amortized(plan, notes, task, obs, overrides, getattr(args, "amortized", None), len(methods) == 1)
     for n in notes:
         print(n)
