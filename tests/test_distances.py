@@ -17,8 +17,18 @@ import numpy as np
 import pytest
 import torch
 
+import camo_sbi.inference.distances.api as dtw_api
 from camo_sbi.inference.distances import _candidate_bounds, dtw_distances, l2_distance
 from tests._dtw_reference import dtw_reference
+
+
+@pytest.fixture(autouse=True, params=["small-calls", "cascade"])
+def dtw_path(request, monkeypatch):
+    """Every test runs on both paths: every call as a small call (the plain recursion one
+    candidate at a time, `chunks.scalar_chunk`), and every call through the pruned cascade of
+    lane blocks (``SMALL_CALL_CELLS = 0``)."""
+    monkeypatch.setattr(dtw_api, "SMALL_CALL_CELLS", 10**15 if request.param == "small-calls" else 0)
+    return request.param
 
 # ----------------------------------------------------------------------------------------------
 # data
@@ -241,6 +251,25 @@ def test_ties_are_broken_by_index():
     sim[7, : lens[7]] = obs[: lens[7]]
     d = dtw_distances(obs[: lens[7]], sim, lens, keep_best=1).numpy()
     assert d[7] == 0.0 and np.isinf(np.delete(d, 7)).all()
+
+
+def test_small_calls_and_the_cascade_give_the_same_bits(monkeypatch):
+    rng = np.random.default_rng(14)
+    for D, dtype in ((3, np.float32), (7, np.float64), (1, np.float32)):
+        sim, lens = _reaches(rng, 300, 60, D, min_len=5)
+        sim = sim.astype(dtype)
+        obs = _reaches(rng, 1, 55, D)[0][0]
+        eps = float(np.median(dtw_distances(obs, sim, lens).numpy()))
+        for kw in ({}, {"keep_best": 17}, {"epsilon": eps}, {"keep_best": 5, "epsilon": eps}):
+            got = {}
+            for path, cells in (("small", 10**15), ("cascade", 0)):
+                monkeypatch.setattr(dtw_api, "SMALL_CALL_CELLS", cells)
+                got[path] = dtw_distances(obs, sim, lens, **kw).numpy()
+            np.testing.assert_array_equal(got["small"], got["cascade"], err_msg=str((D, kw)))
+            assert 0 < np.isfinite(got["small"]).sum() <= (150 if "epsilon" in kw else 300)
+    # the default sends a call by its table size: 55 x (sum of lengths) cells
+    monkeypatch.undo()
+    assert 55 * int(lens.sum()) <= dtw_api.SMALL_CALL_CELLS < 55 * 10**6
 
 
 def test_results_do_not_depend_on_threads_or_calls():

@@ -24,6 +24,10 @@ def f(x):
 @njit
 def g(x):
     return x * 2
+
+@njit
+def dtw_chunk(x):
+    return f(x) + g(x)
 """
 
 
@@ -41,16 +45,20 @@ def test_the_notice_is_one_line_per_kind_and_only_for_camo_sbi_kernels(monkeypat
     other = _module("someone_elses_module")
     assert other.f(1) == 2
     assert not [r for r in caplog.records if "compiling" in r.getMessage()]  # not ours: silent
+    # a cascade entry point: its callees f and g compile inside its event and say nothing
+    cascade = _module("camo_sbi.inference.distances.test_notice_kernels")
+    assert cascade.dtw_chunk(1) == 4
+    lines = [r.getMessage() for r in caplog.records if "compiling" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].startswith("compiling camo_sbi's pruned DTW kernels"), lines
     ours = _module("camo_sbi.inference.test_notice_kernels")
     assert ours.f(1) == 2 and ours.g(2) == 4 and ours.f(1.5) == 2.5  # three compilations
     chain = _module("camo_sbi_kernel_test_notice")
     assert chain.f(3) == 4 and chain.g(3) == 6
     lines = [r.getMessage() for r in caplog.records if "compiling" in r.getMessage()]
-    assert len(lines) == 2, lines
-    assert lines[0].startswith("compiling camo_sbi's DTW and KDE kernels (once, about "
-                               f"{_compiling.COMPILE_SECONDS['package']} s")
-    assert lines[1].startswith("compiling a body model's chain kernels (once, about "
-                               f"{_compiling.COMPILE_SECONDS['chain']} s")
+    assert len(lines) == 3, lines
+    for line, kind in zip(lines, ("cascade", "package", "chain")):
+        assert line.startswith(f"compiling {_compiling._WHAT[kind]} (once, about "
+                               f"{_compiling.COMPILE_SECONDS[kind]} s"), line
     assert all("camo-sbi warmup" in ln for ln in lines)
 
 
@@ -129,9 +137,36 @@ def test_after_warmup_a_first_comparison_compiles_nothing(tmp_path):
     assert warm.returncode == 0, warm.stderr
     assert warm.stdout.startswith("warmup panda: ")
     notices = [ln for ln in warm.stderr.splitlines() if "compiling" in ln]
-    assert len(notices) == 2 and any("DTW and KDE" in ln for ln in notices), notices
+    assert len(notices) == 3 and any("DTW and KDE" in ln for ln in notices), notices
+    assert any("pruned DTW" in ln for ln in notices), notices
     grid = ["compare", "--model", "panda", "--methods", "camo,abc-smc", "--budgets", "150", "--seeds", "1",
             "--tasks", "2", "--test-goals", "2", "--no-report", "--out", str(tmp_path / "after")]
     after = subprocess.run([*cli, *grid], env=env, capture_output=True, text=True, timeout=1800)
     assert after.returncode == 0, after.stderr
     assert not [ln for ln in after.stderr.splitlines() if "compiling" in ln], after.stderr
+    # a large batch (the pruned cascade) in a fresh process: loaded, not compiled
+    big = subprocess.run([sys.executable, "-c", _LARGE_CALL], env=env, capture_output=True, text=True, timeout=1800)
+    assert big.returncode == 0, big.stderr
+    assert big.stdout.split() == ["compiled", "0"], (big.stdout, big.stderr)
+
+
+_LARGE_CALL = """
+import numpy as np
+from numba.core import event
+compiled = []
+class L(event.Listener):
+    def on_start(self, ev):
+        compiled.append(ev.data["dispatcher"].py_func.__module__)
+    def on_end(self, ev):
+        pass
+event.register("numba:compile", L())
+from camo_sbi.inference.distances import dtw_distances
+from camo_sbi.inference.distances.api import SMALL_CALL_CELLS
+B = SMALL_CALL_CELLS // (80 * 90) + 1
+rng = np.random.default_rng(1)
+sim = rng.normal(size=(B, 90, 7)).cumsum(axis=1).astype(np.float32)
+obs = rng.normal(size=(80, 7)).cumsum(axis=0)
+for kw in ({}, {"keep_best": 5}, {"epsilon": 50.0}):
+    dtw_distances(obs, sim, **kw)
+print("compiled", len([m for m in compiled if m.startswith("camo_sbi")]))
+"""

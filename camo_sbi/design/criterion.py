@@ -56,7 +56,6 @@ MIN_RESOLUTION_MM = 1.0
 NEGLIGIBLE = 1e-3
 """A best score below this share of the criterion's ceiling (the draws' whole variance; log K
 nats) separates nothing: the ranking is then a fallback."""
-_CHUNK = 2_000  # simulated trajectories per simulate call (bench_design.py: 20000 was slower; T x n float64 each)
 
 
 @dataclass(frozen=True)
@@ -161,16 +160,16 @@ def rank_goals(task: Task, result: PosteriorResult, candidates, *, seed, budget:
         raise ValueError(f"start: expected shape ({n},), got {tuple(start.shape)}")
     theta = contain(task.prior.with_known(torch.from_numpy(_draws(result, k, seed))), start)  # (K, 2n)
     counter = CountingSimulator(task.simulator, budget)
-    per = max(1, _CHUNK // k)
     scores = np.empty(c)
     th = theta.numpy()
-    for i in range(0, c, per):
-        g = cand[i:i + per]
-        m = g.shape[0]
-        goals = g.repeat_interleave(k, dim=0)
-        traj = counter.simulate(theta.repeat(m, 1), goals, start)
+    # one simulate call per candidate: batching several candidates per call was measured well
+    # below the 2x over this loop that would pay for it (benchmarks/bench_design.py, issue 38),
+    # so the plain loop is kept
+    for i in range(c):
+        goals = cand[i].expand(k, 3)
+        traj = counter.simulate(theta, goals, start)
         end = torch.where(traj.reached.unsqueeze(-1), goals, traj.ee[:, -1].to(torch.float64))
-        scores[i:i + m] = _scores(th, end.numpy().reshape(m, k, 3), resolution_mm / 1000.0, criterion)
+        scores[i] = _scores(th, end.numpy()[None], resolution_mm / 1000.0, criterion)[0]
     cn = cand.numpy()
     order = np.lexsort((cn[:, 2], cn[:, 1], cn[:, 0], -scores))  # ties by the goal's coordinates: order-free
     status = "ok"

@@ -6,7 +6,10 @@ predictive draws) and float64 (predictions of held-out reaches), and the kernels
 for arviz when a posterior file is written. They are compiled by running the same code a
 comparison runs, on a tiny grid (camo and abc-smc plus the baselines, one task, one test goal,
 150 simulations) in a temporary directory that is deleted afterwards: the argument types, hence
-the compiled signatures, are exactly those of a real run, never a guessed list.
+the compiled signatures, are exactly those of a real run, never a guessed list. A tiny grid's
+distance calls are small enough for the DTW of small calls; `warm_distances` then compiles the
+pruned cascade of larger calls through the public `dtw_distances`, on a synthetic batch just
+above ``SMALL_CALL_CELLS`` in both precisions a simulator returns.
 
 Everything lands in the per-user caches (``$XDG_CACHE_HOME/camo_sbi``, ``~/.cache/camo_sbi`` by
 default; see `camo_sbi.inference.distances.numba_cache` and `camo_sbi.simulators.kernel`), which
@@ -22,7 +25,7 @@ import tempfile
 import time
 import warnings
 
-__all__ = ["WARMUP_METHODS", "add_arguments", "main", "warm"]
+__all__ = ["WARMUP_METHODS", "add_arguments", "main", "warm", "warm_distances"]
 
 WARMUP_METHODS = "camo,abc-smc"
 """The methods whose runs compile numba kernels (the baselines are added by `compare`; NPE's and
@@ -64,6 +67,27 @@ def warm(model: str) -> tuple[float, float]:
     return time.perf_counter() - t0, time.process_time() - c0
 
 
+def warm_distances() -> tuple[float, float]:
+    """Compile (or load) the pruned DTW cascade: every pruning mode, float32 and float64 candidates;
+    returns (wall s, CPU s)."""
+    import numpy as np
+
+    from camo_sbi.inference.distances import dtw_distances
+    from camo_sbi.inference.distances.api import SMALL_CALL_CELLS
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    T = 100
+    B = SMALL_CALL_CELLS // (T * T) + 16  # one call just above the small-call size
+    steps = np.linspace(0.0, 1.0, T)[None, :, None]
+    ends = np.random.default_rng(0).normal(size=(B, 1, 3))
+    observed = steps[0] * ends[0]
+    for dtype in (np.float32, np.float64):
+        sim = (steps * ends).astype(dtype)
+        for kw in ({}, {"keep_best": 10}, {"epsilon": 1.0}):
+            dtw_distances(observed, sim, **kw)
+    return time.perf_counter() - t0, time.process_time() - c0
+
+
 def main(args) -> int:
     models = _models(args.models)
     import matplotlib.font_manager  # noqa: F401  (builds matplotlib's font cache once, ~1 s)
@@ -71,4 +95,6 @@ def main(args) -> int:
     for model in models:
         wall, cpu = warm(model)
         print(f"warmup {model}: kernels compiled or loaded from the cache in {wall:.1f} s ({cpu:.1f} s CPU)")
+    wall, cpu = warm_distances()
+    print(f"warmup DTW of large batches: compiled or loaded from the cache in {wall:.1f} s ({cpu:.1f} s CPU)")
     return 0

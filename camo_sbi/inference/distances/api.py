@@ -20,9 +20,16 @@ import torch
 from camo_sbi._threads import default_workers, run_chunks
 from camo_sbi._validation import as_tensor, check_finite, check_positive_float, check_positive_int
 from camo_sbi.inference.distances.blocks import LANES, SEG
-from camo_sbi.inference.distances.chunks import coarse_chunk, dtw_chunk, fine_bounds
+from camo_sbi.inference.distances.chunks import coarse_chunk, dtw_chunk, fine_bounds, scalar_chunk
 
-__all__ = ["dtw_distances", "l2_distance"]
+__all__ = ["SMALL_CALL_CELLS", "dtw_distances", "l2_distance"]
+
+SMALL_CALL_CELLS = 5_000_000
+"""A call whose DP tables hold at most this many cells in all (observed length x the sum of the
+candidates' lengths) runs the plain recursion one candidate at a time (`chunks.scalar_chunk`):
+a few milliseconds per call at this size, and its kernels compile in about a second, where the
+lane blocks, bounds and pruned cascade of larger calls take most of a first run's compile
+(docs/guide/performance.md, section 1). The values are the same bit for bit either way."""
 
 
 def _as_points(x, name: str, ndim: int) -> np.ndarray:
@@ -142,7 +149,12 @@ def dtw_distances(
     out = np.empty(B, dtype=np.float64)
     bad = np.full(1, -1, dtype=np.int64)  # set by the kernels on NaN/inf in a valid step
 
-    if eps is None and (k is None or k >= B):
+    if n * int(lens.sum()) <= SMALL_CALL_CELLS:
+        thr = np.inf if eps is None else float(np.nextafter(eps, 0.0))  # "< eps" is "<= thr"
+        run_chunks(scalar_chunk, max(1, min(n_threads, B)), x, sim, lens, thr, out, bad)
+        if bad[0] >= 0:
+            _raise_nonfinite(sim, lens, "simulated")
+    elif eps is None and (k is None or k >= B):
         ids = np.argsort(lens, kind="stable").astype(np.int64)
         none = np.empty(0)
         n_chunks = max(1, min(n_threads, -(-B // LANES)))

@@ -36,7 +36,7 @@ from camo_sbi.inference.distances.bounds import (
 )
 from camo_sbi.inference.distances.kernels import dtw_block, dtw_scalar
 
-__all__ = ["coarse_chunk", "dtw_chunk", "fine_bounds"]
+__all__ = ["coarse_chunk", "dtw_chunk", "fine_bounds", "scalar_chunk"]
 
 
 @njit(cache=True, nogil=True)
@@ -58,6 +58,22 @@ def _bound_scratch(n, D, T):
         np.empty(L),
         np.empty(L),
     )
+
+
+@njit(cache=True, nogil=True)
+def scalar_chunk(c, n_chunks, x, sim, lengths, thr, out, bad):
+    """The plain recursion one candidate at a time (`kernels.dtw_scalar`), no bounds, no lanes:
+    candidates c, c + n_chunks, ... of sim (B, T, D). out[b] = the exact DTW if it is <= thr
+    (+inf: always), else +inf: the values of `dtw_chunk`, bit for bit.
+
+    A few small kernels, so compiling it costs a fraction of the lane machinery's compile; `api`
+    sends small calls here (see ``api.SMALL_CALL_CELLS``).
+    """
+    T = sim.shape[1]
+    prev = np.empty(T + 1)
+    cur = np.empty(T + 1)
+    for b in range(c, sim.shape[0], n_chunks):
+        out[b] = dtw_scalar(x, sim, b, lengths[b], thr, prev, cur, bad)
 
 
 @njit(cache=True, nogil=True)
