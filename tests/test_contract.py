@@ -27,7 +27,7 @@ K = 2
 FAST = {
     "abc-smc": {"population_size": 20, "max_populations": 3},
     "npe": {"max_epochs": 3, "num_transforms": 1, "hidden_features": 8, "training_batch_size": 20,
-            "n_posterior_samples": 200, "is_rounds": 1},
+            "n_posterior_samples": 200, "is_rounds": 2},
 }
 _TINY_SBI = {"max_epochs": 3, "hidden_features": 8, "training_batch_size": 20, "n_posterior_samples": 200}
 FAST.update({

@@ -78,7 +78,8 @@ class _Gauss(nn.Module):
             *sample_shape, condition.shape[0], -1)
 
 
-def test_product_of_gaussians_recovered_by_importance_sampling():
+@pytest.mark.parametrize("reuse", [False, True])
+def test_product_of_gaussians_recovered_by_importance_sampling(reuse):
     # raw coordinates, a box so wide the uniform prior is flat: target = product of Gaussians
     low = torch.tensor([-50.0, 0.0, -50.0, 0.0])
     high = torch.tensor([0.0, 50.0, 0.0, 50.0])
@@ -89,8 +90,8 @@ def test_product_of_gaussians_recovered_by_importance_sampling():
     prec = sum(1 / torch.tensor(s, dtype=torch.float64) ** 2 for s in sds)
     mean = sum(torch.tensor(m, dtype=torch.float64) / torch.tensor(s, dtype=torch.float64) ** 2
                for m, s in zip(mus, sds, strict=True)) / prec
-    draws = post.sample_is(20000, seed=0, is_rounds=2)
-    assert draws.ess > 2000
+    draws = post.sample_is(20000, seed=0, is_rounds=2, reuse_mixture_draws=reuse)
+    assert draws.ess > 2000 and draws.samples.shape == (20000, 4)
     w, th = draws.weights.numpy(), draws.samples.numpy()
     m = w @ th
     v = w @ (th - m) ** 2
@@ -170,13 +171,60 @@ def test_run_budget_seeding_and_rng_isolation(toy):
     assert not np.array_equal(r1.samples, r3.samples)
 
 
-def test_run_sequence_equals_reruns(toy):
-    seq = run_method_sequence("npe", toy, budget=300, seed=2, config=TINY)
+@pytest.mark.parametrize("warm_start", [False, True])
+def test_run_sequence_equals_reruns(toy, warm_start):
+    config = {**TINY, "warm_start": warm_start}
+    seq = run_method_sequence("npe", toy, budget=300, seed=2, config=config)
     assert [r.n_tasks for r in seq] == [1, 2, 3]
     assert [r.n_simulations for r in seq] == [300, 600, 900]
-    again = run_method("npe", toy, toy.observations[:2], budget=300, seed=2, config=TINY)
+    again = run_method("npe", toy, toy.observations[:2], budget=300, seed=2, config=config)
     np.testing.assert_array_equal(seq[1].samples, again.samples)
     np.testing.assert_array_equal(seq[1].weights, again.weights)
+
+
+def test_warm_start_keeps_every_feature_and_continues_from_the_previous_flow(toy):
+    """``warm_start``: every task's flow sees the whole summary (a feature constant over the
+    task's simulations is 0 in the training data and the observation, not dropped), task 1's
+    training starts from task 0's weights; without it (the default) the constant features are
+    dropped."""
+    warm, info = npe.fit(toy, toy.observations[:2], budget=300, seed=0, config=NpeConfig(**TINY, warm_start=True))
+    cold, cold_info = npe.fit(toy, toy.observations[:2], budget=300, seed=0, config=NpeConfig(**TINY))
+    full = {x.numel() for x in warm.x_obs}
+    assert len(full) == 1 and [t["warm_start"] for t in info["tasks"]] == [False, True]
+    for x_w, x_c, t in zip(warm.x_obs, cold.x_obs, info["tasks"], strict=True):
+        x_w, x_c = x_w.reshape(-1), x_c.reshape(-1)
+        assert x_c.numel() == t["n_features"] <= x_w.numel()
+        kept = x_w != 0  # the toy's observed features are never exactly 0
+        assert int(kept.sum()) == t["n_features"]
+        torch.testing.assert_close(x_w[kept], x_c)
+    assert not any(t["warm_start"] for t in cold_info["tasks"])
+    # task 0 is trained alike in both arms (nothing to start from)
+    z = torch.zeros(1, 1, 4)
+    with torch.no_grad():
+        torch.testing.assert_close(warm.estimators[0].log_prob(z, condition=warm.x_obs[0].reshape(1, -1)),
+                                   cold.estimators[0].log_prob(z, condition=cold.x_obs[0].reshape(1, -1)))
+
+
+def test_train_npe_warm_start_starts_from_the_given_weights():
+    """With a learning rate too small to move them, a warm-started estimator is the one it
+    started from (same data and seed, so the same training split and z-scoring), a fresh one
+    is not; other sizes are refused."""
+    from camo_sbi.inference import sbi_adapter
+
+    gen = torch.Generator().manual_seed(0)
+    theta = torch.randn(200, 2, generator=gen)
+    x = theta + 0.1 * torch.randn(200, 2, generator=gen)
+    kw = {"hidden_features": 8, "num_transforms": 2, "max_epochs": 3, "stop_after_epochs": 2}
+    first, _ = sbi_adapter.train_npe(theta, x, seed=1, **kw)
+    again, info = sbi_adapter.train_npe(theta, x, seed=1, learning_rate=1e-12, init_from=first, **kw)
+    fresh, _ = sbi_adapter.train_npe(theta, x, seed=1, learning_rate=1e-12, **kw)
+    probe, cond = torch.randn(5, 1, 2, generator=gen), x[:1]
+    with torch.no_grad():
+        torch.testing.assert_close(again.log_prob(probe, condition=cond), first.log_prob(probe, condition=cond))
+        assert not torch.allclose(fresh.log_prob(probe, condition=cond), first.log_prob(probe, condition=cond))
+    assert info["epochs"] >= 1
+    with pytest.raises(ValueError, match="^init_from"):
+        sbi_adapter.train_npe(theta, torch.cat([x, x], dim=1), seed=2, init_from=first, **kw)
 
 
 def test_save_load_round_trip(toy, tmp_path):
@@ -197,7 +245,7 @@ def test_save_load_round_trip(toy, tmp_path):
     np.testing.assert_array_equal(a.weights, b.weights)
     # the reloaded posterior reproduces the run's own samples (same sampling seed)
     fresh = load_posterior(path).sample_is(TINY["n_posterior_samples"], npe._seed_int(0, 2) % 2**32,
-                                        is_rounds=TINY["is_rounds"])
+                                        is_rounds=TINY["is_rounds"], reuse_mixture_draws=True)
     np.testing.assert_array_equal(fresh.samples.numpy(), res.samples)
     with pytest.raises(ValueError, match="^path"):
         load_posterior(tmp_path / "missing.pt")
@@ -307,7 +355,7 @@ class _StubPosterior:
     def log_prob(self, theta):  # pragma: no cover - carried by the result, not called here
         raise NotImplementedError
 
-    def sample_is(self, n, seed, *, is_rounds, defensive_fraction):  # noqa: ARG002
+    def sample_is(self, n, seed, *, is_rounds, defensive_fraction, reuse_mixture_draws):  # noqa: ARG002
         w = self.weights / self.weights.sum()
         theta = np.tile((TRUE.numpy() + 0.0)[None, :], (len(w), 1))
         ess = float(1 / np.sum(w**2))

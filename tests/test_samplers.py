@@ -103,6 +103,48 @@ def test_importance_rounds_improve_on_the_mixture_and_report_every_ess():
     assert len(ess_rounds) == 3 and draws.ess == max(ess_rounds) and ess_rounds[1] > ess_rounds[0]
 
 
+def test_importance_reusing_the_mixture_draws_recovers_the_product_with_fewer_component_calls():
+    """``reuse_mixture_draws``: round 0 draws only the defensive share from the components, every
+    later round reuses those draws (no further component draws, components evaluated on the new
+    Gaussian draws only); the estimate is still the product's moments."""
+    calls = {"drawn": 0, "evaluated": 0}
+    mix = two_component_mixture(0)
+
+    def sample(counts):
+        calls["drawn"] += sum(counts)
+        return mix.sample(counts)
+
+    def log_probs(z):
+        calls["evaluated"] += z.shape[0]
+        return mix.log_probs(z)
+
+    counted = Mixture(sample, log_probs, n_components=2, dim=2)
+    draws = samplers.importance(product_log_target, counted, 4000, seed=0, rounds=2, reuse_mixture_draws=True)
+    assert calls == {"drawn": 800, "evaluated": 800 + 2 * 3200}  # defensive share 0.2 of 4000
+    assert draws.samples.shape == (4000, 2) and draws.status(min_ess=20) == "ok"
+    ess_rounds = draws.diagnostics["ess_rounds"]
+    assert len(ess_rounds) == 3 and draws.ess == max(ess_rounds[1:])
+    m, c = moments(draws)
+    assert torch.all((m - MEAN).abs() < 0.1 * SD)
+    assert torch.all((c - COV).abs() < 0.1 * SD[:, None] * SD[None, :])
+    again = samplers.importance(product_log_target, two_component_mixture(0), 4000, seed=0, rounds=2,
+                                reuse_mixture_draws=True)
+    assert torch.equal(again.samples, draws.samples) and torch.equal(again.weights, draws.weights)
+
+
+def test_importance_stops_once_a_round_has_every_draw_effective():
+    """One component equal to the target: round 0's weights are all equal (ESS = n), so no
+    adaptive round is run (none could have a larger ESS), with or without reuse."""
+    comp = torch.distributions.MultivariateNormal(MEAN, covariance_matrix=COV)
+    gen = torch.Generator().manual_seed(0)
+    tril = torch.linalg.cholesky(COV)
+    one = Mixture(lambda counts: MEAN + torch.randn(counts[0], 2, generator=gen, dtype=torch.float64) @ tril.T,
+                  lambda z: comp.log_prob(z)[None], n_components=1, dim=2)
+    for reuse in (False, True):
+        draws = samplers.importance(gaussian_log_target, one, 1000, seed=0, rounds=3, reuse_mixture_draws=reuse)
+        assert draws.diagnostics["ess_rounds"] == [pytest.approx(1000)] and draws.samples.shape == (1000, 2)
+
+
 def _draws(weights, failure=None, sampler="is") -> WeightedDraws:
     w = torch.as_tensor(weights, dtype=torch.float64)
     w = w / w.sum()

@@ -12,13 +12,20 @@ Design (same simulation design as CAMO, so budgets are equal):
 2. Summary x: the valid part of the trajectory (``config.space``) linearly resampled at
    ``n_points`` equally spaced times after the start (the start itself is observed, hence
    uninformative), flattened, plus the trajectory length. A fixed-size vector whatever the
-   length; features that are constant over the task's simulations are dropped (their z-score
-   would divide by ~0). Optionally an MLP embedding net is trained jointly (``embedding="mlp"``).
+   length; features that are constant over the task's simulations carry nothing (their z-score
+   would divide by ~0): they are dropped, or with ``warm_start`` set to 0, in the observation
+   too, so that every task's flow has the same input size. Optionally an MLP embedding net is
+   trained jointly (``embedding="mlp"``).
 3. Train a conditional flow q_i(z | x) (sbi NPE, single round = maximum likelihood, MAF or
    NSF) on the FREE coordinates only, in unconstrained coordinates z = logit of the position
    inside the prior box (``theta_transform="logit"``): the flow has no mass outside the box
-   (no leakage correction needed). Training is seeded inside ``torch.random.fork_rng``, so
-   the same seed gives the same estimator and the caller's global torch RNG is untouched.
+   (no leakage correction needed). Option ``warm_start`` (off by default): task i > 0's flow
+   starts from task i - 1's trained weights, with the z-scoring of its own data and less
+   early-stopping patience (``warm_stop_after_epochs``); it stops after far fewer epochs, but
+   the flows' errors are then no longer independent across tasks and they add up in the
+   product (calibration measured in docs/guide/performance.md). Training is seeded inside
+   ``torch.random.fork_rng``, so the same seed gives the same estimator and the caller's global
+   torch RNG is untouched.
 4. Combine: with a common prior p, p(theta | x_1..k) ∝ p(theta)^(1-k) ∏_i q_i(theta | x_i)
    (exact if each q_i is the exact posterior). In z coordinates p is the product of standard
    logistic densities; with ``theta_transform="none"``, p is uniform and the product is
@@ -29,10 +36,14 @@ Design (same simulation design as CAMO, so budgets are equal):
    from a Gaussian fitted to the best round's weighted draws, each keeping a defensive share
    of flow-mixture draws. The product of k sharp per-task posteriors is much narrower than any
    of them, so round 0 alone is poor for k > 1; the adaptive rounds are what make the weights
-   usable. A sample with too small an ESS is a fallback (``min_ess``, the samplers' one rule).
+   usable. With ``reuse_mixture_draws`` (default) round 0 draws only the defensive share from
+   the flows and the adaptive rounds reuse those draws (drawing from a flow is its costly
+   direction). A round whose proposal is the target (k = 1) ends the rounds. A sample with too
+   small an ESS is a fallback (``min_ess``, the samplers' one rule).
 
-Continual use: task i's simulations and training are seeded by (seed, i) only, so
-`run_sequence` trains each task once and its k-th result equals `run` on the first k tasks.
+Continual use: task i's simulations and training are seeded by (seed, i), and a warm start
+reads task i - 1's flow only, so `run_sequence` trains each task once and its k-th result
+equals `run` on the first k tasks.
 
 The combined posterior itself (`npe_posterior.NpePosterior`: density, samplers, files) is
 shared with `amortized`; the summaries and flow coordinates live in `flow_space`.
@@ -90,9 +101,21 @@ class NpeConfig:
             mass outside the box is discarded when sampling).
         training_batch_size, learning_rate, validation_fraction, stop_after_epochs, max_epochs:
             sbi training settings (early stopping on the validation loss).
+        warm_start: train task i > 0's flow from task i - 1's trained weights (a warm start)
+            instead of fresh ones; the summaries then keep every feature, those constant over
+            the task's simulations set to 0 (in the observation too) rather than dropped, so
+            every task's flow has the same input size. Faster, but not the default: its
+            posteriors were measurably shifted (docs/guide/performance.md).
+        warm_stop_after_epochs: ``stop_after_epochs`` of a warm-started flow (it starts near a
+            posterior already, so it needs less patience); the first task keeps
+            ``stop_after_epochs``.
         n_posterior_samples: importance samples returned (per IS round).
         is_rounds: adaptive importance-sampling rounds after the flow-mixture round (0: none).
         defensive_fraction: share of each adaptive round drawn from the flow mixture.
+        reuse_mixture_draws: with k > 1 tasks, round 0 draws only that defensive share from the
+            flows and every adaptive round reuses those draws and their densities (flow draws
+            and evaluations are most of the sampling time); False: round 0 draws
+            ``n_posterior_samples`` and each round its own defensive draws.
         point_estimate: "mean" (weighted), "median" (coordinate-wise weighted) or "mode"
             (the draw with the highest combined density). (Old names: ``estimator``, "map".)
         min_ess: the combined importance sample is a fallback (``status = "fallback: ..."``)
@@ -127,9 +150,12 @@ class NpeConfig:
     validation_fraction: float = 0.1
     stop_after_epochs: int = 20
     max_epochs: int = 200
+    warm_start: bool = False
+    warm_stop_after_epochs: int = 10
     n_posterior_samples: int = 10000
     is_rounds: int = 3
     defensive_fraction: float = 0.2
+    reuse_mixture_draws: bool = True
     point_estimate: str = "mean"
     min_ess: float = 20.0
     chunk_size: int = 10000
@@ -150,8 +176,11 @@ class NpeConfig:
         check_positive_int(self.num_transforms, "num_transforms")
         check_choice(self.theta_transform, TRANSFORMS, "theta_transform")
         check_training_settings(self)
+        check_bool(self.warm_start, "warm_start")
+        check_positive_int(self.warm_stop_after_epochs, "warm_stop_after_epochs")
         check_positive_int(self.n_posterior_samples, "n_posterior_samples", minimum=2)
         check_sampling_settings(self)
+        check_bool(self.reuse_mixture_draws, "reuse_mixture_draws")
         if self.workdir is not None and not isinstance(self.workdir, (str, os.PathLike)):
             raise TypeError(f"workdir: expected a path or None, got {type(self.workdir).__name__}")
 
@@ -201,15 +230,18 @@ def _seed_int(*key: int) -> int:
     return int(ss.generate_state(1, dtype=np.uint64)[0] & np.uint64(2**63 - 1))
 
 
-def _train_flow(theta_z: torch.Tensor, x: torch.Tensor, config: NpeConfig, seed: int):
-    """Train q(z | x) with sbi (through `sbi_adapter.train_npe`); returns (estimator, info)."""
+def _train_flow(theta_z: torch.Tensor, x: torch.Tensor, config: NpeConfig, seed: int, init_from=None):
+    """Train q(z | x) with sbi (through `sbi_adapter.train_npe`), from ``init_from``'s weights
+    if given (a warm start, with ``warm_stop_after_epochs``); returns (estimator, info)."""
+    warm = init_from is not None
     return sbi_adapter.train_npe(
         theta_z, x, seed=seed, density_estimator=config.density_estimator,
         hidden_features=config.hidden_features, num_transforms=config.num_transforms,
         embedding_dim=config.embedding_dim if config.embedding == "mlp" else None,
         training_batch_size=config.training_batch_size, learning_rate=config.learning_rate,
-        validation_fraction=config.validation_fraction, stop_after_epochs=config.stop_after_epochs,
-        max_epochs=config.max_epochs, device=config.device,
+        validation_fraction=config.validation_fraction,
+        stop_after_epochs=config.warm_stop_after_epochs if warm else config.stop_after_epochs,
+        max_epochs=config.max_epochs, device=config.device, init_from=init_from,
     )
 
 
@@ -245,12 +277,14 @@ def _simulate_summaries(job, *, simulator, start, goal, dtype, config: NpeConfig
 def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
     """Yield (estimator, observed summary, info) per task, in order (arguments checked).
 
-    Task i's draws and training are seeded by (seed, i) only, so its estimator does not
-    depend on the other tasks (continual `run_sequence` == `run` on the first k tasks).
+    Task i's draws and training are seeded by (seed, i); with ``warm_start`` its training
+    starts from task i - 1's estimator, so it depends on the tasks before it only (continual
+    `run_sequence` == `run` on the first k tasks).
     """
     prior, sim, dtype = task.prior, task.simulator, _DTYPES[config.sim_dtype]
     lo_free = prior.low[prior.free_mask]
     width_free = (prior.high - prior.low)[prior.free_mask]
+    previous = None
     for i, obs in enumerate(observations):
         start = torch.as_tensor(obs.start, dtype=torch.float64).cpu()
         goal = torch.as_tensor(obs.goal, dtype=torch.float64).cpu()
@@ -272,11 +306,17 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
         if not bool(keep.any()):
             raise RuntimeError(f"observations: task {i}'s simulations are all identical; nothing to learn")
         z = to_unconstrained(theta[:, prior.free_mask], lo_free, width_free, config.theta_transform)
+        if config.warm_start:  # the same input size for every task: constant features set to 0
+            x, xo = x.masked_fill(~keep, 0.0), xo.masked_fill(~keep, 0.0)
+        else:
+            x, xo = x[:, keep], xo[keep]
         with torch_threads(config.n_threads):
-            est, info = _train_flow(z, x[:, keep], config, _seed_int(seed, 1, i))
+            est, info = _train_flow(z, x, config, _seed_int(seed, 1, i), init_from=previous)
+        if config.warm_start:
+            previous = est
         info.update(task=i, n_features=int(keep.sum()), n_invalid=int((~finite).sum()),
-                    time_simulate=t_sim)
-        yield est, xo[keep].float(), info
+                    time_simulate=t_sim, warm_start=bool(config.warm_start and i > 0))
+        yield est, xo.float(), info
 
 
 def _posterior(prior: BoxPrior, estimators, x_obs, infos, config: NpeConfig, budget: int,
@@ -324,7 +364,8 @@ def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed:
     """
     t0 = time.perf_counter()
     draws = posterior.sample_is(config.n_posterior_samples, _seed_int(seed, 2) % (2**32),
-                             is_rounds=config.is_rounds, defensive_fraction=config.defensive_fraction)
+                             is_rounds=config.is_rounds, defensive_fraction=config.defensive_fraction,
+                             reuse_mixture_draws=config.reuse_mixture_draws)
     t_sample = time.perf_counter() - t0
     estimate = point_estimate(draws, config.point_estimate, task.prior)
     path = None

@@ -222,12 +222,14 @@ class NpePosterior:
         idx = np.random.default_rng(seed).choice(len(w), size=n, replace=True, p=w)
         return torch.from_numpy(np.ascontiguousarray(draws.samples.numpy()[idx])).reshape(*shape, self.dim)
 
-    def sample_is(self, n: int, seed: int, *, is_rounds: int = 2,
-                  defensive_fraction: float = 0.2) -> samplers.WeightedDraws:
+    def sample_is(self, n: int, seed: int, *, is_rounds: int = 2, defensive_fraction: float = 0.2,
+                  reuse_mixture_draws: bool = False) -> samplers.WeightedDraws:
         """``n`` weighted draws per round by importance sampling (`samplers.importance`: round 0
         from the flow mixture, then the Gaussian product and refits, ``is_rounds`` after the
-        first); the round with the largest ESS. Deterministic given ``seed``; the global torch
-        RNG is restored afterwards."""
+        first); the round with the largest ESS. ``reuse_mixture_draws``: round 0 draws only the
+        defensive share from the flows and every later round reuses those draws (fewer flow
+        draws and evaluations; `samplers.importance`). Deterministic given ``seed``; the global
+        torch RNG is restored afterwards."""
         seed = check_positive_int(seed, "seed", minimum=0)
         n = check_positive_int(n, "n", minimum=2)
         is_rounds = check_positive_int(is_rounds, "is_rounds", minimum=0)
@@ -235,7 +237,8 @@ class NpePosterior:
             log_target, mixture = self.target()
             try:
                 draws = samplers.importance(log_target, mixture, n, seed=seed, rounds=is_rounds,
-                                            defensive_fraction=defensive_fraction)
+                                            defensive_fraction=defensive_fraction,
+                                            reuse_mixture_draws=reuse_mixture_draws)
             except RuntimeError as exc:
                 if not str(exc).startswith("importance: every importance weight is zero"):
                     raise

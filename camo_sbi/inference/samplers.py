@@ -206,10 +206,14 @@ def _check_callable(f, name: str) -> None:
 
 # ----------------------------------------------------------------------------------- importance sampling
 
+REUSE_MIN_PER_DIM = 25
+"""With ``reuse_mixture_draws``: the fewest round-0 draws per component and dimension (the
+Gaussian product is fitted from their means and covariances)."""
+
 
 @torch.no_grad()
 def importance(log_target, proposal: Mixture, n: int, *, seed, rounds: int = 2,
-               defensive_fraction: float = 0.2) -> WeightedDraws:
+               defensive_fraction: float = 0.2, reuse_mixture_draws: bool = False) -> WeightedDraws:
     """``n`` weighted draws per round by adaptive importance sampling; the round with the largest ESS.
 
     Round 0 proposes from ``proposal`` (n stratified draws). Round 1 (k > 1 components)
@@ -217,7 +221,16 @@ def importance(log_target, proposal: Mixture, n: int, *, seed, rounds: int = 2,
     to ``rounds``) from a Gaussian fitted to the best round's weighted draws (x1.5); both keep
     a defensive share ``defensive_fraction`` of mixture draws so the weights stay bounded
     where the components have mass. ``diagnostics["ess_rounds"]``: every round's ESS.
-    RuntimeError if every weight of every round is zero. ``seed``: int or torch.Generator.
+    A round whose ESS is n (its proposal is the target: k = 1, or weights all equal) ends the
+    rounds, since no later round can have a larger one.
+
+    ``reuse_mixture_draws`` (k > 1 only): round 0 makes only the defensive share of stratified
+    mixture draws, or `REUSE_MIN_PER_DIM` x d per component if that is more (what the
+    Gaussian product is fitted from), at most n; the defensive share of them, with their
+    densities, is the defensive part of every later round (as adaptive multiple importance
+    sampling reuses past draws): far fewer component draws and evaluations per round. Round 0's
+    own sample, when smaller than n, is returned only if no later round has a finite weight. RuntimeError if every weight of every round is zero. ``seed``:
+    int or torch.Generator.
     """
     _check_callable(log_target, "log_target")
     if not isinstance(proposal, Mixture):
@@ -231,15 +244,26 @@ def importance(log_target, proposal: Mixture, n: int, *, seed, rounds: int = 2,
     k, d = proposal.n_components, proposal.dim
     best, ess_rounds, product = None, [], None
     eye = torch.eye(d, dtype=torch.float64)
+    reuse = bool(reuse_mixture_draws) and k > 1 and rounds > 0
+    n_def = max(int(round(defensive_fraction * n)), k)
+    pool = None  # reused mixture draws: (z, component log densities, log target, counts)
     for r in range(rounds + 1):
+        log_t = None
         if r == 0:
-            counts = proposal.counts(n)
+            n0 = min(n, max(n_def, k * REUSE_MIN_PER_DIM * d)) if reuse else n
+            counts = proposal.counts(n0)
             z = proposal.sample(counts)
             lq = proposal.log_probs(z)
-            log_mix = torch.tensor([math.log(c / n) if c else -math.inf for c in counts], dtype=torch.float64)
+            log_mix = torch.tensor([math.log(c / n0) if c else -math.inf for c in counts], dtype=torch.float64)
             log_r = torch.logsumexp(lq + log_mix[:, None], dim=0)
             if k > 1:
                 product = proposal.product(z, counts)
+            if reuse:  # the defensive share: the first draws of each component's block
+                log_t = log_target(z)
+                starts = [sum(counts[:i]) for i in range(k)]
+                def_counts = proposal.counts(n_def)
+                idx = torch.cat([torch.arange(s0, s0 + c) for s0, c in zip(starts, def_counts, strict=True)])
+                pool = (z[idx], lq[:, idx], log_t[idx], def_counts)
         else:
             if r == 1 and product is not None:
                 mu, cov = product
@@ -253,16 +277,22 @@ def importance(log_target, proposal: Mixture, n: int, *, seed, rounds: int = 2,
                 break
             cov = 0.5 * (cov + cov.T) + 1e-9 * eye
             gauss = torch.distributions.MultivariateNormal(mu, covariance_matrix=cov)
-            n_def = max(int(round(defensive_fraction * n)), k)
             n_gauss = n - n_def
-            counts = proposal.counts(n_def)
             eps = torch.randn(n_gauss, d, generator=gen, dtype=torch.float64)
-            z = torch.cat([mu + eps @ gauss.scale_tril.T, proposal.sample(counts)])
-            lq = proposal.log_probs(z)
+            z_gauss = mu + eps @ gauss.scale_tril.T
+            if pool is None:
+                counts = proposal.counts(n_def)
+                z = torch.cat([z_gauss, proposal.sample(counts)])
+                lq = proposal.log_probs(z)
+            else:  # the target is pointwise: the pool's log target is reused as it is
+                lq_gauss = proposal.log_probs(z_gauss)
+                log_t = torch.cat([log_target(z_gauss), pool[2]])
+                z, lq, counts = torch.cat([z_gauss, pool[0]]), torch.cat([lq_gauss, pool[1]], dim=1), pool[3]
             log_mix = torch.tensor([math.log(c / n) if c else -math.inf for c in counts], dtype=torch.float64)
             log_def = torch.logsumexp(lq + log_mix[:, None], dim=0)
             log_r = torch.logaddexp(log_def, math.log(n_gauss / n) + gauss.log_prob(z))
-        log_t = log_target(z)
+        if log_t is None:
+            log_t = log_target(z)
         log_w = torch.nan_to_num(log_t - log_r, nan=-math.inf, neginf=-math.inf)  # -inf stays -inf (not -1.8e308)
         if not bool(torch.isfinite(log_w).any()):
             ess_rounds.append(0.0)
@@ -270,8 +300,12 @@ def importance(log_target, proposal: Mixture, n: int, *, seed, rounds: int = 2,
         w = torch.softmax(log_w, dim=0)
         ess = float(1.0 / (w**2).sum())
         ess_rounds.append(ess)
-        if best is None or ess > best["ess"]:
+        # with reused draws round 0's sample is smaller than n: the fallback only
+        smaller = best is not None and best["z"].shape[0] < z.shape[0]
+        if best is None or ess > best["ess"] or smaller:
             best = {"z": z, "weights": w, "log_t": log_t, "ess": ess}
+        if ess >= n * (1.0 - 1e-9):  # the proposal is the target: no later round can do better
+            break
     if best is None:
         raise RuntimeError("importance: every importance weight is zero (the proposal puts no mass where the "
                            "target has)")

@@ -79,6 +79,10 @@ def import_sbi() -> None:
     import sbi.neural_nets  # noqa: F401
     import sbi.neural_nets.embedding_nets  # noqa: F401
 
+    # torch imports torch._dynamo lazily when the first optimiser is built (seconds of CPU): here,
+    # not inside the first training
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+
 
 def check_sbi_version() -> tuple[int, ...]:
     """The installed sbi version, or RuntimeError if it is outside `SBI_SUPPORTED`."""
@@ -271,16 +275,40 @@ def fit_density_estimator(estimator: nn.Module, inputs: torch.Tensor, conditions
             "time_train": time.perf_counter() - t0, "n_train": int(train.shape[0]), "n_validation": n_val}
 
 
+def _warm_start(net: nn.Module, trained: nn.Module) -> None:
+    """Copy ``trained``'s weights into the freshly built ``net`` of the same architecture.
+
+    Copied: every parameter and every integer buffer (the flow's permutations, which the weights
+    are tied to; the masks' degrees). Kept from ``net``: its floating-point buffers, i.e. the
+    z-scoring statistics sbi computed from the NEW training data (and the masks, which the
+    architecture fixes). ValueError if the two do not match name for name and shape for shape.
+    """
+    new = dict(net.named_parameters()) | dict(net.named_buffers())
+    old = dict(trained.named_parameters()) | dict(trained.named_buffers())
+    if new.keys() != old.keys() or any(new[k].shape != old[k].shape for k in new):
+        raise ValueError("init_from: its architecture differs from the estimator being trained "
+                         "(sizes or settings differ)")
+    params = dict(net.named_parameters())
+    with torch.no_grad():
+        for name, t in new.items():
+            if name in params or not t.is_floating_point():
+                t.copy_(old[name].to(t.device))
+
+
 def train_npe(theta: torch.Tensor, x: torch.Tensor, *, seed: int, density_estimator: str = "maf",
               hidden_features: int = 50, num_transforms: int = 5, embedding_dim: int | None = None,
               training_batch_size: int = 100, learning_rate: float = 1e-3,
               validation_fraction: float = 0.1, stop_after_epochs: int = 20, max_epochs: int = 200,
-              device: str = "cpu") -> tuple[nn.Module, dict]:
+              device: str = "cpu", init_from: nn.Module | None = None) -> tuple[nn.Module, dict]:
     """Single-round sbi NPE (maximum likelihood) of q(theta | x), z-scored inside the flow.
 
     ``embedding_dim``: None (x fed as is) or the output size of an sbi ``FCEmbedding`` trained
-    jointly. Returns (estimator on the CPU in eval mode, {"epochs", "best_validation_loss",
-    "time_train"}) read from the trainer's public ``summary``. Global torch RNG untouched.
+    jointly. ``init_from``: None (fresh weights from ``seed``) or an estimator `train_npe`
+    returned for the same sizes and settings: training starts from its weights and
+    permutations (a warm start), with the z-scoring statistics of THIS ``theta`` and ``x``
+    (ValueError if the architectures differ). Returns (estimator on the CPU in eval mode,
+    {"epochs", "best_validation_loss", "time_train"}) read from the trainer's public
+    ``summary``. Global torch RNG untouched.
     """
     check_sbi_version()
     from sbi.inference import NPE
@@ -294,6 +322,14 @@ def train_npe(theta: torch.Tensor, x: torch.Tensor, *, seed: int, density_estima
         builder = posterior_nn(model=density_estimator, hidden_features=hidden_features,
                                num_transforms=num_transforms, embedding_net=embedding,
                                z_score_theta="independent", z_score_x="independent")
+        if init_from is not None:
+            fresh = builder
+
+            def builder(batch_theta, batch_x):  # sbi's public builder contract: (theta, x) -> estimator
+                net = fresh(batch_theta, batch_x)
+                _warm_start(net, init_from)
+                return net
+
         trainer = NPE(prior=None, density_estimator=builder, device=device, show_progress_bars=False,
                       tracker=_NullTracker())
         with _quiet():
