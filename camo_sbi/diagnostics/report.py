@@ -550,8 +550,8 @@ def _posteriors(posts, why: str) -> Markup:
                 def marginals(idata=idata, method=method):
                     fig = arviz_io.plot_posterior(idata)
                     truth = "; dashed black: the truth" if arviz_io.true_limits(idata) is not None else ""
-                    return _fig_html(fig, f"{method}: marginal posterior of every limit with its 94% HDI "
-                                          f"(arviz){truth}.")
+                    return _fig_html(fig, f"{method}: marginal posterior of every limit (arviz's KDE of the "
+                                          f"draws), its mean and its 94% HDI (the black bar){truth}.")
                 out.append(part("details", f"Marginal posteriors: {_words(idata)}", _guard(marginals)))
         others = [c for c in cells if c != chosen]
         for cell in sorted(others, key=lambda c: (str(c[0]), str(c[1]))):
