@@ -725,6 +725,19 @@ def test_report_replays_the_observed_reaches_against_posterior_draws(tmp_path):
     ppc = report._predictive([(run / "posteriors" / "cell.nc", loaded, "")], "")  # the report's section
     assert "not available" not in ppc and ppc.count("<img") == 1
     assert "<h3>camo, budget 300, seed 0, 2 tasks</h3>" in ppc and "50 posterior draws" in ppc
+    # the whole report in a fresh process: the helper process simulates the draws, so the report's
+    # own process never imports torch, and the figure is the one drawn in this process
+    import re
+    import subprocess
+    import sys
+
+    code = ("import sys; from camo_sbi.diagnostics import report; "
+            f"report.write_report({str(run)!r}, {str(tmp_path / 'r.html')!r}); print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[-1] == "False"
+    png = re.compile(r'src="(data:image/png;base64,[^"]+)"[^>]*alt="posterior-predictive reaches of camo"')
+    assert png.findall((tmp_path / "r.html").read_text()) == png.findall(str(ppc)) != []
 
 
 def test_hdi_is_arviz_s_and_the_shortest_interval():

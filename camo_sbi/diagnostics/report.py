@@ -32,7 +32,7 @@ figure-format options, the package version, the source of the diagnostics module
 it and the bytes of its templates); `write_report` on the same inputs returns the existing page
 without rebuilding it (``force=True`` rebuilds). With ``progress=True`` a tqdm bar on stderr names each section.
 
-The jobs that hold the GIL without drawing (the chain kernel of the predictive reaches, the
+The jobs that hold the GIL without drawing (the simulations of the predictive reaches, the
 C2ST classifiers of the posterior comparison) go to one helper process
 (`camo_sbi.diagnostics.report_helper`) as soon as the posteriors are loaded, and run there
 while this process draws; the same calls, so the same numbers; a job the helper could not do
@@ -577,6 +577,11 @@ def _posteriors(posts, why: str) -> Markup:
 
 
 def _simulator(task: str, idata):
+    """`_model_simulator` of the ``model_spec`` stored with ``idata``."""
+    return _model_simulator(task, _attr(idata, "model_spec"))
+
+
+def _model_simulator(task: str, raw):
     """(the simulator the posteriors were computed with, None) or (None, exactly why not).
 
     Rebuilt from the ``model_spec`` attribute the run stored with each posterior (the
@@ -585,7 +590,6 @@ def _simulator(task: str, idata):
     1.6 m tall. A registered model is built by `camo_sbi.simulators.registry`; a model that is
     not registered here gives an `UnknownModel` reason (the section marks it as an error).
     """
-    raw = _attr(idata, "model_spec")
     if raw is None:
         return None, (f"the posterior files of {task!r} do not record their model's settings (written before "
                       "camo-sbi stored them): run the command again into a new --out to draw these figures")
@@ -648,6 +652,32 @@ def _predictive_paths(sim, draws: np.ndarray, obs: dict[str, np.ndarray], n_reac
     return [[traj.trimmed(s * n_reaches + i, "cartesian").numpy() for s in range(S)] for i in range(n_reaches)]
 
 
+def _predictive_inputs(with_obs):
+    """(observed arrays, reaches shown, per method the posterior draws simulated (radians))."""
+    from camo_sbi.diagnostics import arviz_io
+
+    obs = _observed(with_obs[0][1])
+    n_reaches = min(4, int(obs["observed_length"].shape[0]))
+    picks = []
+    for _, idata in with_obs:
+        d, _ = arviz_io.limit_draws(idata)
+        flat = d.reshape(d.shape[0], -1)
+        if str(_attr(idata, "units", "rad")) == "deg":
+            flat = np.radians(flat)
+        picks.append(flat[np.linspace(0, flat.shape[0] - 1, min(_PPC_DRAWS, flat.shape[0])).astype(int)])
+    return obs, n_reaches, picks
+
+
+def predictive_paths(task: str, model_spec, picks, obs, n_reaches: int):
+    """The predictive section's simulations (run by the helper process, or here): ``(per pick
+    the paths of `_predictive_paths`, None)``, or ``(None, why not)`` when the model cannot be
+    rebuilt (`_model_simulator`)."""
+    sim, why_not = _model_simulator(task, model_spec)
+    if sim is None:
+        return None, why_not
+    return [_predictive_paths(sim, pick, obs, n_reaches) for pick in picks], None
+
+
 def _with_observed(cells) -> list[tuple[str, object]]:
     """(method, idata) of the chosen cell's sampled posteriors that hold observed reaches."""
     members = [m for m in sorted(cells[_chosen(cells)], key=lambda m: m[0]) if not _is_point(m[1])]
@@ -657,7 +687,6 @@ def _with_observed(cells) -> list[tuple[str, object]]:
 def _predictive(posts, why: str) -> Markup:
     if not posts:
         return _note(why)
-    from camo_sbi.diagnostics import arviz_io
     from camo_sbi.diagnostics.figures import plot_predictive
 
     groups, _ = _cells(posts)
@@ -669,22 +698,19 @@ def _predictive(posts, why: str) -> Markup:
             out.append(_note(f"{label or 'these posteriors'}: the posterior files hold no observed reaches "
                              "to compare with"))
             continue
-        sim, why_not = _prefetched_simulator(task, with_obs[0][1])
-        if sim is None:
+        obs, n_reaches, picks = _predictive_inputs(with_obs)
+        pre = _PREFETCH.get()
+        done = pre.helper.result(pre.predictive.get((task, subject))) if pre is not None else None
+        # the helper's answer, else this process's: (None, why) or (paths per method, None)
+        if done is None:
+            done = predictive_paths(task, _attr(with_obs[0][1], "model_spec"), picks, obs, n_reaches)
+        all_paths, why_not = done
+        if all_paths is None:
             mark = _error if isinstance(why_not, UnknownModel) else _note
             out.append(mark(f"{label or 'these posteriors'}: {why_not}"))
             continue
-        _wait_for_kernel(sim)
-        obs = _observed(with_obs[0][1])
-        n_reaches = min(4, int(obs["observed_length"].shape[0]))
         observed = [obs["observed_ee"][i, : int(obs["observed_length"][i])] for i in range(n_reaches)]
-        for method, idata in with_obs:
-            d, _ = arviz_io.limit_draws(idata)
-            flat = d.reshape(d.shape[0], -1)
-            if str(_attr(idata, "units", "rad")) == "deg":
-                flat = np.radians(flat)
-            pick = flat[np.linspace(0, flat.shape[0] - 1, min(_PPC_DRAWS, flat.shape[0])).astype(int)]
-            paths = _predictive_paths(sim, pick, obs, n_reaches)
+        for (method, idata), pick, paths in zip(with_obs, picks, all_paths, strict=True):
             fig = plot_predictive(observed, {method: paths}, goals=obs["observed_goal"],
                                   title=f"{method}: {_words(idata, method=False)}")
             out.append(part("heading", _words(idata)) + _fig_html(
@@ -750,9 +776,14 @@ def _posterior_comparison_table(posts) -> pd.DataFrame:
 
 
 def _c2st(a: np.ndarray, b: np.ndarray) -> float:
-    from camo_sbi.diagnostics.report_helper import c2st
+    return c2st_accuracy(a, b, _C2ST_SEED, _C2ST_DRAWS)
 
-    return c2st(a, b, _C2ST_SEED, _C2ST_DRAWS)
+
+def c2st_accuracy(a: np.ndarray, b: np.ndarray, seed: int, max_samples: int) -> float:
+    """The comparison table's C2ST (`camo_sbi.diagnostics.calibration.c2st`; also run by the helper)."""
+    from camo_sbi.diagnostics.calibration import c2st
+
+    return float(c2st(a, b, seed, max_samples=max_samples))
 
 
 def _comparison_rows(posts) -> tuple[list[dict], list[tuple[int, np.ndarray, np.ndarray]]]:
@@ -1047,8 +1078,7 @@ class _Prefetched:
 
     def __init__(self, posts, helper):
         self.posts, self.helper = posts, helper
-        self.simulators: dict[str, tuple] = {}  # model_spec text -> `_simulator`'s answer
-        self.kernels: dict[str, int | None] = {}  # ChainSpec digest -> the helper's compile job
+        self.predictive: dict[tuple, int | None] = {}  # (task, subject) -> the helper's simulation job
         self.comparison = None  # (rows, pairs, the helper's C2ST jobs)
 
 
@@ -1058,43 +1088,25 @@ _USE_HELPER = True  # tests switch the helper process off to compare
 
 
 def _prefetch(posts, helper) -> _Prefetched | None:
-    """Hand the helper the chain kernels the predictive reaches need (first) and the C2ST pairs of
-    the posterior comparison; None (the sections do it all) when there is nothing to hand over or
+    """Hand the helper the simulations of the predictive reaches (first) and the C2ST pairs of the
+    posterior comparison; None (the sections do it all) when there is nothing to hand over or
     this fails."""
     if not posts:
         return None
     pre = _Prefetched(posts, helper)
     try:
         groups, _ = _cells(posts)
-        for (task, _), cells in groups.items():
+        for (task, subject), cells in groups.items():
             with_obs = _with_observed(cells)
-            sim = _prefetched_simulator(task, with_obs[0][1], pre)[0] if with_obs else None
-            if sim is not None and sim.backend in ("auto", "numba") and sim.spec.digest not in pre.kernels:
-                pre.kernels[sim.spec.digest] = helper.submit("compile_kernel", sim.spec, "float64")
+            if with_obs:
+                obs, n_reaches, picks = _predictive_inputs(with_obs)
+                pre.predictive[(task, subject)] = helper.submit(
+                    "predictive_paths", task, _attr(with_obs[0][1], "model_spec"), picks, obs, n_reaches)
         rows, pairs = _comparison_rows(posts)
         pre.comparison = (rows, pairs, [helper.submit("c2st", a, b, _C2ST_SEED, _C2ST_DRAWS) for _, a, b in pairs])
     except Exception:  # noqa: BLE001 - the sections do the work themselves (and report its errors)
         return None
     return pre
-
-
-def _prefetched_simulator(task: str, idata, pre: _Prefetched | None = None):
-    """`_simulator`, built once per report for the same stored model settings."""
-    pre = pre if pre is not None else _PREFETCH.get()
-    key = str(_attr(idata, "model_spec"))
-    if pre is None:
-        return _simulator(task, idata)
-    if key not in pre.simulators:
-        pre.simulators[key] = _simulator(task, idata)
-    return pre.simulators[key]
-
-
-def _wait_for_kernel(sim) -> None:
-    """Until the helper has compiled ``sim``'s kernel (if it was asked to): then this process reads
-    it from the kernel cache instead of compiling it again."""
-    pre = _PREFETCH.get()
-    if pre is not None:
-        pre.helper.result(pre.kernels.get(sim.spec.digest))
 
 
 def figure_html(fig: Figure, caption: str, alt: str | None = None) -> Markup:

@@ -2,14 +2,14 @@
 
 `write_report` starts a `Helper` (``python -m camo_sbi.diagnostics.report_helper``, one
 child process) before it imports anything heavy, and hands it, as soon as the posteriors are
-loaded, the two jobs of the report that do not draw: compiling the chain kernel the
-posterior-predictive reaches need (`compile_kernel`: numba, into the kernel cache, from which
-the report's own `load_kernel` then reads it) and the classifier two-sample tests of the
-posterior comparison (`c2st`). Both hold the GIL in the report's process (numba's compiler;
-scikit-learn's random forests on a few hundred draws are mostly Python), so threads cannot
-overlap them with the figures; a second process can, on a second core. The jobs are the very
-same calls (`camo_sbi.simulators.kernel.load_kernel`; `camo_sbi.diagnostics.calibration.c2st`
-with the same arguments and seed), so the numbers do not depend on where they ran.
+loaded, the two jobs of the report that do not draw: the simulations of the
+posterior-predictive reaches (`camo_sbi.diagnostics.report.predictive_paths`: torch, and numba compiling the chain kernel
+on a first run) and the classifier two-sample tests of the posterior comparison (`camo_sbi.diagnostics.report.c2st_accuracy`).
+Both hold the GIL (numba's compiler; scikit-learn's random forests on a few hundred draws are
+mostly Python), so threads cannot overlap them with the figures; a second process can, on a
+second core, and the report's own process then never imports torch. The jobs are the very same
+calls as in the report's process (the same functions, arguments and seeds), so the figures and
+numbers do not depend on where they ran.
 
 A plain child process, not multiprocessing's ``spawn``: that would run the caller's
 ``__main__`` script again in the child (a script calling `write_report` without a
@@ -28,27 +28,19 @@ import pickle
 import subprocess
 import sys
 
-__all__ = ["Helper", "c2st", "compile_kernel"]
+__all__ = ["Helper"]
 
 
-def compile_kernel(spec, dtype: str) -> bool:
-    """Load or compile ``spec``'s chain kernel for ``dtype`` (`load_kernel`, kernel cache)."""
-    import numpy as np
-
-    from camo_sbi.simulators.kernel import load_kernel
-
-    load_kernel(spec, np.dtype(dtype))
-    return True
+# the jobs, by name -> (module, function), imported in the helper only (this module imports neither)
+_JOBS = {"predictive_paths": ("camo_sbi.diagnostics.report", "predictive_paths"),
+         "c2st": ("camo_sbi.diagnostics.report", "c2st_accuracy")}
 
 
-def c2st(a, b, seed: int, max_samples: int) -> float:
-    """`camo_sbi.diagnostics.calibration.c2st` of ``a`` and ``b`` (the report's call)."""
-    from camo_sbi.diagnostics.calibration import c2st as _c2st
+def _run(name: str, args):
+    import importlib
 
-    return float(_c2st(a, b, seed, max_samples=max_samples))
-
-
-_JOBS = {"compile_kernel": compile_kernel, "c2st": c2st}
+    module, function = _JOBS[name]
+    return getattr(importlib.import_module(module), function)(*args)
 
 
 class Helper:
@@ -131,10 +123,17 @@ def _serve() -> None:
                 return
 
     threading.Thread(target=read, daemon=True).start()
+    # import what the jobs need while the report loads its posteriors (it sends the first job then)
+    with contextlib.suppress(Exception):
+        import importlib
+
+        for module in ("camo_sbi.diagnostics.report", "camo_sbi.diagnostics.calibration",
+                       "camo_sbi.simulators.kernel", "camo_sbi.simulators.registry"):
+            importlib.import_module(module)
     while (job := jobs.get()) is not None:
         jid, name, args = job
         try:
-            reply = (jid, True, _JOBS[name](*args))
+            reply = (jid, True, _run(name, args))
         except Exception as exc:  # noqa: BLE001 - the report redoes the job and reports its error
             reply = (jid, False, repr(exc))
         pickle.dump(reply, out, protocol=pickle.HIGHEST_PROTOCOL)
