@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import functools
 import numbers
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch is imported by the checks that use it: numpy-only callers never load it
+    import torch
 
 __all__ = [
     "as_tensor",
@@ -29,6 +32,8 @@ __all__ = [
 
 def as_tensor(x, name: str, *, dtype=None, device=None) -> torch.Tensor:
     """Convert ``x`` (tensor, array, list) to a floating tensor; TypeError naming ``name``."""
+    import torch
+
     if isinstance(x, torch.Tensor):
         t = x
     elif isinstance(x, (np.ndarray, list, tuple, numbers.Real)):
@@ -48,6 +53,8 @@ def as_tensor(x, name: str, *, dtype=None, device=None) -> torch.Tensor:
 
 def check_finite(t: torch.Tensor, name: str) -> torch.Tensor:
     """Raise ValueError naming ``name`` if ``t`` holds NaN or inf."""
+    import torch
+
     if not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name}: contains NaN or inf values")
     return t
@@ -126,6 +133,8 @@ def check_theta(theta: torch.Tensor, n_joints: int, name: str = "theta") -> torc
     theta: (B, 2n) or (2n,) -> returned as (B, 2n).
     Raises ValueError naming ``name`` on a wrong shape, NaN/inf or ``lo > hi``.
     """
+    import torch
+
     if theta.dim() == 1:
         theta = theta.unsqueeze(0)
     if theta.dim() != 2 or theta.shape[1] != 2 * n_joints:
@@ -156,6 +165,8 @@ def numpy_generator(seed_or_gen, name: str = "seed") -> np.random.Generator:
 
 def torch_generator(seed_or_gen, name: str = "seed", device="cpu") -> torch.Generator:
     """An explicit torch Generator from an int seed or a Generator (never global state)."""
+    import torch
+
     if isinstance(seed_or_gen, torch.Generator):
         return seed_or_gen
     if isinstance(seed_or_gen, bool) or not isinstance(seed_or_gen, numbers.Integral):

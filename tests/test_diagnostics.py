@@ -172,6 +172,37 @@ def test_plots_return_figures(prior, truth):
         fig.clear()
 
 
+def test_plot_posterior_shows_mean_hdi_and_truth(prior, truth):
+    """Each free limit's panel carries the mean of the draws (text), the 94% HDI of
+    `posterior_width` (the thick bar, same numbers) and the truth; in degrees."""
+    for weighted in (False, True):
+        idata = arviz_io.to_inference_data(_informative_result(prior, truth, weighted=weighted), JOINTS,
+                                           seed=0, true_theta=truth, prior=prior)
+        draws = np.degrees(arviz_io.limit_draws(idata)[0])
+        width = arviz_io.posterior_width(idata)
+        fig = arviz_io.plot_posterior(idata)
+        axes = np.asarray(fig.axes).reshape(len(JOINTS), 2)
+        for ji, joint in enumerate(JOINTS):
+            for c, bound in enumerate(arviz_io.BOUNDS):
+                ax, x = axes[ji, c], draws[:, ji, c]
+                dashed = [ln for ln in ax.lines if ln.get_linestyle() == "--"]
+                assert len(dashed) == 1 and np.isclose(dashed[0].get_xdata()[0], np.degrees(truth[2 * ji + c]))
+                if np.ptp(x) == 0:  # the fixed wrist: one line at its value, named in the title
+                    assert "fixed" in ax.get_title()
+                    continue
+                est = [t for t in ax.texts if t.get_gid() == "point-estimate"]
+                assert len(est) == 1 and est[0].get_text() == f"mean={x.mean():.3g}"
+                bar = [ln for ln in ax.lines if ln.get_gid() == "hdi"]
+                assert len(bar) == 1
+                np.testing.assert_allclose(bar[0].get_xdata(),
+                                           np.degrees(width.loc[(joint, bound), ["hdi_lower", "hdi_upper"]]
+                                                      .to_numpy(dtype=float)))
+                assert any(t.get_text() == "94% HDI" for t in ax.texts)
+                assert ax.get_xlabel() == "limit [deg]"
+        assert fig.get_suptitle() == "camo: joint limits, 94% HDI"
+        fig.clear()
+
+
 def test_compare_marginals_wasserstein(prior, truth):
     a = _informative_result(prior, truth, n=3000, seed=0)
     shifted = PosteriorResult("shift", a.samples + 0.1, None, a.estimate + 0.1, 0, 0.0, 4)
@@ -694,6 +725,19 @@ def test_report_replays_the_observed_reaches_against_posterior_draws(tmp_path):
     ppc = report._predictive([(run / "posteriors" / "cell.nc", loaded, "")], "")  # the report's section
     assert "not available" not in ppc and ppc.count("<img") == 1
     assert "<h3>camo, budget 300, seed 0, 2 tasks</h3>" in ppc and "50 posterior draws" in ppc
+    # the whole report in a fresh process: the helper process simulates the draws, so the report's
+    # own process never imports torch, and the figure is the one drawn in this process
+    import re
+    import subprocess
+    import sys
+
+    code = ("import sys; from camo_sbi.diagnostics import report; "
+            f"report.write_report({str(run)!r}, {str(tmp_path / 'r.html')!r}); print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[-1] == "False"
+    png = re.compile(r'src="(data:image/png;base64,[^"]+)"[^>]*alt="posterior-predictive reaches of camo"')
+    assert png.findall((tmp_path / "r.html").read_text()) == png.findall(str(ppc)) != []
 
 
 def test_hdi_is_arviz_s_and_the_shortest_interval():

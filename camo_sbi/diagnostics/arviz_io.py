@@ -830,49 +830,72 @@ def parse_limit_names(names: Sequence[str], joints: Sequence[str]) -> list[tuple
 @paper_figure
 def plot_posterior(idata: az.InferenceData, *, joints: Sequence[str] | None = None,
                    hdi_prob: float = 0.94, figsize=None, degrees: bool = True) -> Figure:
-    """One panel per (joint, bound): arviz posterior density + HDI, the truth a black line.
+    """One panel per (joint, bound): the density of the draws, their mean and ``hdi_prob`` HDI,
+    the truth a dashed black line (what ``arviz.plot_posterior`` shows, drawn with matplotlib).
 
-    In degrees when the file holds radians (``degrees=False``: as stored). The truth is
-    drawn here (not as arviz's ``ref_val``, whose text collides with the mean label) and
-    named once in the figure legend. Fixed (zero-variance) limits are drawn as a single
-    vertical line with a note. The density is drawn in the method's colour
-    (`camo_sbi.diagnostics.style`). Returns a matplotlib Figure (not attached to pyplot).
+    The density is arviz's KDE (`az.kde`, as ``arviz.plot_posterior`` draws it) in the
+    method's colour (`camo_sbi.diagnostics.style`); the mean is written above it
+    (``mean=...``) and the HDI (arviz's, as in `posterior_width`) is the thick black bar at
+    the bottom with its end values. In degrees when the file holds radians
+    (``degrees=False``: as stored). The truth is named once in the figure legend. Fixed
+    (zero-variance) limits are drawn as a single vertical line with a note. Fixed margins
+    (no layout engine: the panels are a grid of known size). Returns a matplotlib Figure
+    (not attached to pyplot).
     """
     _check_idata(idata)
     hdi_prob = _check_prob(hdi_prob)
     sel = _select_joints(idata, joints)
-    shown, truth, units = _display_idata(idata, degrees)
-    draws, all_joints = _draws(shown)
+    f, units = _scale(idata, degrees)
+    draws, all_joints = _draws(idata)
+    draws = draws * f
+    truth = _truth(idata)
+    truth = None if truth is None else truth * f
     method = str(idata.posterior.attrs.get("method", "posterior"))
     color = method_style(method).color
-    fig = Figure(figsize=figsize or (DOUBLE_COLUMN, 1.5 * len(sel) + 0.5), layout="constrained")
-    axes = np.atleast_2d(fig.subplots(len(sel), 2, squeeze=False))
-    for r, j in enumerate(sel):
-        ji = all_joints.index(j)
-        for c, b in enumerate(BOUNDS):
-            ax = axes[r, c]
-            x = draws[:, ji, c]
-            tv = None if truth is None else float(truth[ji, c])
-            if np.ptp(x) == 0:
-                ax.axvline(x[0], color=color, lw=2)
-                ax.set_title(f"{j}, {b} (fixed = {x[0]:.3g})")
-                ax.set_yticks([])
-                pad = max(0.1, 0.05 * abs(float(x[0])))
-                ax.set_xlim(float(x[0]) - pad, float(x[0]) + pad)
-                ax.locator_params(axis="x", nbins=3)
-            else:
-                with _quiet_arviz():
-                    az.plot_posterior(shown, var_names=[VAR_NAME], coords={"joint": [j], "bound": [b]},
-                                      hdi_prob=hdi_prob, ax=ax, textsize=MIN_FONT_PT, show=False, color=color)
-                ax.set_title(f"{j}, {b}")
-            if tv is not None:
-                ax.axvline(tv, color="k", ls="--", lw=1.2, label="truth")
-                lo, hi = ax.get_xlim()
-                ax.set_xlim(min(lo, tv - 0.02 * (hi - lo)), max(hi, tv + 0.02 * (hi - lo)))
-            ax.set_xlabel(f"limit [{units}]")
-    fig.suptitle(f"{method}: joint limits, {hdi_prob:.0%} HDI")
+    w, h = figsize or (DOUBLE_COLUMN, 1.5 * len(sel) + 0.5)
+    # margins in inches: the suptitle and legend on top, tick labels and the x label below each row
+    fig = Figure(figsize=(w, h))
+    axes = np.atleast_2d(fig.subplots(len(sel), 2, squeeze=False, gridspec_kw=dict(
+        left=0.2 / w, right=1 - 0.2 / w, top=1 - 0.55 / h, bottom=0.45 / h,
+        hspace=0.65 / max(0.3, (h - 1.0) / len(sel) - 0.65), wspace=0.12)))
+    cols = [(all_joints.index(j), c) for j in sel for c in range(2)]
+    lo_hdi, hi_hdi = _az_hdi(np.stack([draws[:, ji, c] for ji, c in cols], axis=1), hdi_prob)
+    for k, (ji, c) in enumerate(cols):
+        ax = axes[k // 2, k % 2]
+        j, b = all_joints[ji], BOUNDS[c]
+        x = draws[:, ji, c]
+        tv = None if truth is None else float(truth[ji, c])
+        ax.set_yticks([])
+        for side in ("left", "right", "top"):
+            ax.spines[side].set_visible(False)
+        if np.ptp(x) == 0:
+            ax.axvline(x[0], color=color, lw=2)
+            ax.set_title(f"{j}, {b} (fixed = {x[0]:.3g})")
+            pad = max(0.1, 0.05 * abs(float(x[0])))
+            ax.set_xlim(float(x[0]) - pad, float(x[0]) + pad)
+        else:
+            with _quiet_arviz():
+                grid, pdf = az.kde(x)
+            ax.plot(grid, pdf, color=color, lw=1.2)
+            ax.set_ylim(-0.12 * pdf.max(), 1.25 * pdf.max())
+            mean = float(np.mean(x))
+            ax.text(mean, 1.02 * pdf.max(), f"mean={mean:.3g}", ha="center", va="bottom", gid="point-estimate")
+            lo, hi = float(lo_hdi[k]), float(hi_hdi[k])
+            ax.plot([lo, hi], [-0.06 * pdf.max()] * 2, color="k", lw=3, solid_capstyle="butt", gid="hdi")
+            ax.text(lo, 0.0, f"{lo:.3g}", ha="right", va="bottom")
+            ax.text(hi, 0.0, f"{hi:.3g}", ha="left", va="bottom")
+            ax.text((lo + hi) / 2, 0.0, f"{hdi_prob:.0%} HDI", ha="center", va="bottom")
+            ax.set_title(f"{j}, {b}")
+        if tv is not None:
+            ax.axvline(tv, color="k", ls="--", lw=1.2, label="truth")
+            lo_x, hi_x = ax.get_xlim()
+            ax.set_xlim(min(lo_x, tv - 0.02 * (hi_x - lo_x)), max(hi_x, tv + 0.02 * (hi_x - lo_x)))
+        ax.locator_params(axis="x", nbins=6)
+        ax.set_xlabel(f"limit [{units}]")
+    fig.suptitle(f"{method}: joint limits, {hdi_prob:.0%} HDI", y=1 - 0.08 / h, va="top")
     if truth is not None:
-        fig.legend(handles=[axes[0, 0].lines[-1]], labels=["truth"], loc="outside upper right", frameon=False)
+        fig.legend(handles=[axes[0, 0].lines[-1]], labels=["truth"], loc="upper right",
+                   bbox_to_anchor=(1 - 0.1 / w, 1 - 0.05 / h), frameon=False)
     return fig
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
@@ -48,9 +49,11 @@ def plot_predictive(observed: Sequence[np.ndarray], predicted: Mapping[str, Sequ
             for meth in method_order(predicted):
                 st = method_style(meth)
                 paths = predicted[meth][i]
-                for p in paths:
-                    p = np.asarray(p, dtype=float)
-                    ax.plot(p[:, a], p[:, b], color=st.color, lw=0.7, alpha=max(0.08, min(0.5, 8 / len(paths))))
+                # the draws as one collection (one artist per panel and method, not one line per draw)
+                segs = [np.asarray(p, dtype=float)[:, [a, b]] for p in paths]
+                ax.add_collection(LineCollection(segs, colors=st.color, linewidths=0.7,
+                                                 alpha=max(0.08, min(0.5, 8 / max(1, len(paths)))),
+                                                 gid=f"draws:{meth}"), autolim=True)
                 ax.plot([], [], color=st.color, lw=1.5, label=f"{meth}: {len(paths)} posterior draws")
             ax.plot(obs[:, a], obs[:, b], color="k", lw=2)
             ax.plot(obs[0, a], obs[0, b], "o", color="k", ms=4)

@@ -31,6 +31,12 @@ of everything it was built from (the files above, the title, ``max_posteriors``,
 figure-format options, the package version, the source of the diagnostics modules that draw
 it and the bytes of its templates); `write_report` on the same inputs returns the existing page
 without rebuilding it (``force=True`` rebuilds). With ``progress=True`` a tqdm bar on stderr names each section.
+
+The jobs that hold the GIL without drawing (the simulations of the predictive reaches, the
+C2ST classifiers of the posterior comparison) go to one helper process
+(`camo_sbi.diagnostics.report_helper`) as soon as the posteriors are loaded, and run there
+while this process draws; the same calls, so the same numbers; a job the helper could not do
+is done here.
 """
 
 from __future__ import annotations
@@ -79,6 +85,7 @@ RESULTS_COLUMNS = ("task", "subject", "method", "budget", "seed", "n_tasks", "me
 """Required columns of results.csv; an optional ``status`` column marks non-ok runs."""
 _MAX_TABLE_ROWS = 400
 _MAX_C2ST_PAIRS = 12  # each costs ~1 s (500 draws per side, 5-fold random forest)
+_C2ST_SEED, _C2ST_DRAWS = 0, 500
 _PPC_DRAWS = 50
 _CORNER_LIMITS = 4
 _DAGGER = "†"
@@ -126,10 +133,18 @@ def _fig_html(fig: Figure, caption: str, alt: str | None = None) -> Markup:
             used.add(name)
             save_figures(fig, folder / f"{name}.png", formats)
     finally:
-        fig.clear()
+        _empty(fig)
     # the toolkit's own PNG bytes as a data: URI (base64: autoescaping has nothing to change)
     src = "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
     return part("figure", src, caption, alt or caption)
+
+
+def _empty(fig: Figure) -> None:
+    """Clear ``fig`` once it is saved: its axes are removed first, so `Figure.clear` does not
+    clear each of them (which rebuilds every axis's ticks only to throw them away)."""
+    for ax in tuple(fig.axes):
+        fig.delaxes(ax)
+    fig.clear()
 
 
 def _table_html(df: pd.DataFrame, *, index: bool = True, float_format: str = "{:.4g}") -> Markup:
@@ -550,8 +565,8 @@ def _posteriors(posts, why: str) -> Markup:
                 def marginals(idata=idata, method=method):
                     fig = arviz_io.plot_posterior(idata)
                     truth = "; dashed black: the truth" if arviz_io.true_limits(idata) is not None else ""
-                    return _fig_html(fig, f"{method}: marginal posterior of every limit with its 94% HDI "
-                                          f"(arviz){truth}.")
+                    return _fig_html(fig, f"{method}: marginal posterior of every limit (arviz's KDE of the "
+                                          f"draws), its mean and its 94% HDI (the black bar){truth}.")
                 out.append(part("details", f"Marginal posteriors: {_words(idata)}", _guard(marginals)))
         others = [c for c in cells if c != chosen]
         for cell in sorted(others, key=lambda c: (str(c[0]), str(c[1]))):
@@ -562,6 +577,11 @@ def _posteriors(posts, why: str) -> Markup:
 
 
 def _simulator(task: str, idata):
+    """`_model_simulator` of the ``model_spec`` stored with ``idata``."""
+    return _model_simulator(task, _attr(idata, "model_spec"))
+
+
+def _model_simulator(task: str, raw):
     """(the simulator the posteriors were computed with, None) or (None, exactly why not).
 
     Rebuilt from the ``model_spec`` attribute the run stored with each posterior (the
@@ -570,7 +590,6 @@ def _simulator(task: str, idata):
     1.6 m tall. A registered model is built by `camo_sbi.simulators.registry`; a model that is
     not registered here gives an `UnknownModel` reason (the section marks it as an error).
     """
-    raw = _attr(idata, "model_spec")
     if raw is None:
         return None, (f"the posterior files of {task!r} do not record their model's settings (written before "
                       "camo-sbi stored them): run the command again into a new --out to draw these figures")
@@ -633,38 +652,65 @@ def _predictive_paths(sim, draws: np.ndarray, obs: dict[str, np.ndarray], n_reac
     return [[traj.trimmed(s * n_reaches + i, "cartesian").numpy() for s in range(S)] for i in range(n_reaches)]
 
 
+def _predictive_inputs(with_obs):
+    """(observed arrays, reaches shown, per method the posterior draws simulated (radians))."""
+    from camo_sbi.diagnostics import arviz_io
+
+    obs = _observed(with_obs[0][1])
+    n_reaches = min(4, int(obs["observed_length"].shape[0]))
+    picks = []
+    for _, idata in with_obs:
+        d, _ = arviz_io.limit_draws(idata)
+        flat = d.reshape(d.shape[0], -1)
+        if str(_attr(idata, "units", "rad")) == "deg":
+            flat = np.radians(flat)
+        picks.append(flat[np.linspace(0, flat.shape[0] - 1, min(_PPC_DRAWS, flat.shape[0])).astype(int)])
+    return obs, n_reaches, picks
+
+
+def predictive_paths(task: str, model_spec, picks, obs, n_reaches: int):
+    """The predictive section's simulations (run by the helper process, or here): ``(per pick
+    the paths of `_predictive_paths`, None)``, or ``(None, why not)`` when the model cannot be
+    rebuilt (`_model_simulator`)."""
+    sim, why_not = _model_simulator(task, model_spec)
+    if sim is None:
+        return None, why_not
+    return [_predictive_paths(sim, pick, obs, n_reaches) for pick in picks], None
+
+
+def _with_observed(cells) -> list[tuple[str, object]]:
+    """(method, idata) of the chosen cell's sampled posteriors that hold observed reaches."""
+    members = [m for m in sorted(cells[_chosen(cells)], key=lambda m: m[0]) if not _is_point(m[1])]
+    return [(m, d) for m, d, _ in members if _observed(d) is not None]
+
+
 def _predictive(posts, why: str) -> Markup:
     if not posts:
         return _note(why)
-    from camo_sbi.diagnostics import arviz_io
     from camo_sbi.diagnostics.figures import plot_predictive
 
     groups, _ = _cells(posts)
     out = []
     for (task, subject), cells in groups.items():
-        chosen = _chosen(cells)
-        members = [m for m in sorted(cells[chosen], key=lambda m: m[0]) if not _is_point(m[1])]
-        with_obs = [(m, d) for m, d, _ in members if _observed(d) is not None]
+        with_obs = _with_observed(cells)
         label = _group_words(task, subject)
         if not with_obs:
             out.append(_note(f"{label or 'these posteriors'}: the posterior files hold no observed reaches "
                              "to compare with"))
             continue
-        sim, why_not = _simulator(task, with_obs[0][1])
-        if sim is None:
+        obs, n_reaches, picks = _predictive_inputs(with_obs)
+        pre = _PREFETCH.get()
+        done = pre.helper.result(pre.predictive.get((task, subject))) if pre is not None else None
+        # the helper's answer, else this process's: (None, why) or (paths per method, None)
+        if done is None:
+            done = predictive_paths(task, _attr(with_obs[0][1], "model_spec"), picks, obs, n_reaches)
+        all_paths, why_not = done
+        if all_paths is None:
             mark = _error if isinstance(why_not, UnknownModel) else _note
             out.append(mark(f"{label or 'these posteriors'}: {why_not}"))
             continue
-        obs = _observed(with_obs[0][1])
-        n_reaches = min(4, int(obs["observed_length"].shape[0]))
         observed = [obs["observed_ee"][i, : int(obs["observed_length"][i])] for i in range(n_reaches)]
-        for method, idata in with_obs:
-            d, _ = arviz_io.limit_draws(idata)
-            flat = d.reshape(d.shape[0], -1)
-            if str(_attr(idata, "units", "rad")) == "deg":
-                flat = np.radians(flat)
-            pick = flat[np.linspace(0, flat.shape[0] - 1, min(_PPC_DRAWS, flat.shape[0])).astype(int)]
-            paths = _predictive_paths(sim, pick, obs, n_reaches)
+        for (method, idata), pick, paths in zip(with_obs, picks, all_paths, strict=True):
             fig = plot_predictive(observed, {method: paths}, goals=obs["observed_goal"],
                                   title=f"{method}: {_words(idata, method=False)}")
             out.append(part("heading", _words(idata)) + _fig_html(
@@ -709,10 +755,42 @@ def _calibration(run_dir: Path) -> Markup:
 
 def _posterior_comparison_table(posts) -> pd.DataFrame:
     """Pairwise W1 / C2ST between methods' posteriors for the same subject, budget, seed, tasks."""
+    pre = _PREFETCH.get()
+    if pre is not None and pre.posts is posts and pre.comparison is not None:
+        rows, pairs, jobs = pre.comparison
+        done = [pre.helper.result(j) for j in jobs]
+    else:
+        rows, pairs = _comparison_rows(posts)
+        done = [None] * len(pairs)
+    todo = [p for p, acc in zip(pairs, done, strict=True) if acc is None]
+    for (i, _, _), acc in zip(pairs, done, strict=True):
+        if acc is not None:
+            rows[i]["C2ST accuracy"] = acc
+    if todo:  # no helper process (or a job failed there): here, in threads
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=max(1, min(len(todo), os.cpu_count() or 1))) as pool:
+            for (i, _, _), acc in zip(todo, pool.map(lambda p: _c2st(*p[1:]), todo), strict=True):
+                rows[i]["C2ST accuracy"] = acc
+    return pd.DataFrame(rows)
+
+
+def _c2st(a: np.ndarray, b: np.ndarray) -> float:
+    return c2st_accuracy(a, b, _C2ST_SEED, _C2ST_DRAWS)
+
+
+def c2st_accuracy(a: np.ndarray, b: np.ndarray, seed: int, max_samples: int) -> float:
+    """The comparison table's C2ST (`camo_sbi.diagnostics.calibration.c2st`; also run by the helper)."""
+    from camo_sbi.diagnostics.calibration import c2st
+
+    return float(c2st(a, b, seed, max_samples=max_samples))
+
+
+def _comparison_rows(posts) -> tuple[list[dict], list[tuple[int, np.ndarray, np.ndarray]]]:
+    """The comparison table's rows (C2ST still NaN) and its C2ST pairs: (row, draws A, draws B)."""
     import itertools
 
     from camo_sbi.diagnostics import arviz_io
-    from camo_sbi.diagnostics.calibration import c2st
 
     groups: dict[tuple, list] = {}
     for _, idata, _ in posts:
@@ -735,15 +813,7 @@ def _posterior_comparison_table(posts) -> pd.DataFrame:
             rows.append({"subject": subject, "budget": budget, "seed": seed, "n_tasks": n_tasks,
                          "method A": ma, "method B": mb, "mean W1 over free marginals [deg]": float(w1.mean()),
                          "max W1 [deg]": float(w1.max()), "C2ST accuracy": float("nan")})
-    # the classifiers (scikit-learn's random forests fit without the GIL) run on every core; each
-    # pair has its own fixed seed, so the accuracies do not depend on the number of threads
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=max(1, min(len(pairs), os.cpu_count() or 1))) as pool:
-        for (i, _, _), acc in zip(pairs, pool.map(lambda p: c2st(p[1], p[2], 0, max_samples=500), pairs),
-                                  strict=True):
-            rows[i]["C2ST accuracy"] = acc
-    return pd.DataFrame(rows)
+    return rows, pairs
 
 
 def _posterior_comparison(posts, why: str) -> Markup:
@@ -953,6 +1023,16 @@ def figure_files(folder, formats: Sequence[str] | None):
 
 def _write_report(run_dir: Path, out_path: Path, title: str, max_posteriors: int, digest: str,
                   progress: bool) -> Path:
+    from camo_sbi.diagnostics.files import saved_files
+    from camo_sbi.diagnostics.report_helper import Helper
+
+    # the helper process starts now (it imports while this process does) when there is work for it
+    with Helper(enabled=_USE_HELPER and bool(saved_files(run_dir))) as helper:
+        return _build_report(run_dir, out_path, title, max_posteriors, digest, progress, helper)
+
+
+def _build_report(run_dir: Path, out_path: Path, title: str, max_posteriors: int, digest: str,
+                  progress: bool, helper) -> Path:
     from tqdm import tqdm
 
     bar = tqdm(total=len(SECTIONS) + 1, desc="report", unit="section", disable=not progress)
@@ -962,6 +1042,14 @@ def _write_report(run_dir: Path, out_path: Path, title: str, max_posteriors: int
         posts, post_why = _load_posteriors(run_dir, max_posteriors)
     except Exception as exc:  # noqa: BLE001
         posts, post_why = [], f"posteriors could not be loaded ({type(exc).__name__}: {exc})"
+    token = _PREFETCH.set(_prefetch(posts, helper))
+    try:
+        return _sections(run_dir, out_path, title, digest, bar, res, res_why, posts, post_why)
+    finally:
+        _PREFETCH.reset(token)
+
+
+def _sections(run_dir, out_path, title, digest, bar, res, res_why, posts, post_why) -> Path:
     bar.update()
 
     builders = {
@@ -983,6 +1071,42 @@ def _write_report(run_dir: Path, out_path: Path, title: str, max_posteriors: int
             bar.update()
     return write_page(out_path, title, [(sid, name, bodies[sid]) for sid, name in SECTIONS],
                       meta=f"run directory: {run_dir.resolve()}", digest=digest)
+
+
+class _Prefetched:
+    """What `_prefetch` handed the helper process for one report (read by the sections)."""
+
+    def __init__(self, posts, helper):
+        self.posts, self.helper = posts, helper
+        self.predictive: dict[tuple, int | None] = {}  # (task, subject) -> the helper's simulation job
+        self.comparison = None  # (rows, pairs, the helper's C2ST jobs)
+
+
+_PREFETCH: contextvars.ContextVar[_Prefetched | None] = contextvars.ContextVar(
+    "camo_sbi_report_prefetch", default=None)
+_USE_HELPER = True  # tests switch the helper process off to compare
+
+
+def _prefetch(posts, helper) -> _Prefetched | None:
+    """Hand the helper the simulations of the predictive reaches (first) and the C2ST pairs of the
+    posterior comparison; None (the sections do it all) when there is nothing to hand over or
+    this fails."""
+    if not posts:
+        return None
+    pre = _Prefetched(posts, helper)
+    try:
+        groups, _ = _cells(posts)
+        for (task, subject), cells in groups.items():
+            with_obs = _with_observed(cells)
+            if with_obs:
+                obs, n_reaches, picks = _predictive_inputs(with_obs)
+                pre.predictive[(task, subject)] = helper.submit(
+                    "predictive_paths", task, _attr(with_obs[0][1], "model_spec"), picks, obs, n_reaches)
+        rows, pairs = _comparison_rows(posts)
+        pre.comparison = (rows, pairs, [helper.submit("c2st", a, b, _C2ST_SEED, _C2ST_DRAWS) for _, a, b in pairs])
+    except Exception:  # noqa: BLE001 - the sections do the work themselves (and report its errors)
+        return None
+    return pre
 
 
 def figure_html(fig: Figure, caption: str, alt: str | None = None) -> Markup:
