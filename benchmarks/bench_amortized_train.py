@@ -2,6 +2,7 @@
 
     python benchmarks/bench_amortized_train.py [--model panda] [--simulations 50000] [--seed 0]
         [--out DIR]   # also saves both estimators there, for `camo-sbi calibrate --amortized FILE`
+        [--now KEY=VALUE ...]   # the "now" arm: TrainConfig's defaults with these optimiser settings
 
 Both arms call `amortized.train` with the same seed, so they simulate the same training set,
 hold out the same validation sets and differ only in the optimiser settings:
@@ -12,6 +13,9 @@ hold out the same validation sets and differ only in the optimiser settings:
   the faster alternative; not the default, because its calibration was worse (README).
   ``--now-threads N`` also gives it N torch threads (both arms default to TrainConfig's one
   thread); CPU seconds then stop being the guide, wall seconds on a quiet machine are.
+  ``--now KEY=VALUE`` (repeatable; KEY one of training_batch_size, learning_rate, lr_schedule,
+  max_epochs) makes the "now" arm TrainConfig's defaults with those settings instead, e.g.
+  ``--now training_batch_size=1024`` (the same rate, schedule and epochs, twice the batch).
 
 The comparison is at EQUAL VALIDATION LOSS: for each arm, the training seconds (process CPU
 and wall, per epoch from `fit_density_estimator`'s clocks) until its validation loss first
@@ -39,6 +43,18 @@ def _time_to_reach(info: dict, target: float, clock: str) -> float | None:
     return None
 
 
+def _overrides(items: list[str]) -> dict:
+    """``["training_batch_size=1024", "lr_schedule=cosine"]`` -> {"training_batch_size": 1024, ...}."""
+    types = {"training_batch_size": int, "learning_rate": float, "lr_schedule": str, "max_epochs": int}
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in types:
+            raise SystemExit(f"--now: expected KEY=VALUE with KEY one of {', '.join(types)}, got {item!r}")
+        out[key] = types[key](value)
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--model", default="panda")
@@ -47,13 +63,16 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--now-threads", type=int, default=None,
                    help="torch threads of the 'now' arm (default: TrainConfig's, 1, as 'before')")
+    p.add_argument("--now", action="append", default=[], metavar="KEY=VALUE",
+                   help=f"the 'now' arm: TrainConfig's defaults with these settings ({', '.join(BEFORE)}) "
+                        "instead of FAST_SET_TRAINING (repeatable)")
     args = p.parse_args()
 
     from camo_sbi.experiments.subjects import build_model
     from camo_sbi.inference.amortized import FAST_SET_TRAINING, TrainConfig, train
 
     before = TrainConfig(simulations=args.simulations)
-    now = dataclasses.replace(before, **FAST_SET_TRAINING)
+    now = dataclasses.replace(before, **(_overrides(args.now) if args.now else FAST_SET_TRAINING))
     if args.now_threads is not None:
         now = dataclasses.replace(now, n_threads=args.now_threads)
     changed = {k: (getattr(before, k), getattr(now, k)) for k in (*BEFORE, "n_threads")

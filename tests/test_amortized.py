@@ -738,6 +738,7 @@ def test_set_form_toy_posterior_recovered(tmp_path):
     (["--flow", "glow"], "--flow"),
     (["--threads", "0"], "--threads"),
     (["--fast", "--form", "per-reach"], "--fast"),
+    (["--batch-size", "1"], "--batch-size"),
 ])
 def test_amortize_bad_options_exit_2(extra, needle, tmp_path, capsys):
     from camo_sbi.experiments.cli import main
@@ -760,6 +761,20 @@ def test_amortize_fast_and_threads_reach_the_training_config():
         k: getattr(default, k) for k in FAST_SET_TRAINING}
     assert cfg.n_threads == 2 and default.n_threads == 1
     assert train_config(simulations=1000, spaces=("joint",), fast=True, max_epochs=5).max_epochs == 5
+
+
+def test_amortize_batch_size_changes_the_batch_only():
+    """--batch-size sets the reaches per batch and nothing else of the optimiser; it wins over --fast's."""
+    from camo_sbi.experiments.amortize import train_config
+    from camo_sbi.experiments.cli import build_parser
+
+    default = train_config(simulations=1000, spaces=("joint",))
+    cfg = train_config(simulations=1000, spaces=("joint",), batch_size=2048)
+    assert cfg.training_batch_size == 2048 != default.training_batch_size
+    assert cfg == dataclasses.replace(default, training_batch_size=2048)
+    assert train_config(simulations=1000, spaces=("joint",), fast=True, batch_size=1024).training_batch_size == 1024
+    args = build_parser().parse_args(["amortize", "--out", "x.pt", "--batch-size", "2048"])
+    assert args.batch_size == 2048
 
 
 @pytest.mark.slow  # in the slow tier for the default tier's 4-minute budget (issue 28)
