@@ -17,7 +17,8 @@ DTW <= sum_t ||x_t - y_t|| (a sum of point distances, not Eq. 2's root of summed
 `dtw_distances` compares one observed trajectory (T_o, D) with a batch of simulated ones
 (B, T, D) with numba (float64 throughout) and returns (B,) float64: candidates are processed
 in blocks of 16, one candidate per SIMD lane (small tables: one candidate at a time with the
-scalar recursion). The blocks are dealt round-robin to ``workers`` chunks run by ``nogil``
+scalar recursion; a whole call of at most ``api.SMALL_CALL_CELLS`` cells: the scalar recursion
+only, whose kernels compile in a fraction of the cascade's time). The blocks are dealt round-robin to ``workers`` chunks run by ``nogil``
 kernels on a thread pool (rather than a ``parallel=True`` prange, whose compilation costs more
 than everything else together: docs/studies/design_measurements.md). Every value it reports is the exact DTW,
 computed with the operations of the plain recursion, so results do not depend on pruning,

@@ -27,7 +27,8 @@ __all__ = ["SMALL_CALL_CELLS", "dtw_distances", "l2_distance"]
 SMALL_CALL_CELLS = 5_000_000
 """A call whose DP tables hold at most this many cells in all (observed length x the sum of the
 candidates' lengths) runs the plain recursion one candidate at a time (`chunks.scalar_chunk`):
-a few milliseconds per call at this size, and its kernels compile in about a second, where the
+at most a few tens of milliseconds per call at this size (slower per cell than the cascade),
+and its kernels compile in about a second, where the
 lane blocks, bounds and pruned cascade of larger calls take most of a first run's compile
 (docs/guide/performance.md, section 1). The values are the same bit for bit either way."""
 
