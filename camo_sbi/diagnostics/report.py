@@ -701,8 +701,10 @@ def _predictive(posts, why: str) -> Markup:
         obs, n_reaches, picks = _predictive_inputs(with_obs)
         pre = _PREFETCH.get()
         done = pre.helper.result(pre.predictive.get((task, subject))) if pre is not None else None
-        # the helper's answer, else this process's: (None, why) or (paths per method, None)
-        if done is None:
+        # the helper's answer, else this process's: (None, why) or (paths per method, None); a
+        # model the helper could not rebuild may be registered in this process only (register_model
+        # at run time), so that answer is redone here
+        if done is None or done[0] is None:
             done = predictive_paths(task, _attr(with_obs[0][1], "model_spec"), picks, obs, n_reaches)
         all_paths, why_not = done
         if all_paths is None:
