@@ -22,6 +22,7 @@ __all__ = [
     "check_positive_int",
     "check_positive_float",
     "check_theta",
+    "cpu_array",
     "SEED_STREAMS",
     "derive_seed",
     "numpy_generator",
@@ -51,11 +52,27 @@ def as_tensor(x, name: str, *, dtype=None, device=None) -> torch.Tensor:
     return t
 
 
+def cpu_array(t: torch.Tensor) -> np.ndarray | None:
+    """A numpy view of ``t`` (no copy) when it is a CPU tensor of a numpy dtype, else None.
+
+    Checks on CPU tensors run on this view, in numpy, single-threaded: a torch elementwise op
+    on more than ``at::internal::GRAIN_SIZE`` (32768) elements runs on torch's OpenMP threads,
+    which then spin-wait for some milliseconds and take the cores from the numba kernel that a
+    simulator starts right after its checks (`benchmarks/bench_simulator.py --joints`).
+    """
+    try:
+        return t.detach().numpy()
+    except (TypeError, RuntimeError):  # a GPU tensor, bfloat16, a conjugate view, ...
+        return None
+
+
 def check_finite(t: torch.Tensor, name: str) -> torch.Tensor:
     """Raise ValueError naming ``name`` if ``t`` holds NaN or inf."""
     import torch
 
-    if not bool(torch.isfinite(t).all()):
+    a = cpu_array(t)
+    ok = bool(np.isfinite(a).all()) if a is not None else bool(torch.isfinite(t).all())
+    if not ok:
         raise ValueError(f"{name}: contains NaN or inf values")
     return t
 
@@ -133,8 +150,6 @@ def check_theta(theta: torch.Tensor, n_joints: int, name: str = "theta") -> torc
     theta: (B, 2n) or (2n,) -> returned as (B, 2n).
     Raises ValueError naming ``name`` on a wrong shape, NaN/inf or ``lo > hi``.
     """
-    import torch
-
     if theta.dim() == 1:
         theta = theta.unsqueeze(0)
     if theta.dim() != 2 or theta.shape[1] != 2 * n_joints:
@@ -144,9 +159,10 @@ def check_theta(theta: torch.Tensor, n_joints: int, name: str = "theta") -> torc
         )
     check_finite(theta, name)
     lo, hi = theta[:, 0::2], theta[:, 1::2]
-    bad = lo > hi
-    if bool(bad.any()):
-        b, j = (int(v) for v in torch.nonzero(bad)[0])
+    a = cpu_array(theta)
+    bad = (a[:, 0::2] > a[:, 1::2]) if a is not None else (lo > hi).cpu().numpy()
+    if bad.any():
+        b, j = (int(v) for v in np.argwhere(bad)[0])
         raise ValueError(
             f"{name}: lower limit exceeds upper limit (sample {b}, joint {j}: "
             f"lo={float(lo[b, j]):.4g} > hi={float(hi[b, j]):.4g})"

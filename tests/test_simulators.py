@@ -180,11 +180,15 @@ def test_batched_equals_per_sample(panda_sim, backend):
         assert (one.ee[0] - batch.ee[i]).abs().max() <= 1e-12
 
 
-def test_broadcasting(panda_sim):
+def test_broadcasting(panda_sim, input_checks):
     theta, goals = random_problem(panda_sim, 4, seed=6)
     full = panda_sim.simulate(theta[:1].expand(4, -1), goals, panda_sim.start.expand(4, -1))
     bc = panda_sim.simulate(theta[0], goals)  # one theta, many goals, default start
     assert torch.equal(full.q, bc.q)
+    # a non-contiguous theta (every other row of a larger batch) gives the rows' own results
+    wide = torch.cat([theta, theta]).reshape(2, 4, -1).transpose(0, 1).reshape(8, -1)[::2]
+    assert not wide.is_contiguous()
+    assert torch.equal(panda_sim.simulate(wide, goals).q, panda_sim.simulate(theta, goals).q)
     one_goal = panda_sim.simulate(theta, goals[0])
     assert one_goal.q.shape[0] == 4
 
@@ -315,9 +319,21 @@ BAD_SIMULATE = [
 ]
 
 
+@pytest.fixture(params=["numpy", "torch"])
+def input_checks(request, monkeypatch):
+    """The input checks on CPU tensors run in numpy; "torch" forces the path a GPU tensor takes."""
+    if request.param == "torch":
+        import camo_sbi._validation as validation
+        import camo_sbi.simulators.simulator as simulator
+
+        monkeypatch.setattr(validation, "cpu_array", lambda t: None)
+        monkeypatch.setattr(simulator, "cpu_array", lambda t: None)
+    return request.param
+
+
 @pytest.mark.parametrize("backend", ["numba", "torch"])
 @pytest.mark.parametrize("name,make", BAD_SIMULATE)
-def test_simulate_rejects_bad_inputs(panda_sim, backend, name, make):
+def test_simulate_rejects_bad_inputs(panda_sim, backend, name, make, input_checks):
     sim = panda_sim.with_config(backend=backend)
     kw = dict(theta=sim.bounds.reshape(-1), goal=torch.tensor([0.4, 0.1, 0.4], dtype=torch.float64), start=None)
     kw.update(make(sim))

@@ -17,6 +17,7 @@ from camo_sbi._validation import (
     check_finite,
     check_positive_int,
     check_theta,
+    cpu_array,
     torch_generator,
 )
 from camo_sbi.simulators.base import Trajectories
@@ -142,13 +143,22 @@ class KinematicSimulator:
             if b not in (1, B):
                 raise ValueError(f"{name}: batch size {b} does not match the batch size {B} "
                                  f"(sizes: {sizes}; each must be 1 or B)")
-        theta = theta.expand(B, -1).contiguous()
-        goal = goal.expand(B, -1).contiguous()
-        start = start.expand(B, -1).contiguous()
+        # on the CPU in numpy, single-threaded (`camo_sbi._validation.cpu_array` says why)
+        arrays = [cpu_array(t) for t in (theta, goal, start)]
+        if all(a is not None for a in arrays):
+            theta, goal, start = (torch.from_numpy(np.require(
+                a if a.shape[0] == B else np.broadcast_to(a, (B, a.shape[1])), requirements=("C", "W")))
+                for a in arrays)
+        else:
+            theta, goal, start = (t.expand(B, -1).contiguous() for t in (theta, goal, start))
         lo, hi = theta[:, 0::2], theta[:, 1::2]
-        bad = (start < lo - START_SLACK) | (start > hi + START_SLACK)
-        if bool(bad.any()):
-            b, j = (int(v) for v in torch.nonzero(bad)[0])
+        a_th, a_st = cpu_array(theta), cpu_array(start)
+        if a_th is not None:
+            bad = (a_st < a_th[:, 0::2] - START_SLACK) | (a_st > a_th[:, 1::2] + START_SLACK)
+        else:
+            bad = ((start < lo - START_SLACK) | (start > hi + START_SLACK)).cpu().numpy()
+        if bad.any():
+            b, j = (int(v) for v in np.argwhere(bad)[0])
             raise ValueError(f"start: joint {self.joint_names[j]} = {float(start[b, j]):.6g} lies outside "
                              f"theta's limits [{float(lo[b, j]):.6g}, {float(hi[b, j]):.6g}] (sample {b})")
         return theta, goal, start
