@@ -1,6 +1,11 @@
 """The exact posterior on the binding bounds, touched and untouched apart (issue 35 item 4).
 
     PYTHONPATH=. python docs/studies/exact_binding_bounds.py panda 5 7 --out docs/studies/exact_binding_panda_s7.csv
+    PYTHONPATH=. python docs/studies/exact_binding_bounds.py panda 4 7 --methods abc-smc,npe,nle --out OTHER.csv
+
+``--methods`` (default: exact-likelihood, naive, camo-seq) runs other registered methods on the
+very same runs (same subjects, reaches, noise and method seed), so their rows can be written to
+a file of their own and read beside the first.
 
 Informative setting (`reproduce panda --setting informative`'s design: the model's informative
 subjects cycled over runs, 10 training reaches from the nominal workspace, 20 held-out goals of
@@ -45,8 +50,13 @@ def main() -> int:
     p.add_argument("--particles", type=int, default=1000)
     p.add_argument("--moves", type=int, default=10)
     p.add_argument("--mcmc-steps", type=int, default=40)
+    p.add_argument("--methods", default=",".join(METHODS), help="comma-separated registered methods")
+    p.add_argument("--budget", type=int, default=2000, help="simulations per reach")
     p.add_argument("--out", required=True)
     a = p.parse_args()
+    methods = [m for m in a.methods.split(",") if m]
+    for m in methods:
+        get_method(m)  # an unknown name fails here, before any run
     model = ModelSpec(kind=a.model)
     sim = model.build()
     subjects = list(get_model(a.model).informative)
@@ -66,11 +76,11 @@ def main() -> int:
         allq = np.concatenate([o.q.numpy() for o in clean.observations])
         ext = np.stack([allq.min(0), allq.max(0)], 1).reshape(-1)
         touched = np.abs(ext - truth) < 1e-9
-        for m in METHODS:
+        for m in methods:
             cfg = {"particles": a.particles, "moves": a.moves, "mcmc_steps": a.mcmc_steps} \
                 if get_method(m).capabilities.exact else method_config(m, cfg_args)
             t0 = time.perf_counter()
-            r = run_method(m, task, budget=2000, seed=derive_seed(a.seed, run, 1), config=cfg)
+            r = run_method(m, task, budget=a.budget, seed=derive_seed(a.seed, run, 1), config=cfg)
             lo90, hi90 = (weighted_quantile(r.samples, r.weights, q) for q in (0.05, 0.95))
             for b in np.flatnonzero(binding):
                 rows.append({"model": a.model, "seed": a.seed, "run": run, "subject": subject, "method": m,
