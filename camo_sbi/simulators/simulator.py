@@ -146,17 +146,14 @@ class KinematicSimulator:
         # on the CPU in numpy, single-threaded (`camo_sbi._validation.cpu_array` says why)
         arrays = [cpu_array(t) for t in (theta, goal, start)]
         if all(a is not None for a in arrays):
-            theta, goal, start = (torch.from_numpy(np.require(
-                a if a.shape[0] == B else np.broadcast_to(a, (B, a.shape[1])), requirements=("C", "W")))
-                for a in arrays)
-        else:
-            theta, goal, start = (t.expand(B, -1).contiguous() for t in (theta, goal, start))
-        lo, hi = theta[:, 0::2], theta[:, 1::2]
-        a_th, a_st = cpu_array(theta), cpu_array(start)
-        if a_th is not None:
+            a_th, a_go, a_st = (np.require(a if a.shape[0] == B else np.broadcast_to(a, (B, a.shape[1])),
+                                           requirements=("C", "W")) for a in arrays)
+            theta, goal, start = torch.from_numpy(a_th), torch.from_numpy(a_go), torch.from_numpy(a_st)
             bad = (a_st < a_th[:, 0::2] - START_SLACK) | (a_st > a_th[:, 1::2] + START_SLACK)
         else:
-            bad = ((start < lo - START_SLACK) | (start > hi + START_SLACK)).cpu().numpy()
+            theta, goal, start = (t.expand(B, -1).contiguous() for t in (theta, goal, start))
+            bad = ((start < theta[:, 0::2] - START_SLACK) | (start > theta[:, 1::2] + START_SLACK)).cpu().numpy()
+        lo, hi = theta[:, 0::2], theta[:, 1::2]
         if bad.any():
             b, j = (int(v) for v in np.argwhere(bad)[0])
             raise ValueError(f"start: joint {self.joint_names[j]} = {float(start[b, j]):.6g} lies outside "
