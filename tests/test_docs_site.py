@@ -105,6 +105,42 @@ def test_the_measured_calibration_file_is_what_the_docs_runs_measured():
     assert measured.TARGET.read_text() == measured.measured_text()
 
 
+def test_the_untouched_coverage_file_is_what_the_binding_bound_rows_measured():
+    """camo_sbi/diagnostics/untouched_measured.csv equals what docs/studies/exact_binding/measured.py
+    derives from the study's rows, and one of its numbers recounted here by hand."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("eb_measured", DOCS / "studies" / "exact_binding" / "measured.py")
+    measured = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(measured)
+    assert measured.TARGET.read_text() == measured.measured_text()
+    from camo_sbi.diagnostics.verdicts import untouched_verdict, untouched_verdicts
+
+    rows = []
+    for f in sorted((DOCS / "studies" / "exact_binding").glob("panda_s*.csv")):
+        with open(f, newline="") as fh:
+            rows += [r for r in csv.DictReader(fh) if r["method"] == "camo-seq" and r["touched"] == "False"]
+    camo = next(r for r in untouched_verdicts() if r["model"] == "panda" and r["method"] == "camo-seq")
+    assert camo["bounds"] == len(rows) > 0 and camo["covered"] == sum(r["covered90"] == "True" for r in rows)
+    cov, text = untouched_verdict("camo-seq", "panda")
+    assert cov == camo["coverage90"] and f"covered {camo['covered']} of {len(rows)}" in text
+    assert untouched_verdict("naive", "panda")[1] == "a point estimate (no interval)"
+
+
+def test_the_untouched_rule_on_hand_made_counts():
+    from camo_sbi.diagnostics.verdicts import binomial_below, untouched_verdict, untouched_word
+
+    assert abs(binomial_below(5, 10) - 0.001634937) < 1e-8  # scipy.stats.binom.cdf(5, 10, 0.9)
+    assert untouched_word(9, 10) == "calibrated on untouched bounds"
+    assert untouched_word(17, 20) == "calibrated on untouched bounds"  # 0.85: at the tolerance's edge
+    assert untouched_word(1, 6) == "over-confident on untouched bounds"
+    assert untouched_word(8, 10) == "coverage below 0.90 on untouched bounds, too few to tell (binomial p=0.26)"
+    assert untouched_word(2, 2).startswith("coverage above 0.90 on untouched bounds, too few to tell")
+    assert untouched_verdict("nominal", "panda")[1] == "a point (no posterior)"
+    cov, text = untouched_verdict("no-such-method", "panda")
+    assert cov != cov and text == "not measured on untouched bounds"
+
+
 def test_verdicts_are_a_rule_on_the_measured_numbers():
     from camo_sbi.diagnostics.verdicts import calibration_verdict, calibration_verdicts, verdict
 

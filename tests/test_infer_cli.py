@@ -100,7 +100,8 @@ def test_infer_limits_table_has_every_joint_and_bound(inferred, sim):
     out, df = inferred
     assert list(df.columns) == ["method", "joint", "bound", "estimate_rad", "estimate_deg", "observed_min_deg",
                                 "observed_max_deg", "median_deg", "lower_90_deg", "upper_90_deg", "identifiability",
-                                "margin_deg", "reaches_at_bound", "exercised", "calibration", "clipped_samples",
+                                "margin_deg", "reaches_at_bound", "exercised", "calibration",
+                                "untouched_coverage_90", "untouched_calibration", "clipped_samples",
                                 "beyond_range", "status", "model_check"]
     assert set(df.method) == {"camo", "naive", "nominal", "npe"}
     assert (df.clipped_samples == 0).all() and df.beyond_range.isna().all()  # nothing went past the model's range

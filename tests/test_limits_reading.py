@@ -16,6 +16,7 @@ import torch
 from camo_sbi.experiments.infer_limits import (
     EXERCISED_MARGIN_DEG,
     FALLBACK_MARK,
+    OVERCONFIDENT_MARK,
     limits_table,
     wide_limits,
 )
@@ -109,6 +110,27 @@ def test_wide_table_marks_a_fallback_with_a_dagger(sim):
     assert list(wide.columns) == ["observed", "camo", f"abc-smc {FALLBACK_MARK}"]
     assert wide.loc["fore_roll", "camo"].endswith("15.0")  # exercised: no star
     assert wide.loc["fore_roll", f"abc-smc {FALLBACK_MARK}"].endswith("50.2*")
+
+
+def test_a_method_measured_over_confident_on_untouched_bounds_is_marked(sim):
+    """limits.csv carries each method's measured coverage on untouched binding bounds and its
+    verdict; the wide table marks the methods measured over-confident there, by the model's name."""
+    from camo_sbi.diagnostics.verdicts import untouched_verdicts
+
+    measured = {(r["model"], r["method"]): r for r in untouched_verdicts()}
+    over = next(m for (model, m), r in measured.items() if model == "panda" and r["verdict"].startswith("over-"))
+    task = _task(sim, 14.0)
+    res = {"camo-js": _posterior(sim, "camo-js", 15.0, 14.0), over: _posterior(sim, over, 15.0, 14.0)}
+    table = limits_table(res, sim, SimpleNamespace(**{**vars(task), "name": "panda"}))
+    row = _row(table, over)
+    assert row.untouched_calibration == measured[("panda", over)]["verdict"]
+    assert row.untouched_coverage_90 == measured[("panda", over)]["coverage90"] < 0.85
+    assert _row(table, "camo-js").untouched_calibration == "not measured on untouched bounds"
+    assert list(wide_limits(table).columns) == ["observed", "camo-js", f"{over} {OVERCONFIDENT_MARK}"]
+    # on a model not measured nothing is marked, and the measured models are named
+    other = limits_table(res, sim, task)
+    assert _row(other, over).untouched_calibration.startswith("not measured on this model (panda: over-confident")
+    assert list(wide_limits(other).columns) == ["observed", "camo-js", over]
 
 
 def _overlaps(boxes) -> list:

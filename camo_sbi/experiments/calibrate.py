@@ -251,7 +251,7 @@ def run_cell(cell, out: str) -> list[dict]:
     name = cell.model.name
     task, attempt = draw_subject(sim, name, cell.subject, n_tasks=cell.tasks, seed=cell.seed)
     res = run_method(cell.method, task, budget=cell.budget, seed=derive_seed(cell.seed, cell.subject, "method"),
-                     config=json.loads(cell.extras["config"]))
+                     config=json.loads(cell.extras["config"]), errors="record")
     free = task.prior.free_mask.numpy()
     names = [n for n, f in zip(coordinate_names(sim), free, strict=True) if f]
     w = res.normalized_weights()

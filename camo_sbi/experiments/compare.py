@@ -156,7 +156,8 @@ def run_cell(cell, out: str) -> list[dict]:
     config = method_config(cell.method, space=x["space"], workdir=out / "work" / cell.key,
                            estimator_path=x.get("estimator"), overrides=json.loads(x.get("config", "{}")))
     results = run_method_sequence(cell.method, task, budget=cell.budget,
-                                  seed=derive_seed(x["base_seed"], cell.seed, "method"), config=config)
+                                  seed=derive_seed(x["base_seed"], cell.seed, "method"), config=config,
+                                  errors="record")
     rows = []
     base = {"task": cell.model.name, "subject": cell.subject, "method": cell.method, "budget": cell.budget,
             "seed": cell.seed}

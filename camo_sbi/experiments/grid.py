@@ -11,10 +11,13 @@ and hand them to `run_grid`, which
 * shows a tqdm progress bar.
 
 Every input of a cell (its seeds included) is in the cell, so results do not depend on where
-or in which order it ran: any number of workers gives the same table. A cell function that
-raises stops the grid with that exception, as the commands always did (the rows of a method
-that merely ends badly carry its status instead): cells already finished stay in the store,
-cells in flight are lost, and the next run computes only what is missing. Kill or SIGTERM
+or in which order it ran: any number of workers gives the same table. A method that raises
+inside a cell does not reach this runner: the commands' cell functions run methods with
+``errors="record"`` (`camo_sbi.inference.registry.run_method`), which turns the exception into
+a ``"failed: ..."`` result, so its rows carry that status and the grid goes on. A cell function
+that itself raises (a bug, a full disk) stops the grid with that exception: cells already
+finished stay in the store, cells in flight are lost, and the next run computes only what is
+missing. Kill or SIGTERM
 behaves the same way.
 
 A cell's ``key`` (the name of its file under ``cells/``) is `store.cell_key` of its key

@@ -1,13 +1,13 @@
 """The limits of a `camo-sbi infer` run: limits.csv (`limits_table`: per method, joint and bound
-the estimate, the observed range, the 90% interval, identifiability, exercised, calibration and
-status) and the same limits as a person reads them (`wide_limits`: one row per joint, one
+the estimate, the observed range, the 90% interval, identifiability, exercised, calibration (overall
+and on the bounds no reach touched) and status) and the same limits as a person reads them (`wide_limits`: one row per joint, one
 column per method, with the marks of `WIDE_LIMITS_KEY`).
 """
 
 from __future__ import annotations
 
 __all__ = ["EXERCISED_MARGIN_DEG", "EXERCISED_MARGIN_M", "FALLBACK_MARK", "INTERVAL", "NARROWED",
-           "OBSERVED_RANGE_METHODS", "WIDE_LIMITS_KEY", "limits_table", "wide_limits"]
+           "OBSERVED_RANGE_METHODS", "OVERCONFIDENT_MARK", "WIDE_LIMITS_KEY", "limits_table", "wide_limits"]
 
 NARROWED = 0.5
 """`limits_table`: on end-effector-only data a bound is exercised when its 90% interval is below this
@@ -26,7 +26,7 @@ OBSERVED_RANGE_METHODS = ("naive",)
 def limits_table(results: dict, sim, task=None, clipped=()):
     """One row per method, joint and bound: estimate [rad], [deg], the joint's observed range
     [deg], posterior median [deg], the 90% central interval [deg], identifiability, exercised,
-    the calibration verdict and the status.
+    the calibration verdicts and the status.
 
     Point methods (one sample) have both interval ends and the median at the estimate, and no
     identifiability. Prismatic joints: ``estimate_rad`` holds metres and the degree columns are
@@ -54,11 +54,19 @@ def limits_table(results: dict, sim, task=None, clipped=()):
       recorded samples went past the model's range on this side and were clipped onto it, and
       the most beyond (degrees; metres for a prismatic joint); 0 and empty otherwise. Such a
       bound's estimate is the model's range, not the person's (the wide table marks it "!").
+
+    Without ``task`` too, per method (the same on each of its rows): ``calibration``, the measured
+    verdict of its intervals pooled over every coordinate (`calibration_verdict`), and
+    ``untouched_coverage_90`` with ``untouched_calibration``, the measured coverage of its 90%
+    intervals on the binding bounds no reach touched and its verdict (`untouched_verdict`, from
+    docs/studies/exact_binding). A method calibrated overall can be over-confident exactly there:
+    an unexercised bound's narrow interval is not evidence (the wide table marks such a method with
+    `OVERCONFIDENT_MARK`).
     """
     import numpy as np
     import pandas as pd
 
-    from camo_sbi.diagnostics.verdicts import calibration_verdict
+    from camo_sbi.diagnostics.verdicts import calibration_verdict, untouched_verdict
     from camo_sbi.inference.result import weighted_quantile
     from camo_sbi.io.schema import BOUND_SLACK, K_SIGMA
 
@@ -81,6 +89,7 @@ def limits_table(results: dict, sim, task=None, clipped=()):
         lo, med, hi = weighted_quantile(res.samples, w, [a, 0.5, 1.0 - a])  # one sort per coordinate
         point = res.samples.shape[0] <= 1
         verdict = calibration_verdict(name, model)  # measured: camo_sbi.diagnostics.verdicts
+        untouched_cov, untouched = untouched_verdict(name, model)  # measured: docs/studies/exact_binding
         for j, joint in enumerate(sim.joint_names):
             rev = types[j] == "revolute"
             deg = (lambda v: float(np.degrees(v))) if rev else (lambda v: float("nan"))
@@ -111,24 +120,32 @@ def limits_table(results: dict, sim, task=None, clipped=()):
                              "lower_90_deg": deg(lo[k]), "upper_90_deg": deg(hi[k]), "identifiability": ident,
                              "margin_deg": deg(margin) if task is not None else float("nan"),
                              "reaches_at_bound": touching, "exercised": exercised, "calibration": verdict,
+                             "untouched_coverage_90": untouched_cov, "untouched_calibration": untouched,
                              "clipped_samples": int(past[(joint, bound)]["samples"]) if (joint, bound) in past else 0,
                              "beyond_range": float(past[(joint, bound)]["beyond"]) if (joint, bound) in past
                              else float("nan"), "status": res.status})
     return pd.DataFrame(rows, columns=["method", "joint", "bound", "estimate_rad", "estimate_deg",
                                        "observed_min_deg", "observed_max_deg", "median_deg", "lower_90_deg",
                                        "upper_90_deg", "identifiability", "margin_deg", "reaches_at_bound",
-                                       "exercised", "calibration", "clipped_samples", "beyond_range", "status"])
+                                       "exercised", "calibration", "untouched_coverage_90", "untouched_calibration",
+                                       "clipped_samples", "beyond_range", "status"])
 
 
 FALLBACK_MARK = "\u2020"
 """A method whose status is not "ok" (it fell back or failed) carries this mark in the wide table."""
+OVERCONFIDENT_MARK = "\u2021"
+"""A method measured over-confident on the bounds no reach touched (limits.csv:
+``untouched_calibration``) carries this mark in the wide table."""
 WIDE_LIMITS_KEY = ("lower .. upper [deg] of the model's joint angles (not ISB clinical angles); observed = the "
                    "range recorded in these reaches (the functional range of the task, not the person's maximal "
                    "range; naive is that range); * = not exercised: no recorded angle came within the margin "
                    "(limits.csv: margin_deg) of the estimate, so the data say nothing about that bound; "
                    "\u2020 = the method fell back or failed (its status in limits.csv); ! = the recording went "
                    "past the model's range on this side and was clipped onto it (--out-of-range; limits.csv: "
-                   "clipped_samples, beyond_range): that estimate is the model's range, not the person's")
+                   "clipped_samples, beyond_range): that estimate is the model's range, not the person's; "
+                   "\u2021 = this method's 90% intervals were measured over-confident on binding bounds no reach "
+                   "touched, in synthetic studies (limits.csv: untouched_calibration): its interval on a * bound may "
+                   "well miss the true limit")
 
 
 def _past_mark(row) -> str:
@@ -141,8 +158,9 @@ def wide_limits(table):
     """The limits as a person reads them: one row per joint, the observed range first (when the
     recording has joint angles), then one column per method, each cell "lower .. upper" in degrees
     with 1 decimal; a bound no reach exercised is marked "*", a bound the recording went past (its
-    samples clipped onto the model's range, ``clipped_samples``) "!", and a method whose status is
-    not "ok" carries `FALLBACK_MARK` after its name."""
+    samples clipped onto the model's range, ``clipped_samples``) "!", a method whose status is
+    not "ok" carries `FALLBACK_MARK` after its name, and one measured over-confident on untouched
+    bounds (``untouched_calibration``) `OVERCONFIDENT_MARK`."""
     import numpy as np
     import pandas as pd
 
@@ -166,5 +184,8 @@ def wide_limits(table):
     for m in dict.fromkeys(table["method"]):
         t = table[table["method"] == m]
         ok = (t["status"].astype(str) == "ok").all() if "status" in t else True
-        out[m if ok else f"{m} {FALLBACK_MARK}"] = [cell(t[t["joint"] == j]) for j in joints]
+        over = "untouched_calibration" in t and t["untouched_calibration"].astype(str).str.startswith(
+            "over-confident").any()
+        marks = ("" if ok else FALLBACK_MARK) + (OVERCONFIDENT_MARK if over else "")
+        out[f"{m} {marks}" if marks else m] = [cell(t[t["joint"] == j]) for j in joints]
     return pd.DataFrame(out, index=pd.Index(joints, name="joint"))

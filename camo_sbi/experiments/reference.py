@@ -376,7 +376,7 @@ def run_compare_cell(cell, out: str) -> list[dict]:
     config = method_config(cell.method, space=x["space"], workdir=Path(out) / "work" / cell.key,
                            estimator_path=x.get("estimator"), overrides=json.loads(x.get("config", "{}")))
     res = run_method(cell.method, task, budget=cell.budget, seed=derive_seed(x["base_seed"], cell.seed, "method"),
-                     config=config)
+                     config=config, errors="record")
     true_test = true_test_trajectories(task)
     binding = binding_bounds(task.simulator, task.true_theta, task.test_starts, task.test_goals, task.prior)
     metrics = {**evaluate_result(task, res, true_test, binding), **task_binding_metrics(task)}

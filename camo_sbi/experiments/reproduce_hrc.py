@@ -255,7 +255,7 @@ def run_one(scene, sim, subject: str, run: int, args) -> tuple[list[dict], dict]
                 cfg = {k: v for k, v in camo_cfg.items() if k != "space"}
             results = run_method_sequence(
                 method, task, budget=args.samples, seed=derive_seed(args.seed, run, PRIORS.index(kind)),
-                config=cfg) if observations else []
+                config=cfg, errors="record") if observations else []
             sequences[method] = results
         for method, results in sequences.items():
             # the estimate after task k: the one after that task's last observation

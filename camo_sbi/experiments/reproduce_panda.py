@@ -235,7 +235,7 @@ def run_one(sim, model, subject: str, run: int, args) -> list[dict]:
     rows = []
     for name in args.methods:
         results = run_method_sequence(name, task, budget=args.samples, seed=derive_seed(args.seed, run, 1),
-                                      config=method_config(name, args))
+                                      config=method_config(name, args), errors="record")
         for res in results:
             # every metric of the catalog that applies, per-joint limit errors and costs included
             metrics = {**evaluate_result(task, res, true_test, binding, reachability=st.workspace == "nominal"),
@@ -294,7 +294,7 @@ def active_observations(task, true_theta, args, run: int):
     for t in range(1, len(task.observations)):
         sofar = task.with_observations(obs)
         res = run_method(name, sofar, budget=args.samples, seed=derive_seed(args.seed, run, 2, t),
-                         config=method_config(name, args))
+                         config=method_config(name, args), errors="record")
         method_sims += res.n_simulations
         goal = task.observations[t].goal
         if not res.status.startswith("failed") and np.unique(res.samples, axis=0).shape[0] > 1:

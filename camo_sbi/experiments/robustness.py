@@ -154,7 +154,7 @@ def run_cell(cell, out: str) -> list[dict]:
     for method in x["methods"].split(","):
         cfg = method_config(method, budget=cell.budget, workdir=Path(out) / "work" / cell.key)
         res = run_method(method, task, budget=cell.budget, seed=derive_seed(x["base_seed"], cell.seed, "method"),
-                         config=cfg)
+                         config=cfg, errors="record")
         # the one scorer: predictions from the model (task.simulator), the truth from the body
         metrics = {**evaluate_result(task, res, true_test, binding, interval_coverage=True), **informative}
         if x.get("body_scale") == "free":

@@ -39,6 +39,7 @@ __all__ = [
     "make_config",
     "budget_defaults",
     "check_budget",
+    "failed_result",
     "names",
     "register",
     "run_method",
@@ -270,6 +271,32 @@ def _prepare(name, task, observations, budget, seed, config):
     return spec, impl, cfg, observations, budget, seed, imported
 
 
+_ERRORS = ("raise", "record")
+
+
+def _check_errors(errors) -> str:
+    if errors not in _ERRORS:
+        raise ValueError(f"errors: expected one of {_ERRORS}, got {errors!r}")
+    return errors
+
+
+def failed_result(name: str, task: Task, n_tasks: int, exc: BaseException) -> PosteriorResult:
+    """The result of a method that raised ``exc``: status ``"failed: <type>: <message>"``, its
+    estimate and one draw the prior's centre (said in the status, never passed off as a
+    posterior), ``extras["error"]`` the exception's text and ``extras["traceback"]`` its traceback."""
+    import traceback
+
+    from camo_sbi.inference.result import PosteriorResult
+
+    prior = task.prior
+    centre = prior.with_known((prior.low + prior.high) / 2).numpy()
+    text = " ".join(f"{type(exc).__name__}: {exc}".split())
+    return PosteriorResult(method=name, samples=centre[None, :], weights=None, estimate=centre, n_simulations=0,
+                           wall_time=0.0, n_tasks=n_tasks,
+                           extras={"error": text, "traceback": "".join(traceback.format_exception(exc))},
+                           status=f"failed: {text}; the result is the prior's centre")
+
+
 def _cap(spec: MethodSpec, budget: int, n_tasks: int) -> int | None:
     """The run's simulation cap: ``budget`` per task, or None (counted, uncapped) for an exact method."""
     return None if spec.capabilities.exact else budget * n_tasks
@@ -331,7 +358,7 @@ class _CompileClock:
 
 
 def run_method(name: str, task: Task, observations: Sequence | None = None, *, budget: int, seed: int,
-               config=None) -> PosteriorResult:
+               config=None, errors: str = "raise") -> PosteriorResult:
     """Run method ``name`` on ``observations`` (default: all of the task's) under a counted budget.
 
     The simulator is wrapped in a `CountingSimulator` capped at ``budget * len(observations)``
@@ -341,13 +368,24 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
     ``compile_time`` and the imports measured as ``import_time``: loading the method's module
     and its ``setup``, done before the clock starts).
     A result whose status is not "ok" is warned about (RuntimeWarning).
+
+    ``errors``: ``"raise"`` (default) lets an exception raised inside the method propagate;
+    ``"record"`` (the experiment grids) turns it into a ``"failed: <type>: <message>"`` result
+    (`failed_result`), so one method that breaks is a marked row, not a stopped grid. Bad
+    arguments (name, task, observations, budget, seed, config) raise either way, before the run.
     """
+    errors = _check_errors(errors)
     spec, impl, cfg, observations, budget, seed, imported = _prepare(name, task, observations, budget, seed,
                                                                      config)
     counted, counter = task.with_budget(_cap(spec, budget, len(observations)))
     with _CompileClock() as jit:
         t0 = time.perf_counter()
-        result = impl.run(counted, observations, budget=budget, seed=seed, config=cfg)
+        try:
+            result = impl.run(counted, observations, budget=budget, seed=seed, config=cfg)
+        except Exception as exc:
+            if errors == "raise":
+                raise
+            result = failed_result(name, task, len(observations), exc)
         elapsed = time.perf_counter() - t0
     result = replace(result, method=name, n_simulations=counter.n_simulations, wall_time=max(0.0, elapsed - jit.seconds),
                      compile_time=jit.seconds, import_time=imported, n_tasks=len(observations))
@@ -356,7 +394,7 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
 
 
 def run_method_sequence(name: str, task: Task, observations: Sequence | None = None, *, budget: int,
-                        seed: int, config=None) -> list[PosteriorResult]:
+                        seed: int, config=None, errors: str = "raise") -> list[PosteriorResult]:
     """Results conditioned on the first 1, 2, ..., K observations.
 
     Continual methods (`Capabilities.continual`) observe the tasks once; the others are
@@ -365,11 +403,15 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
     are read from the counter (cap ``budget * K``) and the clocks here when it yields task k's
     result (both cumulative; ``wall_time`` without the compilation so far); ``import_time``, paid
     before the first task, is the same on every result (on the first only for the others).
+
+    ``errors``: as in `run_method`; with ``"record"`` a continual method that raises at task k
+    keeps its results for the tasks before k, and tasks k..K are failed results.
     """
+    errors = _check_errors(errors)
     spec, impl, cfg, observations, budget, seed, imported = _prepare(name, task, observations, budget, seed,
                                                                      config)
     if not spec.capabilities.continual or impl.run_sequence is None:
-        out = [run_method(name, task, observations[: k + 1], budget=budget, seed=seed, config=cfg)
+        out = [run_method(name, task, observations[: k + 1], budget=budget, seed=seed, config=cfg, errors=errors)
                for k in range(len(observations))]
         # the imports happened in the _prepare above: the first result's
         return [replace(out[0], import_time=out[0].import_time + imported), *out[1:]]
@@ -377,13 +419,31 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
     out = []
     with _CompileClock() as jit:
         t0 = time.perf_counter()
-        for k, r in enumerate(impl.run_sequence(counted, observations, budget=budget, seed=seed, config=cfg)):
+        results, failure = None, None
+        while len(out) < len(observations):
+            r = None
+            if failure is None:
+                try:
+                    if results is None:  # created in the try: a run_sequence that is no generator can raise here
+                        results = iter(impl.run_sequence(counted, observations, budget=budget, seed=seed, config=cfg))
+                    r = next(results, None)
+                except Exception as exc:
+                    if errors == "raise":
+                        raise
+                    failure = exc  # a generator that raised is finished: this task and the later ones fail
+            if failure is not None:
+                r = failed_result(name, task, len(out) + 1, failure)
+            if r is None:
+                break
             compiling = jit.seconds
-            r = replace(r, method=name, n_tasks=k + 1, n_simulations=counter.n_simulations,
+            r = replace(r, method=name, n_tasks=len(out) + 1, n_simulations=counter.n_simulations,
                         wall_time=max(0.0, time.perf_counter() - t0 - compiling), compile_time=compiling,
                         import_time=imported)
             _warn_status(name, r)
             out.append(r)
+        if results is not None and failure is None and next(results, None) is not None:
+            raise RuntimeError(f"method {name!r}: run_sequence yielded more results than the "
+                               f"{len(observations)} observations")
     if len(out) != len(observations):
         raise RuntimeError(f"method {name!r}: run_sequence yielded {len(out)} results for "
                            f"{len(observations)} observations")

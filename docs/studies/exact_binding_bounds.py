@@ -2,6 +2,7 @@
 
     PYTHONPATH=. python docs/studies/exact_binding_bounds.py panda 5 7 --out docs/studies/exact_binding_panda_s7.csv
     PYTHONPATH=. python docs/studies/exact_binding_bounds.py panda 4 7 --methods abc-smc,npe,nle --out OTHER.csv
+    (add --resume to keep the runs OTHER.csv already holds after a kill)
 
 ``--methods`` (default: exact-likelihood, naive, camo-seq) runs other registered methods on the
 very same runs (same subjects, reaches, noise and method seed), so their rows can be written to
@@ -21,6 +22,7 @@ Writes one row per (run, method, binding bound) and prints the summary.
 """
 
 import argparse
+import os
 import sys
 import time
 
@@ -53,6 +55,8 @@ def main() -> int:
     p.add_argument("--methods", default=",".join(METHODS), help="comma-separated registered methods")
     p.add_argument("--budget", type=int, default=2000, help="simulations per reach")
     p.add_argument("--out", required=True)
+    p.add_argument("--resume", action="store_true",
+                   help="keep the runs --out already holds for every method (same model and seed) and skip them")
     a = p.parse_args()
     methods = [m for m in a.methods.split(",") if m]
     for m in methods:
@@ -63,8 +67,17 @@ def main() -> int:
     st = SETTINGS["informative"]
     cfg_args = argparse.Namespace(setting="informative", keep_best=None, bandwidth=None, bandwidth_mode=None,
                                   sampling=None, epsilon=None, scheduler=None)
-    rows = []
+    rows, done = [], set()
+    if a.resume and os.path.exists(a.out):
+        old = pd.read_csv(a.out)
+        if not old.empty and (set(old.model) != {a.model} or set(old.seed) != {a.seed}):
+            raise ValueError(f"--resume: {a.out} holds another model or seed")
+        done = {int(r) for r, g in old.groupby("run") if set(methods) <= set(g.method)}
+        rows = old[old.run.isin(done) & old.method.isin(methods)].to_dict("records")
+        print(f"resuming: runs {sorted(done)} kept from {a.out}", flush=True)
     for run in range(a.runs):
+        if run in done:
+            continue
         subject = subjects[run % len(subjects)]
         truth = subject_limits(model, sim, subject).numpy()
         clean = make_reaching_task(sim, subject_limits(model, sim, subject), n_train=10, n_test=20,
@@ -92,7 +105,8 @@ def main() -> int:
                              "seconds": time.perf_counter() - t0})
         print(f"run {run} {subject}: {int(binding.sum())} binding bounds, {int((binding & touched).sum())} touched",
               flush=True)
-        pd.DataFrame(rows).to_csv(a.out, index=False)
+        pd.DataFrame(rows).to_csv(a.out + ".tmp", index=False)
+        os.replace(a.out + ".tmp", a.out)
     df = pd.DataFrame(rows)
     for (m, t), g in df.groupby(["method", "touched"]):
         cov = g.covered90.dropna()
