@@ -15,7 +15,16 @@ import numpy as np
 if TYPE_CHECKING:  # torch is imported by the checks that use it: numpy-only callers never load it
     import torch
 
+
+class InputError(ValueError):
+    """Bad input found only inside a method's run (an estimator file that does not fit the task,
+    a config field the run alone can judge). A ValueError like every other input check, but one
+    a grid never records as the method's failure: ``run_method(..., errors="record")`` lets it
+    propagate, so the CLI exits 2 naming the argument."""
+
+
 __all__ = [
+    "InputError",
     "as_tensor",
     "check_finite",
     "check_point_estimate",

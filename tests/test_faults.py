@@ -790,11 +790,20 @@ def _assert_gone(procs, within: float = 10.0) -> None:
 def _new_workers(before: set) -> list:
     """This process's pool workers started since ``before`` (its resource tracker lives on, by design)."""
     return [c for c in psutil.Process().children(recursive=True)
-            if c.pid not in before and "resource_tracker" not in " ".join(c.cmdline())]
+            if c.pid not in before and _cmdline(c) and "resource_tracker" not in _cmdline(c)]
 
 
 def _workers(pid: int) -> list:
     return [c for c in psutil.Process(pid).children(recursive=True)]
+
+
+def _cmdline(proc) -> str:
+    """A child's command line, "" for one that exited (or is a zombie: dead, not yet reaped) since
+    it was listed; a short-lived helper process must not fail the test that lists the children."""
+    try:
+        return " ".join(proc.cmdline())
+    except (psutil.ZombieProcess, psutil.NoSuchProcess):
+        return ""
 
 
 @pytest.mark.parametrize("initializer", ["", "without_death_signal"], ids=["prctl", "watchdog-only"])
@@ -863,7 +872,7 @@ def _start_compare(out: Path, tmp_path: Path, *extra, new_session: bool = False,
     proc.err_file = err
 
     def ready():
-        spawned = [c for c in _workers(proc.pid) if "multiprocessing.spawn" in " ".join(c.cmdline())]
+        spawned = [c for c in _workers(proc.pid) if "multiprocessing.spawn" in _cmdline(c)]
         return len(spawned) == 2 and (not computing or any((out / "cells").glob("*.csv")))
 
     _wait_for(ready, "two workers" + (" computing cells" if computing else ""), proc)

@@ -114,3 +114,20 @@ def test_compare_writes_failed_rows_and_finishes_the_grid(boom, tmp_path):
     assert status[1] == "ok" and status[2].startswith("failed: RuntimeError: boom at task 2")
     # the other methods and the baselines ran to the end
     assert {"naive", "nominal", "oracle"} <= set(df.method) and (df[df.method == "naive"].status == "ok").all()
+
+
+def _bad_input(task, observations, *, budget, seed, config):
+    from camo_sbi._validation import InputError
+
+    raise InputError("estimator: trained for another model (test)")
+
+
+def test_bad_input_found_inside_the_run_is_never_recorded(monkeypatch, toy_task):
+    """An `InputError` (bad input only the run can judge, e.g. an amortized estimator that does not
+    fit the task) propagates even when recording, so the CLI exits 2 naming the argument."""
+    monkeypatch.setitem(registry._REGISTRY, "picky", MethodSpec(
+        "picky", "refuses its input (test)", lambda: Implementation(_bad_input, BoomConfig), Capabilities()))
+    with pytest.raises(ValueError, match="^estimator: trained for another model"):
+        run_method("picky", toy_task, budget=10, seed=0, errors="record")
+    with pytest.raises(ValueError, match="^estimator: trained for another model"):
+        run_method_sequence("picky", toy_task, budget=10, seed=0, errors="record")

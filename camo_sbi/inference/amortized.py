@@ -83,6 +83,7 @@ from dataclasses import dataclass
 import torch
 
 from camo_sbi._validation import (
+    InputError,
     check_choice,
     check_point_estimate,
     check_positive_float,
@@ -326,13 +327,16 @@ def run(task, observations, *, budget: int, seed: int, config: AmortizedConfig |
                                                                AmortizedConfig)
     t0 = time.perf_counter()
     if config.estimator_path is None:
-        raise ValueError("estimator_path: npe-amortized needs a trained estimator file, config={'estimator_path': FILE}; "
+        raise InputError("estimator_path: npe-amortized needs a trained estimator file, config={'estimator_path': FILE}; "
                          "train one with `camo-sbi amortize --model M --out FILE`")
-    est = load_estimator(config.estimator_path)
+    try:
+        est = load_estimator(config.estimator_path)
+    except ValueError as exc:  # a missing, damaged or foreign file: the caller's input, never a method failure
+        raise InputError(str(exc)) from exc
     t_load = time.perf_counter() - t0
     est.check_task(task, observations, config.space)
     if est.form == "set" and config.combine is not None:
-        raise ValueError(f"combine: {config.combine!r} applies to per-reach estimators; {est.path or 'this'} is a "
+        raise InputError(f"combine: {config.combine!r} applies to per-reach estimators; {est.path or 'this'} is a "
                          f"set-form estimator, sampled directly (leave combine unset)")
     combine = config.combine or "mcmc"
     t1 = time.perf_counter()

@@ -25,6 +25,7 @@ import torch
 
 from camo_sbi._io import atomic_write_bytes
 from camo_sbi._validation import (
+    InputError,
     check_bool,
     check_choice,
     check_positive_float,
@@ -236,26 +237,26 @@ class AmortizedEstimator:
     # -- use
 
     def check_task(self, task, observations, space: str) -> None:
-        """ValueError (naming what differs) unless ``task`` is one this estimator was trained for."""
+        """`InputError` (a ValueError naming what differs) unless ``task`` is one this estimator was trained for."""
         name = self.path or "the estimator"
         if space not in self.flows:
-            raise ValueError(f"space: {name} has flows for {list(self.flows)} only, not {space!r}; "
+            raise InputError(f"space: {name} has flows for {list(self.flows)} only, not {space!r}; "
                              f"train one with --space {space}")
         diff = fingerprint_differences(self.metadata["fingerprint"], model_fingerprint(task.simulator))
         if diff:
-            raise ValueError(f"estimator: {name} was trained for model {self.model!r}; the task's simulator "
+            raise InputError(f"estimator: {name} was trained for model {self.model!r}; the task's simulator "
                              f"differs in {', '.join(diff)}")
         prior = task.prior
         if (prior.low.shape != self.low.shape or not torch.allclose(prior.low, self.low, atol=_BOX_TOL, rtol=0)
                 or not torch.allclose(prior.high, self.high, atol=_BOX_TOL, rtol=0)):
-            raise ValueError(f"task.prior: differs from the prior {name} was trained under (the model's full "
+            raise InputError(f"task.prior: differs from the prior {name} was trained under (the model's full "
                              f"range split at its default start, no fixed joints); retrain for this prior")
         for i, o in enumerate(observations):
             if not torch.allclose(o.start, self.start, atol=_START_TOL, rtol=0):
-                raise ValueError(f"observations: reach {i} starts at {o.start.tolist()}, but {name} was trained "
+                raise InputError(f"observations: reach {i} starts at {o.start.tolist()}, but {name} was trained "
                                  f"for reaches from the model's default start {self.start.tolist()}")
         if task.noise != self.noise:
-            raise ValueError(f"task.noise: the task's observation noise {task.noise} differs from the noise "
+            raise InputError(f"task.noise: the task's observation noise {task.noise} differs from the noise "
                              f"{name} was trained with ({self.noise}); retrain with --noise-joint-deg / "
                              f"--noise-ee-mm matching the recordings")
         if self.form == "set":
@@ -264,7 +265,7 @@ class AmortizedEstimator:
     def _check_set_size(self, n: int) -> None:
         k = self.settings.max_set
         if n > k:
-            raise ValueError(f"observations: {n} reaches, but the set estimator {self.path or ''} was "
+            raise InputError(f"observations: {n} reaches, but the set estimator {self.path or ''} was "
                              f"trained on sets of at most max_set={k}; pass at most {k} or retrain")
 
     def conditions(self, observations, space: str) -> torch.Tensor:

@@ -372,8 +372,12 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
     ``errors``: ``"raise"`` (default) lets an exception raised inside the method propagate;
     ``"record"`` (the experiment grids) turns it into a ``"failed: <type>: <message>"`` result
     (`failed_result`), so one method that breaks is a marked row, not a stopped grid. Bad
-    arguments (name, task, observations, budget, seed, config) raise either way, before the run.
+    arguments (name, task, observations, budget, seed, config) raise either way, before the run,
+    and so does an `InputError` raised inside it (bad input only the run can judge, such as an
+    amortized estimator file that does not fit the task).
     """
+    from camo_sbi._validation import InputError
+
     errors = _check_errors(errors)
     spec, impl, cfg, observations, budget, seed, imported = _prepare(name, task, observations, budget, seed,
                                                                      config)
@@ -383,7 +387,7 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
         try:
             result = impl.run(counted, observations, budget=budget, seed=seed, config=cfg)
         except Exception as exc:
-            if errors == "raise":
+            if errors == "raise" or isinstance(exc, InputError):
                 raise
             result = failed_result(name, task, len(observations), exc)
         elapsed = time.perf_counter() - t0
@@ -407,6 +411,8 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
     ``errors``: as in `run_method`; with ``"record"`` a continual method that raises at task k
     keeps its results for the tasks before k, and tasks k..K are failed results.
     """
+    from camo_sbi._validation import InputError
+
     errors = _check_errors(errors)
     spec, impl, cfg, observations, budget, seed, imported = _prepare(name, task, observations, budget, seed,
                                                                      config)
@@ -428,7 +434,7 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
                         results = iter(impl.run_sequence(counted, observations, budget=budget, seed=seed, config=cfg))
                     r = next(results, None)
                 except Exception as exc:
-                    if errors == "raise":
+                    if errors == "raise" or isinstance(exc, InputError):
                         raise
                     failure = exc  # a generator that raised is finished: this task and the later ones fail
             if failure is not None:
