@@ -78,3 +78,5 @@ def test_reference_builds_verifies_and_compare_scores_every_method(tmp_path, cap
         assert 0.0 <= c2.loc[m, "value"] <= 1.0 and c2.loc[m, "c2st_status"] == "ok"
     assert not bool(c2.loc["exact-likelihood", "simulation_based"]) and bool(c2.loc["camo-seq", "simulation_based"])
     assert set(df[df.metric == "mmd"].method) == set(c2.index)
+    page = (out / "report.html").read_text()  # the report carries the reference metrics too
+    assert "C2ST accuracy against the reference posterior" in page and "squared MMD to the reference" in page

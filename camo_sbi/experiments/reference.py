@@ -445,6 +445,10 @@ def compare_main(args, methods: list[str], budgets: list[int]) -> int:
     print(summary_table(df[df.metric.isin(shown)], shown, unit="observations", block="budget"))
     print("exact-likelihood is not simulation-based (the Bayes limit with these data); point estimates have no C2ST")
     print(f"table: {out / 'results.csv'} ({len(df)} rows)")
+    if not getattr(args, "no_report", False):  # its c2st and mmd tables, beside the usual metrics
+        from camo_sbi.diagnostics.report import write_report
+
+        print(f"report: {write_report(out, out / 'report.html', progress=True)}")
     print(f"wall time: {time.perf_counter() - t0:.1f} s")
     return 0
 
