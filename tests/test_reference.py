@@ -78,5 +78,29 @@ def test_reference_builds_verifies_and_compare_scores_every_method(tmp_path, cap
         assert 0.0 <= c2.loc[m, "value"] <= 1.0 and c2.loc[m, "c2st_status"] == "ok"
     assert not bool(c2.loc["exact-likelihood", "simulation_based"]) and bool(c2.loc["camo-seq", "simulation_based"])
     assert set(df[df.metric == "mmd"].method) == set(c2.index)
+    claims = pd.read_csv(out / "claims.csv").set_index("method")  # point estimates have no claim row
+    assert set(claims.index) == {"camo-seq", "exact-likelihood"}
+    assert claims.loc["exact-likelihood", "claim"].startswith("the exact posterior is indistinguishable")
+    assert claims.loc["camo-seq", "value"] == pytest.approx(c2.loc["camo-seq", "value"])
+    assert bool(claims.loc["camo-seq", "holds"]) == (c2.loc["camo-seq", "value"] <= 0.65)  # one observation
     page = (out / "report.html").read_text()  # the report carries the reference metrics too
     assert "C2ST accuracy against the reference posterior" in page and "squared MMD to the reference" in page
+
+
+def test_reference_claims_rule_on_a_hand_made_table():
+    from camo_sbi.evaluation.claims import reference_claims
+
+    def rows(method, values, sim=True, status="ok"):
+        return [{"method": method, "budget": 1000, "seed": i, "n_tasks": 5, "metric": "c2st", "value": v,
+                 "c2st_status": status, "simulation_based": sim} for i, v in enumerate(values)]
+
+    df = pd.DataFrame(rows("npe", [0.60, 0.62, 0.61]) + rows("abc-smc", [0.60, 0.99, 0.62])
+                      + rows("exact-likelihood", [0.50, 0.52, 0.51], sim=False)
+                      + rows("naive", [float("nan")] * 3, status="not a posterior (a point estimate)"))
+    t = reference_claims(df).set_index("method")
+    assert list(t.index) == ["npe", "abc-smc", "exact-likelihood"]  # no row for a point estimate
+    assert t.loc["npe", "holds"] and t.loc["npe", "value"] == pytest.approx(0.61)
+    assert not t.loc["abc-smc", "holds"]  # its mean 0.737 is above 0.65
+    assert t.loc["exact-likelihood", "holds"] and "C2ST <= 0.55" in t.loc["exact-likelihood", "claim"]
+    df2 = pd.DataFrame(rows("npe", [0.60, 0.70]))  # mean 0.65, but the interval's top is 0.70
+    assert not reference_claims(df2).holds.iloc[0]

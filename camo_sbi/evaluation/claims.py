@@ -40,7 +40,8 @@ from camo_sbi.evaluation import catalog
 
 __all__ = ["ALPHA", "CLAIM_COLUMNS", "CONVERGENCE_TOLERANCE", "FEW_REACHES", "VARIANTS", "binding_line",
            "bootstrap_ci", "convergence_gap", "holm", "hrc_claims", "informative_claims", "manipulator_claims",
-           "mark_few_reaches", "paired_less", "paired_table"]
+           "mark_few_reaches", "paired_less", "paired_table", "REFERENCE_CHECK", "REFERENCE_TARGET",
+           "reference_claims"]
 
 ALPHA = 0.05
 CLAIM_COLUMNS = ("claim", "setting", "method", "variant", "baseline", "statistic", "value", "ci_low", "ci_high",
@@ -273,6 +274,52 @@ def informative_claims(df: pd.DataFrame, *, setting: str = "informative") -> pd.
                     f"the method is better than the baseline on {metric} (informative setting)", setting, m, b,
                     f"{metric} after {K} tasks: mean paired difference (method - baseline)",
                     d, paired_less(d), _WILCOXON, _significant))
+    return _finish(rows, df)
+
+
+REFERENCE_TARGET = 0.65
+"""Issue 35's target: a simulation-based method within C2ST 0.65 of the reference posterior."""
+REFERENCE_CHECK = 0.55
+"""An exact (not simulation-based) method is indistinguishable from the reference at C2ST <= 0.55,
+the reference's own check between two runs."""
+
+
+def _is_false(x) -> bool:
+    return str(x).strip().lower() in ("false", "0", "0.0")
+
+
+def reference_claims(df: pd.DataFrame, *, setting: str = "reference") -> pd.DataFrame:
+    """The claims of a ``compare --reference`` table: per method with a posterior and budget, its
+    C2ST against the reference, one value per reference observation.
+
+    Simulation-based methods: "within C2ST `REFERENCE_TARGET` of the reference"; exact ones
+    (``simulation_based`` False, the Bayes limit): "indistinguishable, C2ST <= `REFERENCE_CHECK`".
+    ``value`` is the mean over observations with its bootstrap interval; ``p_raw`` the one-sample
+    Wilcoxon test that the C2STs lie below the threshold (1 on fewer than 2 observations). A claim
+    holds when the mean and the upper end of its 95 % interval are at or below the threshold (with
+    one observation: the value). Point estimates (``c2st_status`` not "ok") have no row.
+    """
+    c = df[df.metric == "c2st"] if "metric" in df else df.iloc[:0]
+    if "c2st_status" in c:
+        c = c[c["c2st_status"].astype(str) == "ok"]
+    rows = []
+    for (m, b), g in c.groupby(["method", "budget"], sort=False):
+        v = g["value"].dropna().to_numpy(dtype=np.float64)
+        if v.size == 0:
+            continue
+        exact = "simulation_based" in g and _is_false(g["simulation_based"].iloc[0])
+        thr = REFERENCE_CHECK if exact else REFERENCE_TARGET
+        claim = (f"the exact posterior is indistinguishable from the reference (C2ST <= {thr})" if exact else
+                 f"the method's posterior is within C2ST {thr} of the reference at {b} simulations per reach")
+        stat = (f"C2ST against the reference at budget {b}, mean over {v.size} observation(s); holds if the mean "
+                f"and the upper end of its 95% bootstrap interval are <= {thr}")
+
+        def holds(r, t=thr):
+            high = r["ci_high"] if np.isfinite(r["ci_high"]) else r["value"]
+            return r["value"] <= t and high <= t
+
+        rows.append(_row(claim, setting, m, "reference posterior", stat, v, paired_less(v - thr),
+                         f"one-sample Wilcoxon against {thr} (one-sided)", holds))
     return _finish(rows, df)
 
 

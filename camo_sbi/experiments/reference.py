@@ -444,7 +444,15 @@ def compare_main(args, methods: list[str], budgets: list[int]) -> int:
     shown = ["c2st", "mmd", "limit_error_binding_deg", "coverage90", "n_simulations"]
     print(summary_table(df[df.metric.isin(shown)], shown, unit="observations", block="budget"))
     print("exact-likelihood is not simulation-based (the Bayes limit with these data); point estimates have no C2ST")
-    print(f"table: {out / 'results.csv'} ({len(df)} rows)")
+    from camo_sbi._io import atomic_write_text
+    from camo_sbi.evaluation.claims import reference_claims
+
+    claims = reference_claims(df, setting=f"reference: {prov['model']['kind']}, {prov['settings']['setting']}")
+    atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
+    for _, r in claims.iterrows():
+        print(f"claim ({r['method']}): {r['claim']}: mean C2ST {r['value']:.3f} -> "
+              f"{'holds' if r['holds'] else 'does not hold'}")
+    print(f"table: {out / 'results.csv'} ({len(df)} rows)  claims: {out / 'claims.csv'}")
     if not getattr(args, "no_report", False):  # its c2st and mmd tables, beside the usual metrics
         from camo_sbi.diagnostics.report import write_report
 
