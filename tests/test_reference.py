@@ -78,6 +78,9 @@ def test_reference_builds_verifies_and_compare_scores_every_method(tmp_path, cap
         assert 0.0 <= c2.loc[m, "value"] <= 1.0 and c2.loc[m, "c2st_status"] == "ok"
     assert not bool(c2.loc["exact-likelihood", "simulation_based"]) and bool(c2.loc["camo-seq", "simulation_based"])
     assert set(df[df.metric == "mmd"].method) == set(c2.index)
+    # exact-likelihood sampled as the set did (its --mcmc-steps 10), under the --config given
+    used = json.loads((out / "config.json").read_text())["config"]["exact-likelihood"]
+    assert used == {"particles": 100, "moves": 1, "mcmc_steps": 10, "min_ess": 0}
     claims = pd.read_csv(out / "claims.csv").set_index("method")  # point estimates have no claim row
     assert set(claims.index) == {"camo-seq", "exact-likelihood"}
     assert claims.loc["exact-likelihood", "claim"].startswith("the exact posterior is indistinguishable")

@@ -429,6 +429,11 @@ def compare_main(args, methods: list[str], budgets: list[int]) -> int:
         raise ValueError(f"--{exc}") from None
     model = ModelSpec(kind=prov["model"]["kind"], settings=tuple((k, v) for k, v in prov["model"]["settings"]))
     overrides = parse_configs(getattr(args, "config", None), methods)
+    for m in methods:  # an exact method samples as the reference set did, unless --config says otherwise
+        if capabilities(m).exact:
+            st = prov["settings"]
+            overrides[m] = {"particles": st["draws"], "moves": st["moves"], "mcmc_steps": st["mcmc_steps"],
+                            **overrides.get(m, {})}
     space = prov["settings"]["space"]
     cells = []
     for entry in prov["observations"]:
