@@ -131,3 +131,23 @@ def test_bad_input_found_inside_the_run_is_never_recorded(monkeypatch, toy_task)
         run_method("picky", toy_task, budget=10, seed=0, errors="record")
     with pytest.raises(ValueError, match="^estimator: trained for another model"):
         run_method_sequence("picky", toy_task, budget=10, seed=0, errors="record")
+
+
+def _bad_estimate(task, observations, *, budget, seed, config):
+    n = task.prior.dim
+    est = np.zeros(n)
+    est[0], est[1] = 0.3, -0.3  # lo > hi on joint 0, far beyond rounding
+    return PosteriorResult(method="x", samples=est[None], weights=None, estimate=est, n_simulations=0,
+                           wall_time=0.0, n_tasks=len(observations))
+
+
+def test_an_estimate_no_metric_can_score_is_a_recorded_failure(monkeypatch, toy_task):
+    """nre once returned lo > hi (by rounding) and the grid stopped later, in the scoring; an
+    unusable estimate is now the method's recorded failure, caught where the method returns."""
+    monkeypatch.setitem(registry._REGISTRY, "inverted", MethodSpec(
+        "inverted", "returns lo > hi (test)", lambda: Implementation(_bad_estimate, BoomConfig), Capabilities()))
+    with pytest.warns(RuntimeWarning, match="failed: ValueError: estimate: lower limit exceeds upper limit"):
+        res = run_method("inverted", toy_task, budget=10, seed=0, errors="record")
+    assert res.status.startswith("failed: ValueError: estimate: lower limit exceeds upper limit (sample 0, joint 0")
+    res = run_method("inverted", toy_task, budget=10, seed=0)  # raise mode: returned as the method made it
+    assert res.status == "ok" and res.estimate[0] > res.estimate[1]

@@ -280,6 +280,18 @@ def _check_errors(errors) -> str:
     return errors
 
 
+def _check_estimate(result) -> None:
+    """ValueError unless ``result.estimate`` is a usable limit vector (finite, lo <= hi), the
+    check every downstream metric applies: with ``errors="record"`` an unusable estimate is the
+    method's failure, recorded, not a crash later in the grid's scoring."""
+    import torch
+
+    from camo_sbi._validation import check_theta
+
+    est = torch.as_tensor(result.estimate)
+    check_theta(est, est.shape[-1] // 2, "estimate")
+
+
 def failed_result(name: str, task: Task, n_tasks: int, exc: BaseException) -> PosteriorResult:
     """The result of a method that raised ``exc``: status ``"failed: <type>: <message>"``, its
     estimate and one draw the prior's centre (said in the status, never passed off as a
@@ -370,7 +382,8 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
     A result whose status is not "ok" is warned about (RuntimeWarning).
 
     ``errors``: ``"raise"`` (default) lets an exception raised inside the method propagate;
-    ``"record"`` (the experiment grids) turns it into a ``"failed: <type>: <message>"`` result
+    ``"record"`` (the experiment grids) turns it, or an estimate no metric can score (not finite,
+    a lower limit above its upper one), into a ``"failed: <type>: <message>"`` result
     (`failed_result`), so one method that breaks is a marked row, not a stopped grid. Bad
     arguments (name, task, observations, budget, seed, config) raise either way, before the run,
     and so does an `InputError` raised inside it (bad input only the run can judge, such as an
@@ -386,6 +399,8 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
         t0 = time.perf_counter()
         try:
             result = impl.run(counted, observations, budget=budget, seed=seed, config=cfg)
+            if errors == "record":
+                _check_estimate(result)
         except Exception as exc:
             if errors == "raise" or isinstance(exc, InputError):
                 raise
@@ -433,6 +448,8 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
                     if results is None:  # created in the try: a run_sequence that is no generator can raise here
                         results = iter(impl.run_sequence(counted, observations, budget=budget, seed=seed, config=cfg))
                     r = next(results, None)
+                    if r is not None and errors == "record":
+                        _check_estimate(r)
                 except Exception as exc:
                     if errors == "raise" or isinstance(exc, InputError):
                         raise
