@@ -10,7 +10,13 @@ import torch
 
 from camo_sbi.experiments.cli import main as cli_main
 from camo_sbi.inference import registry
-from camo_sbi.inference.registry import Capabilities, Implementation, MethodSpec, run_method, run_method_sequence
+from camo_sbi.inference.registry import (
+    Capabilities,
+    Implementation,
+    MethodSpec,
+    run_method,
+    run_method_sequence,
+)
 from camo_sbi.inference.result import PosteriorResult
 from camo_sbi.scenarios.reaching import make_reaching_task
 from tests.toy_sim import ToySimulator

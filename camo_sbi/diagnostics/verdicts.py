@@ -14,6 +14,7 @@ Standard library only: `infer` reads it without importing pandas' or matplotlib'
 from __future__ import annotations
 
 import csv
+import functools
 import io
 from collections.abc import Iterable, Mapping
 from importlib import resources
@@ -29,6 +30,12 @@ MILD, STRONG = 0.06, 0.2
 """mean |coverage - alpha| below MILD: "mildly", at or above STRONG: "strongly" over/under-confident."""
 MEASURED = "calibration_measured.csv"
 FIELDS = ("model", "method", "mean_abs_dev", "mean_dev", "cov@0.5", "cov@0.9", "point_estimate", "source")
+
+
+@functools.cache
+def _package_text(name: str) -> str:
+    """A measured package file's text, read once per process (`limits_table` asks per method)."""
+    return resources.files("camo_sbi.diagnostics").joinpath(name).read_text()
 
 
 def verdict(mean_dev: float, mean_abs_dev: float, point_estimate: bool) -> str:
@@ -81,7 +88,7 @@ def calibration_verdicts(text: str | None = None) -> list[dict]:
     """The measured rows with their verdict, in file order (``text``: a file's content; default
     the package's measured file)."""
     if text is None:
-        text = resources.files("camo_sbi.diagnostics").joinpath(MEASURED).read_text()
+        text = _package_text(MEASURED)
     rows = []
     for r in csv.DictReader(io.StringIO(text)):
         row = {"model": r["model"], "method": r["method"], "source": r["source"],
@@ -167,7 +174,7 @@ def untouched_verdicts(text: str | None = None) -> list[dict]:
     """The measured untouched-bound rows with their verdict (``text``: a file's content; default
     the package's file). A point estimate has no interval; the others get `untouched_word`'s rule."""
     if text is None:
-        text = resources.files("camo_sbi.diagnostics").joinpath(UNTOUCHED_MEASURED).read_text()
+        text = _package_text(UNTOUCHED_MEASURED)
     out = []
     for r in csv.DictReader(io.StringIO(text)):
         row = {"model": r["model"], "method": r["method"], "bounds": int(r["bounds"]), "seeds": r["seeds"],

@@ -1,7 +1,8 @@
 """The limits of a `camo-sbi infer` run: limits.csv (`limits_table`: per method, joint and bound
-the estimate, the observed range, the 90% interval, identifiability, exercised, calibration (overall
-and on the bounds no reach touched) and status) and the same limits as a person reads them (`wide_limits`: one row per joint, one
-column per method, with the marks of `WIDE_LIMITS_KEY`).
+the estimate, the observed range, the 90% interval, identifiability, exercised, calibration
+(overall and on the bounds no reach touched) and status) and the same limits as a person reads
+them (`wide_limits`: one row per joint, one column per method, with the marks of
+`WIDE_LIMITS_KEY`).
 """
 
 from __future__ import annotations

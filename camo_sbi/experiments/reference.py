@@ -410,8 +410,8 @@ def compare_main(args, methods: list[str], budgets: list[int]) -> int:
     budget of ``budgets`` (both parsed by compare) on the reference set's observations (module docstring)."""
     from camo_sbi._io import atomic_write_text
     from camo_sbi.diagnostics.numbers import summary_table
-    from camo_sbi.evaluation.claims import reference_claims
     from camo_sbi.distributed import parse_scheduler
+    from camo_sbi.evaluation.claims import reference_claims
     from camo_sbi.experiments.grid import Cell, pending, run_grid
     from camo_sbi.experiments.method_configs import parse_configs
     from camo_sbi.experiments.models import ModelSpec
@@ -436,9 +436,9 @@ def compare_main(args, methods: list[str], budgets: list[int]) -> int:
         raise ValueError(f"--{exc}") from None
     model = ModelSpec(kind=prov["model"]["kind"], settings=tuple((k, v) for k, v in prov["model"]["settings"]))
     overrides = parse_configs(getattr(args, "config", None), methods)
+    st = prov["settings"]
     for m in methods:  # an exact method samples as the reference set did, unless --config says otherwise
         if capabilities(m).exact:
-            st = prov["settings"]
             overrides[m] = {"particles": st["draws"], "moves": st["moves"], "mcmc_steps": st["mcmc_steps"],
                             **overrides.get(m, {})}
     space = prov["settings"]["space"]

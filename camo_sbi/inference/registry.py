@@ -293,20 +293,32 @@ def _check_estimate(result) -> None:
 
 
 def failed_result(name: str, task: Task, n_tasks: int, exc: BaseException) -> PosteriorResult:
-    """The result of a method that raised ``exc``: status ``"failed: <type>: <message>"``, its
-    estimate and one draw the prior's centre (said in the status, never passed off as a
-    posterior), ``extras["error"]`` the exception's text and ``extras["traceback"]`` its traceback."""
+    """The result of a method that raised ``exc``: `result.failed_at_prior_centre` with the reason
+    ``"<type>: <message>"``, ``extras["error"]`` that text and ``extras["traceback"]`` its traceback."""
     import traceback
 
-    from camo_sbi.inference.result import PosteriorResult
+    from camo_sbi.inference.result import failed_at_prior_centre
 
-    prior = task.prior
-    centre = prior.with_known((prior.low + prior.high) / 2).numpy()
     text = " ".join(f"{type(exc).__name__}: {exc}".split())
-    return PosteriorResult(method=name, samples=centre[None, :], weights=None, estimate=centre, n_simulations=0,
-                           wall_time=0.0, n_tasks=n_tasks,
-                           extras={"error": text, "traceback": "".join(traceback.format_exception(exc))},
-                           status=f"failed: {text}; the result is the prior's centre")
+    return failed_at_prior_centre(name, task.prior, n_tasks, text,
+                                  extras={"error": text, "traceback": "".join(traceback.format_exception(exc))})
+
+
+def _attempt(step: Callable[[], Any], errors: str) -> tuple[Any, Exception | None]:
+    """``(step(), None)``; with ``errors="record"`` a result's estimate is checked
+    (`_check_estimate`) and an exception (or a failed check) comes back as ``(None, exc)``.
+    ``errors="raise"`` and an `InputError` (bad input only the run can judge) raise."""
+    from camo_sbi._validation import InputError
+
+    try:
+        result = step()
+        if result is not None and errors == "record":
+            _check_estimate(result)
+        return result, None
+    except Exception as exc:
+        if errors == "raise" or isinstance(exc, InputError):
+            raise
+        return None, exc
 
 
 def _cap(spec: MethodSpec, budget: int, n_tasks: int) -> int | None:
@@ -389,21 +401,14 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
     and so does an `InputError` raised inside it (bad input only the run can judge, such as an
     amortized estimator file that does not fit the task).
     """
-    from camo_sbi._validation import InputError
-
     errors = _check_errors(errors)
     spec, impl, cfg, observations, budget, seed, imported = _prepare(name, task, observations, budget, seed,
                                                                      config)
     counted, counter = task.with_budget(_cap(spec, budget, len(observations)))
     with _CompileClock() as jit:
         t0 = time.perf_counter()
-        try:
-            result = impl.run(counted, observations, budget=budget, seed=seed, config=cfg)
-            if errors == "record":
-                _check_estimate(result)
-        except Exception as exc:
-            if errors == "raise" or isinstance(exc, InputError):
-                raise
+        result, exc = _attempt(lambda: impl.run(counted, observations, budget=budget, seed=seed, config=cfg), errors)
+        if exc is not None:
             result = failed_result(name, task, len(observations), exc)
         elapsed = time.perf_counter() - t0
     result = replace(result, method=name, n_simulations=counter.n_simulations, wall_time=max(0.0, elapsed - jit.seconds),
@@ -426,8 +431,6 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
     ``errors``: as in `run_method`; with ``"record"`` a continual method that raises at task k
     keeps its results for the tasks before k, and tasks k..K are failed results.
     """
-    from camo_sbi._validation import InputError
-
     errors = _check_errors(errors)
     spec, impl, cfg, observations, budget, seed, imported = _prepare(name, task, observations, budget, seed,
                                                                      config)
@@ -440,20 +443,14 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
     out = []
     with _CompileClock() as jit:
         t0 = time.perf_counter()
-        results, failure = None, None
+
+        def produced():  # run_sequence is called at the first next(), so one returning a list raises there too
+            yield from impl.run_sequence(counted, observations, budget=budget, seed=seed, config=cfg)
+
+        results, failure = produced(), None
         while len(out) < len(observations):
-            r = None
-            if failure is None:
-                try:
-                    if results is None:  # created in the try: a run_sequence that is no generator can raise here
-                        results = iter(impl.run_sequence(counted, observations, budget=budget, seed=seed, config=cfg))
-                    r = next(results, None)
-                    if r is not None and errors == "record":
-                        _check_estimate(r)
-                except Exception as exc:
-                    if errors == "raise" or isinstance(exc, InputError):
-                        raise
-                    failure = exc  # a generator that raised is finished: this task and the later ones fail
+            if failure is None:  # a generator that raised is finished: this task and the later ones fail
+                r, failure = _attempt(lambda: next(results, None), errors)
             if failure is not None:
                 r = failed_result(name, task, len(out) + 1, failure)
             if r is None:
@@ -464,7 +461,7 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
                         import_time=imported)
             _warn_status(name, r)
             out.append(r)
-        if results is not None and failure is None and next(results, None) is not None:
+        if failure is None and next(results, None) is not None:
             raise RuntimeError(f"method {name!r}: run_sequence yielded more results than the "
                                f"{len(observations)} observations")
     if len(out) != len(observations):

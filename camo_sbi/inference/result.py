@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["ROUNDING_TOL", "STATUS_OK", "PosteriorResult", "check_sample_shape", "check_status",
-           "order_rounded_bounds", "weighted_median", "weighted_quantile"]
+           "failed_at_prior_centre", "order_rounded_bounds", "weighted_median", "weighted_quantile"]
 
 STATUS_OK = "ok"
 _STATUS_PREFIXES = ("fallback: ", "failed: ")
@@ -187,6 +187,17 @@ def _generator(seed) -> np.random.Generator:
 
 ROUNDING_TOL = 1e-9
 """A lower bound above its upper bound by at most this much (radians or metres) is rounding."""
+
+
+def failed_at_prior_centre(method: str, prior, n_tasks: int, reason: str, *, n_simulations: int = 0,
+                           wall_time: float = 0.0, extras: dict | None = None) -> PosteriorResult:
+    """A result that failed: status ``"failed: <reason>; the result is the prior's centre"``, its
+    estimate and its one draw the centre of ``prior``'s box (known coordinates kept), said in the
+    status and never passed off as a posterior."""
+    centre = prior.with_known((prior.low + prior.high) / 2).numpy()
+    return PosteriorResult(method=method, samples=centre[None, :], weights=None, estimate=centre,
+                           n_simulations=n_simulations, wall_time=wall_time, n_tasks=n_tasks, extras=extras or {},
+                           status=f"failed: {reason}; the result is the prior's centre")
 
 
 def order_rounded_bounds(estimate: np.ndarray) -> np.ndarray:

@@ -60,7 +60,7 @@ from camo_sbi.inference.npe import (
     point_estimate,
 )
 from camo_sbi.inference.npe_posterior import NpePosterior
-from camo_sbi.inference.result import PosteriorResult
+from camo_sbi.inference.result import PosteriorResult, failed_at_prior_centre
 from camo_sbi.task import SPACES
 
 # a config with a ``rounds`` field (TSNPE) splits each task's budget over that many rounds
@@ -234,12 +234,9 @@ def _tasks(task, observations, budget: int, seed: int, config, train):
 
 
 def _failed(task, why: str, method: str, infos, t_start) -> PosteriorResult:
-    prior = task.prior
-    estimate = prior.with_known((prior.low + prior.high) / 2).numpy()
-    return PosteriorResult(method=method, samples=estimate[None, :], weights=None, estimate=estimate,
-                           n_simulations=int(getattr(task.simulator, "n_simulations", 0)),
-                           wall_time=time.perf_counter() - t_start, n_tasks=len(infos),
-                           extras={"tasks": list(infos)}, status=f"failed: {why}; the result is the prior's centre")
+    return failed_at_prior_centre(method, task.prior, len(infos), why,
+                                  n_simulations=int(getattr(task.simulator, "n_simulations", 0)),
+                                  wall_time=time.perf_counter() - t_start, extras={"tasks": list(infos)})
 
 
 def _likelihood_draws(prior, terms, config, seed):

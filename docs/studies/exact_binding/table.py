@@ -22,7 +22,9 @@ ORDER = ("exact-likelihood", "naive", "nominal (the prior's full range; computed
 
 
 def load(seeds: list[int]) -> pd.DataFrame:
-    frames = [pd.read_csv(f) for s in seeds for f in sorted(HERE.glob(f"*_s{s}*.csv"))]
+    # {model}_s{seed}.csv and {model}_s{seed}_{others,camo}.csv (not "_s1*", which would take seed 11 for 1)
+    files = [f for s in seeds for pattern in (f"*_s{s}.csv", f"*_s{s}_*.csv") for f in sorted(HERE.glob(pattern))]
+    frames = [pd.read_csv(f) for f in files]
     df = pd.concat(frames, ignore_index=True)
     return df.drop_duplicates(["model", "seed", "run", "method", "bound"])
 
