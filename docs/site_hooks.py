@@ -8,7 +8,7 @@ at build time, so that the page cannot drift from the code or the data:
     <!-- table: calibrate calibration/panda --> a table printed by docs/readme_tables.py from a run
                                                directory (its path relative to docs/)
     <!-- include: calibration/panda/summary.txt -->   a text file of docs/, verbatim
-    <!-- csv: studies/active_design.csv -->    a CSV file of docs/ as a table, its cells as written
+    <!-- csv: studies/active_design_s0.csv -->    a CSV file of docs/ as a table, its cells as written
     <!-- calibration-verdicts -->              the verdict per model and method
                                                (camo_sbi.diagnostics.calibration.calibration_verdicts)
 

@@ -127,6 +127,36 @@ def test_the_untouched_coverage_file_is_what_the_binding_bound_rows_measured():
     assert untouched_verdict("naive", "panda")[1] == "a point estimate (no interval)"
 
 
+def test_the_two_seed_verdicts_are_what_the_seed_files_say_and_the_readme_counts_them():
+    """docs/studies/two_seeds.csv equals what two_seeds.py combines from the committed per-seed
+    files; the README's counts (40 informative verdicts agree; 16 of 18 active-vs-random tests
+    hold under both) are recounted from it, and one verdict by hand from the seed files."""
+    import importlib.util
+
+    import pandas as pd
+
+    spec = importlib.util.spec_from_file_location("two_seeds", DOCS / "studies" / "two_seeds.py")
+    two = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(two)
+    combined = two.combine([0, 1])
+    committed = pd.read_csv(DOCS / "studies" / "two_seeds.csv")
+    assert list(committed.columns) == list(combined.columns) and len(committed) == len(combined)
+    for col in ("holds_s0", "holds_s1", "holds_both", "agree"):
+        assert committed[col].tolist() == combined[col].astype(bool).tolist(), col
+    inf = combined[combined.study == "informative"]
+    design = combined[combined.study == "active vs random"]
+    assert len(inf) == 40 and inf.agree.all()
+    assert len(design) == 18 and int(design.holds_both.sum()) == 16
+    readme = (ROOT / "README.md").read_text()
+    assert "All 40 verdicts of its claims table are the same under a second seed" in readme
+    assert "16 of 18\n  paired tests hold under both seeds 0 and 1" in readme
+    s1 = pd.read_csv(DOCS / "studies" / "active_design_s1.csv")  # by hand: camo-hull, Panda, binding error
+    row = s1[(s1.model == "panda") & (s1.method == "camo-hull") & (s1.metric == "limit_error_binding_deg")].iloc[0]
+    got = design[(design.model == "panda") & (design.method == "camo-hull")
+                 & (design.metric == "limit_error_binding_deg")].iloc[0]
+    assert bool(got.holds_s1) == (row.p_holm < 0.05 and row.active_minus_random < 0)
+
+
 def test_the_untouched_rule_on_hand_made_counts():
     from camo_sbi.diagnostics.verdicts import binomial_below, untouched_verdict, untouched_word
 
