@@ -39,10 +39,11 @@ from pathlib import Path
 
 import pandas as pd
 
+from camo_sbi.evaluation.catalog import get as metric
+
 HERE = Path(__file__).resolve().parent
 MODELS = ("panda", "human")
 KEY = ["study", "model", "design", "method", "baseline", "metric"]
-LOWER_IS_BETTER = {"limit_error_binding_deg": True, "reachability_f1": False, "cartesian_error_mm": True}
 CLAIM_COLUMNS = ["model", "method", "baseline", "metric", "value", "ci_low", "ci_high", "p_value", "holds",
                  "few_reaches", "binding_test_reaches_min"]
 
@@ -69,7 +70,8 @@ def verdicts(seed: int) -> pd.DataFrame:
     claims = pd.read_csv(HERE / f"active_design_s{seed}_claims.csv").assign(study="active-design claims")
     table = pd.read_csv(HERE / f"active_design_s{seed}.csv")
     table = table[table.method != "nominal"]  # uses no data: not tested
-    better = [(d < 0) if LOWER_IS_BETTER[m] else (d > 0) for d, m in zip(table.active_minus_random, table.metric, strict=True)]
+    better = [(d < 0) if metric(m).lower_is_better else (d > 0)
+              for d, m in zip(table.active_minus_random, table.metric, strict=True)]
     design = pd.DataFrame({"study": "active vs random", "model": table.model, "design": "active - random",
                            "method": table.method, "baseline": "random design", "metric": table.metric,
                            "value": table.active_minus_random, "p_value": table.p_holm,
