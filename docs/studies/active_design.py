@@ -32,11 +32,11 @@ import pandas as pd
 from scipy import stats
 
 from camo_sbi.diagnostics.style import new_figure, paper_style, save_figures
+from camo_sbi.evaluation.catalog import get as metric_info
 from camo_sbi.evaluation.claims import holm
 
 METRICS = {"limit_error_binding_deg": "binding-bound error [deg]", "reachability_f1": "reachability F1",
            "cartesian_error_mm": "Cartesian error [mm]"}
-LOWER_IS_BETTER = {"limit_error_binding_deg": True, "reachability_f1": False, "cartesian_error_mm": True}
 METHODS = ("camo-seq", "camo-hull", "naive", "nominal")
 THRESHOLD_DEG = 5.0
 
@@ -85,7 +85,7 @@ def main() -> None:
                     pv = float("nan")
                 else:
                     pv = float(stats.wilcoxon(d).pvalue) if np.count_nonzero(d) >= 2 else 1.0
-                better = (d < 0) if LOWER_IS_BETTER[metric] else (d > 0)
+                better = (d < 0) if metric_info(metric).lower_is_better else (d > 0)
                 row = {"model": m, "method": method, "metric": metric, "reaches": at, "runs": len(d),
                        "random": tr[at].mean(), "active": ta[at].mean(), "active_minus_random": d.mean(),
                        "active_better_runs": int(better.sum()), "p_raw": pv}
