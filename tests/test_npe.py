@@ -357,7 +357,8 @@ class _StubPosterior:
 
     def sample_is(self, n, seed, *, is_rounds, defensive_fraction, reuse_mixture_draws):  # noqa: ARG002
         w = self.weights / self.weights.sum()
-        theta = np.tile((TRUE.numpy() + 0.0)[None, :], (len(w), 1))
+        # distinct draws near the truth (identical ones would be a collapse, a fallback of its own)
+        theta = TRUE.numpy()[None, :] + 1e-6 * np.arange(len(w))[:, None]
         ess = float(1 / np.sum(w**2))
         return samplers.WeightedDraws(torch.from_numpy(theta), torch.from_numpy(w), torch.zeros(len(w)), ess, "is",
                                       diagnostics={"ess_rounds": [ess]})

@@ -145,10 +145,13 @@ def test_importance_stops_once_a_round_has_every_draw_effective():
         assert draws.diagnostics["ess_rounds"] == [pytest.approx(1000)] and draws.samples.shape == (1000, 2)
 
 
-def _draws(weights, failure=None, sampler="is") -> WeightedDraws:
+def _draws(weights, failure=None, sampler="is", samples=None) -> WeightedDraws:
+    """Weighted draws at distinct points (row i = (i, -i)) unless ``samples`` says otherwise."""
     w = torch.as_tensor(weights, dtype=torch.float64)
     w = w / w.sum()
-    return WeightedDraws(torch.zeros(len(w), 2), w, torch.zeros(len(w)), float(1 / (w**2).sum()), sampler, failure)
+    if samples is None:
+        samples = torch.arange(len(w), dtype=torch.float64)[:, None] * torch.tensor([1.0, -1.0], dtype=torch.float64)
+    return WeightedDraws(samples, w, torch.zeros(len(w)), float(1 / (w**2).sum()), sampler, failure)
 
 
 @pytest.mark.parametrize(
@@ -167,6 +170,30 @@ def _draws(weights, failure=None, sampler="is") -> WeightedDraws:
 def test_the_one_fallback_rule_on_the_effective_sample_size(weights, min_ess, status):
     """ESS below min(min_ess, N / 2) -> "fallback: low effective sample size (...)"."""
     assert _draws(weights).status(min_ess) == status
+
+
+def test_a_population_collapsed_onto_few_points_is_a_fallback_though_its_weights_are_uniform():
+    """Resampling copies particles: 2000 equally weighted SMC particles that are all one point
+    have ESS 2000 by their weights but are one draw (nre's human observation 1 at 10^5 came back
+    "ok" so). Merged, identical draws' weights give the distinct ESS, and the one rule reads it."""
+    one_point = _draws([1.0] * 2000, sampler="smc", samples=torch.ones(2000, 3, dtype=torch.float64))
+    assert one_point.ess == pytest.approx(2000) and one_point.distinct_ess() == pytest.approx(1.0)
+    assert one_point.status(20) == ("fallback: collapsed onto 1 distinct point(s) (ESS 1.0 of 2000 SMC particles "
+                                    "with identical draws merged, below 20)")
+    # 2000 copies of 10 points, 200 each: distinct ESS 10, still a fallback at min_ess 20
+    ten = _draws([1.0] * 2000, sampler="smc", samples=torch.arange(10.0, dtype=torch.float64).repeat(200)[:, None])
+    assert ten.distinct_ess() == pytest.approx(10.0) and ten.status(20).startswith("fallback: collapsed onto 10 ")
+    assert ten.status(5) == "ok"
+    # 2000 particles on 100 points, point 0 carrying 218 of them (weights merge by point): 1 / sum(W_k^2)
+    idx = torch.arange(2000) % 100
+    idx[:200] = 0
+    hundred = _draws([1.0] * 2000, sampler="smc", samples=idx.double()[:, None])
+    shares = torch.bincount(idx).double() / 2000
+    assert hundred.distinct_ess() == pytest.approx(float(1 / (shares**2).sum())) == pytest.approx(50.25, abs=0.01)
+    assert hundred.status(20) == "ok"
+    # an MCMC chain's repeats (rejections) are merged too; distinct draws leave ess unchanged
+    distinct = _draws([1.0] * 100)
+    assert distinct.distinct_ess() == pytest.approx(distinct.ess)
 
 
 def test_a_sampler_failure_is_a_fallback_whatever_the_ess():

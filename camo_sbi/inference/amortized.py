@@ -170,8 +170,8 @@ class AmortizedConfig:
             moving after burn-in) sets ``status = "fallback: ..."``.
         point_estimate: "mean", "median" or "mode" (`npe.point_estimate`; old name of the mode: "map").
         min_ess: the samplers' one fallback rule (`samplers.WeightedDraws.status`): weighted
-            draws (combine="is" or "smc") with an effective sample size below min(min_ess,
-            N / 2) are reported as ``status = "fallback: ..."``.
+            draws (combine="is" or "smc") with an effective sample size (of the weights, or of the
+            distinct draws) below min(min_ess, N / 2) are reported as ``status = "fallback: ..."``.
         n_threads: torch intra-op threads while sampling (None: unchanged).
     """
 

@@ -83,8 +83,26 @@ class WeightedDraws:
         """The same draws in other coordinates (e.g. theta from z, with the log-Jacobian applied)."""
         return replace(self, samples=samples, log_density=log_density, diagnostics=dict(self.diagnostics))
 
+    def distinct_ess(self) -> float:
+        """The effective sample size with identical draws merged (their weights summed).
+
+        Resampling copies particles, so a population that has collapsed onto a few points keeps
+        uniform weights, and with them ``ess`` = N; merged, its weights say how many points it
+        really holds (1 for a single point). Equals ``ess`` when every draw is distinct.
+        """
+        return self._merged()[1]
+
+    def _merged(self) -> tuple[int, float]:
+        """(distinct points, `distinct_ess`)."""
+        points, inverse = torch.unique(self.samples, dim=0, return_inverse=True)
+        merged = torch.zeros(points.shape[0], dtype=torch.float64)
+        merged.index_add_(0, inverse.reshape(-1), self.weights.to(torch.float64))
+        total = float(merged.sum())
+        return int(points.shape[0]), (total**2 / float((merged**2).sum()) if total > 0 else 0.0)
+
     def status(self, min_ess: float) -> str:
-        """"ok", or "fallback: ..." under the module's one rule (sampler failure, or ESS < min(min_ess, N / 2))."""
+        """"ok", or "fallback: ..." under the module's one rule: a sampler failure, or an ESS below
+        min(min_ess, N / 2), of the weights or of the distinct draws (`distinct_ess`)."""
         min_ess = check_positive_float(min_ess, "min_ess", allow_zero=True)
         if self.failure is not None:
             return f"fallback: {self.failure}"
@@ -93,6 +111,10 @@ class WeightedDraws:
         if not self.ess >= threshold:
             return (f"fallback: low effective sample size (ESS {self.ess:.1f} of {n} {_DRAWS_NAME[self.sampler]}, "
                     f"below {threshold:g})")
+        points, distinct = self._merged()
+        if not distinct >= threshold:
+            return (f"fallback: collapsed onto {points} distinct point(s) (ESS {distinct:.1f} of {n} "
+                    f"{_DRAWS_NAME[self.sampler]} with identical draws merged, below {threshold:g})")
         return "ok"
 
 

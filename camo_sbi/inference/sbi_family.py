@@ -17,7 +17,8 @@ module does the rest, the same way for all five and the same way per-task NPE (`
      log-ratios (NRE: log r_i(x_i, z) = log p(x_i | z) / p(x_i) + const); the posterior is
      log p(z) + sum_i term_i(z), exact for independent tasks. Sampled by tempered SMC from the
      prior (`samplers.smc`), the status by the samplers' one rule (`WeightedDraws.status`:
-     SMC that does not reach the target, or too small an ESS, is a fallback).
+     SMC that does not reach the target, or too small an ESS of the weights or of the distinct
+     draws, is a fallback).
    - ``"posterior"`` (FMPE, NPSE, TSNPE): each task gives a posterior q_i(z | x_i); combined as
      NPE combines its flows, p(z)^(1-k) prod_i q_i(z | x_i) (`npe_posterior.NpePosterior`),
      sampled by adaptive importance sampling from the mixture of the q_i.
@@ -86,7 +87,8 @@ class FamilyConfig:
             draws (posterior families; `npe_posterior.NpePosterior.sample_is`).
         smc_max_stages: tempering stages before SMC gives up (a fallback; likelihood families).
         point_estimate: "mean", "median" (weighted, coordinate-wise) or "mode".
-        min_ess: below min(min_ess, N / 2) effective draws the result is a fallback.
+        min_ess: below min(min_ess, N / 2) effective draws (of the weights, or of the distinct
+            draws: `samplers.WeightedDraws.status`) the result is a fallback.
         chunk_size, sim_dtype, device, n_threads, scheduler: as `npe.NpeConfig`.
     """
 
