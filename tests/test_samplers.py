@@ -191,7 +191,7 @@ def test_a_population_collapsed_onto_few_points_is_a_fallback_though_its_weights
     shares = torch.bincount(idx).double() / 2000
     assert hundred.distinct_ess() == pytest.approx(float(1 / (shares**2).sum())) == pytest.approx(50.25, abs=0.01)
     assert hundred.status(20) == "ok"
-    # an MCMC chain's repeats (rejections) are merged too; distinct draws leave ess unchanged
+    # every draw distinct: the distinct ESS is the weights' ESS
     distinct = _draws([1.0] * 100)
     assert distinct.distinct_ess() == pytest.approx(distinct.ess)
 

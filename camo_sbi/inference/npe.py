@@ -120,8 +120,8 @@ class NpeConfig:
             (the draw with the highest combined density). (Old names: ``estimator``, "map".)
         min_ess: the combined importance sample is a fallback (``status = "fallback: ..."``)
             below min(min_ess, N / 2) effective draws, of the weights or of the distinct draws
-            (`samplers.WeightedDraws.status`); a
-            count, not a share of the draws (why: docs/studies/design_measurements.md).
+            (`samplers.WeightedDraws.status`); a count, not a share of the draws (why:
+            docs/studies/design_measurements.md).
         chunk_size: prior draws per ``simulate`` call (old name: ``simulation_batch_size``): the chunks that
             ``scheduler`` distributes (the draws themselves are made up front, so the training
             data never depend on where the chunks run).
