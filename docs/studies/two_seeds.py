@@ -39,7 +39,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from camo_sbi.evaluation.catalog import get as metric
+from camo_sbi.evaluation.catalog import get as metric_info
 
 HERE = Path(__file__).resolve().parent
 MODELS = ("panda", "human")
@@ -70,7 +70,7 @@ def verdicts(seed: int) -> pd.DataFrame:
     claims = pd.read_csv(HERE / f"active_design_s{seed}_claims.csv").assign(study="active-design claims")
     table = pd.read_csv(HERE / f"active_design_s{seed}.csv")
     table = table[table.method != "nominal"]  # uses no data: not tested
-    better = [(d < 0) if metric(m).lower_is_better else (d > 0)
+    better = [(d < 0) if metric_info(m).lower_is_better else (d > 0)
               for d, m in zip(table.active_minus_random, table.metric, strict=True)]
     design = pd.DataFrame({"study": "active vs random", "model": table.model, "design": "active - random",
                            "method": table.method, "baseline": "random design", "metric": table.metric,
