@@ -189,6 +189,67 @@ def test_sigterm_stops_a_process_that_calls_main_in_process(tmp_path):
     assert not after.exists()
 
 
+@pytest.mark.parametrize("sig, code, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
+def test_a_signal_dropped_in_a_weakref_callback_is_raised_again(sig, code, word, monkeypatch, tmp_path, capsys):
+    """The handler can run inside a weakref callback that C code triggers (seen: h5py writing a
+    posterior; the SIGINT test's grid then ran to its end): Python drops an exception raised
+    there, so the entry point raises it again and the command stops at its next instruction."""
+    import weakref
+
+    from camo_sbi.experiments import run
+
+    reached = []
+
+    class Thing:
+        pass
+
+    def stopped_in_a_callback(args):
+        thing = Thing()
+        ref = weakref.ref(thing, lambda _: signal.raise_signal(sig))  # noqa: F841 - keeps the callback
+        del thing  # the callback runs, the handler raises inside it, Python drops that exception
+        reached.append("after the callback")
+        time.sleep(5)  # the signal raised again ends this at once
+        reached.append("the end")
+        return 0
+
+    monkeypatch.setattr(run, "main", stopped_in_a_callback)
+    hook = sys.unraisablehook
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # as at a terminal (xdist may differ)
+    try:
+        assert cli.console_main(["run", str(tmp_path / "s.toml")]) == code
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert reached == ["after the callback"]
+    err = capsys.readouterr().err
+    assert f"{word}: finished cells are saved" in err and "Exception ignored" not in err
+    assert sys.unraisablehook is hook  # restored
+
+
+@pytest.mark.parametrize("sig, code, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
+def test_a_signal_caught_inside_the_command_still_gives_its_exit_code(sig, code, word, monkeypatch, tmp_path, capsys):
+    """A library that catches the KeyboardInterrupt (or Terminated) lets the command run to its
+    end: the console entry point still exits 130/143 and says what happened."""
+    from camo_sbi.experiments import run
+
+    def swallowing(args):
+        try:
+            signal.raise_signal(sig)
+            time.sleep(5)  # the handler raises before this ends
+        except KeyboardInterrupt:  # Terminated is one
+            pass
+        return 0
+
+    monkeypatch.setattr(run, "main", swallowing)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # as at a terminal (xdist may differ)
+    try:
+        assert cli.console_main(["run", str(tmp_path / "s.toml")]) == code
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    err = capsys.readouterr().err
+    assert f"{word}: the signal was caught inside the command, which ran to its end (exit code 0" in err
+    assert signal.getsignal(signal.SIGINT) is previous  # restored by the entry point as well
+
+
 # ----------------------------------------------------------------------------- messages
 
 

@@ -54,6 +54,10 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM (``kill``, ``timeout``, SLURM), raised in the main thread and handled like Ctrl-C."""
 
 
+REDELIVER_DELAY = 0.02
+"""Seconds after which a signal whose exception Python dropped (`_signals_as_exceptions`) is sent again."""
+
+
 # ----------------------------------------------------------------------------- help
 
 
@@ -441,32 +445,76 @@ def main(argv: list[str] | None = None) -> int:
 
 
 @contextlib.contextmanager
-def _sigterm_as_exception():
-    """SIGTERM raises `Terminated` once (later ones are ignored while cleaning up); yields the state."""
-    state = {"terminated": False}
+def _signals_as_exceptions():
+    """SIGTERM raises `Terminated` once (later ones are ignored while cleaning up), Ctrl-C raises
+    KeyboardInterrupt (Python's default, kept unless SIGINT was inherited as ignored); both are
+    recorded in the yielded state.
 
-    def handler(signum, frame):
+    Python runs a signal's handler at the next instruction of the main thread, which can be a
+    weakref callback or a finalizer that a library's C code triggers (seen: h5py writing a
+    posterior's netCDF file); an exception raised there is "unraisable", printed and dropped,
+    and the command ran on to its end. The unraisable hook here sends such a signal again to
+    the main thread, from a helper thread after `REDELIVER_DELAY` seconds (sent from the hook
+    itself it would be raised, and dropped, inside the hook), so it is raised at the command's
+    next instruction. `console_main` also exits 143/130 if a library caught the exception
+    outright.
+    """
+    import _thread
+
+    state = {"terminated": False, "interrupted": False}
+
+    def on_sigterm(signum, frame):
         if not state["terminated"]:
             state["terminated"] = True
             raise Terminated()
 
+    def on_sigint(signum, frame):
+        state["interrupted"] = True
+        raise KeyboardInterrupt
+
+    main_thread = _thread.get_ident()
+
+    def send_again(sig):
+        time.sleep(REDELIVER_DELAY)
+        signal.pthread_kill(main_thread, sig)  # a real signal: it also ends a sleep or a wait
+
+    def on_unraisable(unraisable):
+        if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return previous_hook(unraisable)
+        if isinstance(unraisable.exc_value, Terminated):
+            state["terminated"] = False  # so that the SIGTERM sent again raises again
+        # a bare thread: threading.Thread.start would wait for it, and the signal could come
+        # back while this hook still runs
+        _thread.start_new_thread(send_again, (signal.SIGTERM if isinstance(unraisable.exc_value, Terminated)
+                                              else signal.SIGINT,))
+        return None
+
     try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread: leave SIGTERM alone
+        previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, on_sigterm)}
+    except ValueError:  # not the main thread: leave the signals alone
         yield state
         return
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, on_sigint)
+    previous_hook, sys.unraisablehook = sys.unraisablehook, on_unraisable
     try:
         yield state
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        sys.unraisablehook = previous_hook
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def console_main(argv: list[str] | None = None) -> int:
     """The console entry point (``camo-sbi``, ``python -m camo_sbi``): `main` with SIGTERM and
-    Ctrl-C turned into exit codes 143 and 130 ("finished cells are saved")."""
-    with _sigterm_as_exception() as state:
+    Ctrl-C turned into exit codes 143 and 130 ("finished cells are saved").
+
+    A signal whose exception a library caught (and then let the command run to its end) still
+    gives 143/130, with a line saying so: the exit status never hides that the run was stopped
+    from outside. One dropped as unraisable is raised again (`_signals_as_exceptions`)."""
+    with _signals_as_exceptions() as state:
         try:
-            return main(argv)
+            code = main(argv)
         except KeyboardInterrupt as exc:
             terminated = isinstance(exc, Terminated) or state["terminated"]
             print(f"{'terminated' if terminated else 'interrupted'}: {_RESUME}", file=sys.stderr)
@@ -478,6 +526,12 @@ def console_main(argv: list[str] | None = None) -> int:
             # before the parent's own handler runs: still a termination, not a crash
             print(f"terminated: {_RESUME}", file=sys.stderr)
             return 143
+        if state["terminated"] or state["interrupted"]:
+            what = "terminated" if state["terminated"] else "interrupted"
+            print(f"{what}: the signal was caught inside the command, which ran to its end (exit code "
+                  f"{code} without it); {_RESUME}", file=sys.stderr)
+            return 143 if state["terminated"] else 130
+        return code
 
 
 if __name__ == "__main__":
