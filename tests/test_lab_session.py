@@ -245,5 +245,5 @@ def test_the_done_when_command_on_the_real_session(tmp_path):
     limits = pd.read_csv(out / "limits.csv")
     assert set(limits.method) == {"naive", "camo-seq", "camo-touched", "npe"} and limits.observed_min_deg.notna().all()
     past = limits[limits.clipped_samples > 0]
-    assert set(zip(past.joint, past.bound)) == {("wrist_deviation", "lower")} and len(past) == 4
+    assert set(zip(past.joint, past.bound, strict=True)) == {("wrist_deviation", "lower")} and len(past) == 4
     assert "! = the recording went past" in (out / "report.html").read_text()

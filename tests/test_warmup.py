@@ -56,7 +56,7 @@ def test_the_notice_is_one_line_per_kind_and_only_for_camo_sbi_kernels(monkeypat
     assert chain.f(3) == 4 and chain.g(3) == 6
     lines = [r.getMessage() for r in caplog.records if "compiling" in r.getMessage()]
     assert len(lines) == 3, lines
-    for line, kind in zip(lines, ("cascade", "package", "chain")):
+    for line, kind in zip(lines, ("cascade", "package", "chain"), strict=True):
         assert line.startswith(f"compiling {_compiling._WHAT[kind]} (once, about "
                                f"{_compiling.COMPILE_SECONDS[kind]} s"), line
     assert all("camo-sbi warmup" in ln for ln in lines)

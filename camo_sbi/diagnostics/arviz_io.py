@@ -576,7 +576,8 @@ def netcdf_bytes(idata: az.InferenceData) -> bytes:
     """``idata`` as the bytes of the netCDF (HDF5) file arviz's ``to_netcdf`` writes: every group
     through h5netcdf into memory, zlib-compressed as arviz compresses (numbers and bytes)."""
     _check_idata(idata)
-    from camo_sbi.distributed import local_scheduler  # inside a Dask worker: no cluster lock on a buffer
+    # inside a Dask worker: no cluster lock on a buffer
+    from camo_sbi.distributed import local_scheduler
 
     with local_scheduler():
         return _netcdf_bytes(idata)
