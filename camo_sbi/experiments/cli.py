@@ -462,6 +462,7 @@ def _signals_as_exceptions():
     import _thread
 
     state = {"terminated": False, "interrupted": False}
+    closed = []  # set when the command has ended: a signal sent again after that would hit the caller
 
     def on_sigterm(signum, frame):
         if not state["terminated"]:
@@ -476,7 +477,8 @@ def _signals_as_exceptions():
 
     def send_again(sig):
         time.sleep(REDELIVER_DELAY)
-        signal.pthread_kill(main_thread, sig)  # a real signal: it also ends a sleep or a wait
+        if not closed:
+            signal.pthread_kill(main_thread, sig)  # a real signal: it also ends a sleep or a wait
 
     def on_unraisable(unraisable):
         if not isinstance(unraisable.exc_value, KeyboardInterrupt):
@@ -500,6 +502,7 @@ def _signals_as_exceptions():
     try:
         yield state
     finally:
+        closed.append(True)
         sys.unraisablehook = previous_hook
         for sig, handler in previous.items():
             signal.signal(sig, handler)
