@@ -241,13 +241,16 @@ def test_a_signal_caught_inside_the_command_still_gives_its_exit_code(sig, code,
 
     monkeypatch.setattr(run, "main", swallowing)
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # as at a terminal (xdist may differ)
+    sigterm = signal.getsignal(signal.SIGTERM)
     try:
         assert cli.console_main(["run", str(tmp_path / "s.toml")]) == code
+        # restored by the entry point (checked before this test restores its own)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert signal.getsignal(signal.SIGTERM) is sigterm
     finally:
         signal.signal(signal.SIGINT, previous)
     err = capsys.readouterr().err
     assert f"{word}: the signal was caught inside the command, which ran to its end (exit code 0" in err
-    assert signal.getsignal(signal.SIGINT) is previous  # restored by the entry point as well
 
 
 # ----------------------------------------------------------------------------- messages
