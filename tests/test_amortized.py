@@ -698,16 +698,18 @@ def test_maf_transforms_leave_their_first_coordinate_unconditioned():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-    "known failure, measured on this code (and on main at 7c0fff6, identically): the upper limit's mean "
-    "is 0.575 against the exact 0.521 +- 0.012 (4.5 sd) at 20 000 simulations; the 50 000-simulation "
-    "test (test_set_form_toy_posterior_recovered) asserts recovery and passes. Strict: if this "
-    "starts passing, CI says so and the mark must go."))
+@pytest.mark.xfail(strict=False, raises=AssertionError, reason=(
+    "CPU-dependent: on CI's CPU the upper limit's mean is 0.575 against the exact 0.521 +- 0.012 "
+    "(4.5 sd) at 20 000 simulations; on an AMD EPYC machine (2026-12-07) the same seed gives lo "
+    "-0.587 (0.9 sd) and hi 0.516 (0.4 sd), sd 2.9x and 3.9x, and the test passes (it XPASSed "
+    "there under the old strict mark, failing .ci/run). Not strict, so neither CPU fails; any "
+    "error other than the assertion still fails. Recovery is asserted by the 50 000-simulation "
+    "test (test_set_form_toy_posterior_recovered), which passes on both."))
 def test_set_form_toy_posterior_recovered_roughly(tmp_path):
     """The set form (neural spline flow, the default) on the same toy (~60 s quiet, 214-705 s at
     load 20-27): 20 000 simulations = 2 000 sets of 10 reaches; the mean within 3 exact sd of each
     limit, the sd within a factor 0.5-6 (an earlier round measured lo -0.587 vs -0.606 +- 0.020, hi
-    0.518 vs 0.521 +- 0.012; this code gives hi 0.575: the xfail mark above). Slow tier: in the default tier
+    0.518 vs 0.521 +- 0.012; CI's CPU gives hi 0.575: the xfail mark above). Slow tier: in the default tier
     the set form's training, file and sampling path is covered by the tiny-estimator tests
     (`test_save_load_round_trip_gives_identical_samples`, `test_inference_simulates_nothing`,
     `test_a_loaded_nsf_is_the_sbi_flow_draw_for_draw_without_importing_sbi`)."""
