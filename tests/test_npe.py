@@ -254,6 +254,55 @@ def test_save_load_round_trip(toy, tmp_path):
         load_posterior(tmp_path / "other.pt")
 
 
+@pytest.mark.parametrize("warm_start", [False, True])
+def test_killed_run_resumes_from_task_checkpoints_with_the_same_numbers(toy, tmp_path, monkeypatch, warm_start):
+    config = {**TINY, "warm_start": warm_start}
+    fresh = run_method("npe", toy, toy.observations[:3], budget=300, seed=6, config=config)
+    real_train = npe.sbi_adapter.train_npe
+    calls = []
+
+    def dies_at_the_third_task(*args, **kwargs):  # a kill while task 2 trains
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real_train(*args, **kwargs)
+
+    work = {**config, "workdir": str(tmp_path)}
+    monkeypatch.setattr(npe.sbi_adapter, "train_npe", dies_at_the_third_task)
+    with pytest.raises(KeyboardInterrupt):
+        run_method("npe", toy, toy.observations[:3], budget=300, seed=6, config=work)
+    assert len(list((tmp_path / "npe_tasks").glob("task*.pt"))) == 2
+    calls.clear()
+    monkeypatch.setattr(npe.sbi_adapter, "train_npe", lambda *a, **k: (calls.append(1), real_train(*a, **k))[1])
+    resumed = run_method("npe", toy, toy.observations[:3], budget=300, seed=6, config=work)
+    assert len(calls) == 1  # only task 2 is trained again
+    assert resumed.extras["resumed_tasks"] == [0, 1]
+    assert resumed.n_simulations == 900  # the resumed tasks' simulations are still counted
+    np.testing.assert_array_equal(resumed.samples, fresh.samples)
+    np.testing.assert_array_equal(resumed.weights, fresh.weights)
+    # their recorded cost is in the wall time: resuming never makes the method look faster
+    recorded = sum(t["time_simulate"] + t["time_train"] for t in resumed.extras["tasks"][:2])
+    assert resumed.wall_time >= recorded > 0
+    # other settings never read these checkpoints: another seed trains every task
+    calls.clear()
+    run_method("npe", toy, toy.observations[:3], budget=300, seed=7, config=work)
+    assert len(calls) == 3
+
+
+def test_damaged_task_checkpoint_is_trained_again_with_a_warning(toy, tmp_path):
+    work = {**TINY, "workdir": str(tmp_path)}
+    first = run_method("npe", toy, toy.observations[:2], budget=300, seed=6, config=work)
+    assert first.extras["resumed_tasks"] == []
+    weights = sorted((tmp_path / "npe_tasks").glob("task000-*.pt"))[0]
+    data = bytearray(weights.read_bytes())
+    data[-10] ^= 0xFF
+    weights.write_bytes(bytes(data))
+    with pytest.warns(RuntimeWarning, match="task000-.*sha256.*task 0 is trained again"):
+        again = run_method("npe", toy, toy.observations[:2], budget=300, seed=6, config=work)
+    assert again.extras["resumed_tasks"] == [1]
+    np.testing.assert_array_equal(again.samples, first.samples)
+
+
 def test_fixed_coordinates_not_trained(toy):
     sim = ToySimulator(n=2)
     prior = BoxPrior(sim.bounds, sim.start, fixed={1: (-0.4, 0.7)})

@@ -67,8 +67,9 @@ from camo_sbi._validation import (
     check_positive_int,
     renamed_fields,
 )
+from camo_sbi.budget import charge
 from camo_sbi.distributed import parse_scheduler, run_chunks
-from camo_sbi.inference import samplers, sbi_adapter
+from camo_sbi.inference import npe_checkpoint, samplers, sbi_adapter
 from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.flow_space import to_unconstrained, torch_threads, trajectory_summary
 from camo_sbi.inference.npe_posterior import TRANSFORMS, NpePosterior
@@ -128,7 +129,10 @@ class NpeConfig:
         sim_dtype: "float32" or "float64" for the simulations.
         workdir: None, or a directory (created) receiving ``npe_posterior_k{k}_seed{seed}.pt``
             (tensors) and its ``.pt.json`` metadata with the sha256 (reload with
-            `npe_posterior.load_posterior`).
+            `npe_posterior.load_posterior`), and each task's flow as soon as it is trained
+            (`npe_checkpoint`): a run killed after task i, re-run with the same settings and
+            workdir, reads tasks 0..i back instead of training them again (same numbers;
+            their recorded simulations and seconds are still counted).
         device: torch device for training ("cpu").
         n_threads: torch intra-op threads while training and sampling (restored afterwards);
             None keeps the current setting. Small flows train fastest on one thread (OpenMP's
@@ -285,8 +289,19 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
     prior, sim, dtype = task.prior, task.simulator, _DTYPES[config.sim_dtype]
     lo_free = prior.low[prior.free_mask]
     width_free = (prior.high - prior.low)[prior.free_mask]
-    previous = None
+    previous, previous_key = None, None
     for i, obs in enumerate(observations):
+        key = None
+        if config.workdir is not None:
+            key = npe_checkpoint.task_key(task, obs, index=i, budget=budget, seed=seed, config=config,
+                                          previous=previous_key if config.warm_start else None)
+            stored = npe_checkpoint.load_task(config.workdir, i, key)
+            if stored is not None:  # trained by an earlier (killed) run with these very settings
+                est, xo, info = stored
+                charge(sim, budget)  # those simulations were run, in that earlier process
+                previous, previous_key = (est if config.warm_start else None), key
+                yield est, xo.float(), {**info, "resumed": True}
+                continue
         start = torch.as_tensor(obs.start, dtype=torch.float64).cpu()
         goal = torch.as_tensor(obs.goal, dtype=torch.float64).cpu()
         traj_obs = torch.as_tensor(obs.trajectory(config.space), dtype=torch.float64).cpu()
@@ -317,7 +332,11 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
             previous = est
         info.update(task=i, n_features=int(keep.sum()), n_invalid=int((~finite).sum()),
                     time_simulate=t_sim, warm_start=bool(config.warm_start and i > 0))
-        yield est, xo.float(), info
+        if key is not None:
+            npe_checkpoint.save_task(config.workdir, i, key, est, xo.float(), info, n_free=int(prior.n_free),
+                                     config=config)
+        previous_key = key
+        yield est, xo.float(), {**info, "resumed": False}
 
 
 def _posterior(prior: BoxPrior, estimators, x_obs, infos, config: NpeConfig, budget: int,
@@ -381,11 +400,16 @@ def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed:
         "time_train": sum(t["time_train"] for t in tasks),
         "time_sample": t_sample,
         "posterior_path": None if path is None else str(path),
+        "resumed_tasks": [t["task"] for t in tasks if t.get("resumed")],
+        # a task read from a checkpoint cost its recorded simulation and training time in an
+        # earlier process: the wall time counts it (here and in the registry's clock), so
+        # resuming never makes a method look faster
+        "resumed_seconds": sum(t["time_simulate"] + t["time_train"] for t in tasks if t.get("resumed")),
     }
     return PosteriorResult(
         method="npe", samples=draws.samples.numpy(), weights=draws.weights.numpy(), estimate=estimate,
         n_simulations=int(getattr(task.simulator, "n_simulations", budget * posterior.n_tasks)),
-        wall_time=time.perf_counter() - t_start, n_tasks=posterior.n_tasks, extras=extras,
+        wall_time=time.perf_counter() - t_start + extras["resumed_seconds"], n_tasks=posterior.n_tasks, extras=extras,
         status=draws.status(config.min_ess), density=posterior.log_prob,
     )
 

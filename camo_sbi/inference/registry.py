@@ -381,6 +381,13 @@ class _CompileClock:
             return self._total + (time.perf_counter() - self._since if self._depth else 0.0)
 
 
+def _resumed_seconds(result: PosteriorResult) -> float:
+    """Seconds of work a result read back from an earlier process's checkpoints (its
+    ``extras["resumed_seconds"]``, e.g. NPE's per-task flows): added to ``wall_time``."""
+    v = result.extras.get("resumed_seconds", 0.0) if isinstance(result.extras, dict) else 0.0
+    return float(v) if isinstance(v, (int, float)) and v > 0 else 0.0
+
+
 def run_method(name: str, task: Task, observations: Sequence | None = None, *, budget: int, seed: int,
                config=None, errors: str = "raise") -> PosteriorResult:
     """Run method ``name`` on ``observations`` (default: all of the task's) under a counted budget.
@@ -390,7 +397,8 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
     the result's ``method``, ``n_simulations``, ``wall_time``, ``compile_time``, ``import_time``
     and ``n_tasks`` are set here (``wall_time`` excludes the numba compilation measured as
     ``compile_time`` and the imports measured as ``import_time``: loading the method's module
-    and its ``setup``, done before the clock starts).
+    and its ``setup``, done before the clock starts; it includes the recorded seconds of work
+    the method read back from an earlier, killed run's checkpoints, ``extras["resumed_seconds"]``).
     A result whose status is not "ok" is warned about (RuntimeWarning).
 
     ``errors``: ``"raise"`` (default) lets an exception raised inside the method propagate;
@@ -411,7 +419,8 @@ def run_method(name: str, task: Task, observations: Sequence | None = None, *, b
         if exc is not None:
             result = failed_result(name, task, len(observations), exc)
         elapsed = time.perf_counter() - t0
-    result = replace(result, method=name, n_simulations=counter.n_simulations, wall_time=max(0.0, elapsed - jit.seconds),
+    result = replace(result, method=name, n_simulations=counter.n_simulations,
+                     wall_time=max(0.0, elapsed - jit.seconds) + _resumed_seconds(result),
                      compile_time=jit.seconds, import_time=imported, n_tasks=len(observations))
     _warn_status(name, result)
     return result
@@ -457,7 +466,8 @@ def run_method_sequence(name: str, task: Task, observations: Sequence | None = N
                 break
             compiling = jit.seconds
             r = replace(r, method=name, n_tasks=len(out) + 1, n_simulations=counter.n_simulations,
-                        wall_time=max(0.0, time.perf_counter() - t0 - compiling), compile_time=compiling,
+                        wall_time=max(0.0, time.perf_counter() - t0 - compiling) + _resumed_seconds(r),
+                        compile_time=compiling,
                         import_time=imported)
             _warn_status(name, r)
             out.append(r)
