@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import numbers
+import os
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -132,6 +133,13 @@ def renamed_fields(**old_to_new: str):
         return cls
 
     return decorate
+
+
+def check_workdir(x, name: str = "workdir"):
+    """A config's artefact folder: None or a path (TypeError naming ``name`` otherwise)."""
+    if x is not None and not isinstance(x, (str, os.PathLike)):
+        raise TypeError(f"{name}: expected a path or None, got {type(x).__name__}")
+    return x
 
 
 def check_positive_int(x, name: str, *, minimum: int = 1) -> int:

@@ -99,6 +99,45 @@ def test_tsnpe_spends_each_task_budget_in_rounds_and_never_hangs(task):
         run_method("tsnpe", task, budget=40, seed=1, config={**cfg, "rounds": 4})
 
 
+_TINY = {"nle": {"max_epochs": 3, "hidden_features": 8, "num_transforms": 1, "training_batch_size": 20,
+                 "n_posterior_samples": 200, "smc_max_stages": 20},
+         "tsnpe": {"max_epochs": 3, "hidden_features": 8, "num_transforms": 1, "training_batch_size": 20,
+                   "n_posterior_samples": 200, "rounds": 2, "support_samples": 500}}
+
+
+@pytest.mark.parametrize(("name", "trainer"), [("nle", "train_nle"), ("tsnpe", "train_tsnpe")])
+def test_killed_run_resumes_from_task_checkpoints_with_the_same_numbers(task, tmp_path, monkeypatch, name, trainer):
+    """A kill while task 1 trains; the re-run reads task 0 back (trains task 1 only) and gives
+    exactly the uninterrupted run's draws, its counted simulations and task 0's recorded seconds."""
+    cfg = _TINY[name]
+    fresh = run_method(name, task, budget=61, seed=3, config=cfg)
+    real, calls = getattr(sbi_adapter, trainer), []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        if kill and len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(sbi_adapter, trainer, counted)
+    work = {**cfg, "workdir": str(tmp_path)}
+    kill = True
+    with pytest.raises(KeyboardInterrupt):
+        run_method(name, task, budget=61, seed=3, config=work)
+    assert len(list((tmp_path / f"{name}_tasks").glob("task000-*.pt"))) == 1
+    kill, calls[:] = False, []
+    resumed = run_method(name, task, budget=61, seed=3, config=work)
+    assert len(calls) == 1 and resumed.extras["resumed_tasks"] == [0]
+    assert resumed.n_simulations == fresh.n_simulations == 122
+    np.testing.assert_array_equal(resumed.samples, fresh.samples)
+    np.testing.assert_array_equal(resumed.weights, fresh.weights)
+    first = resumed.extras["tasks"][0]
+    assert resumed.wall_time >= first["time_simulate"] + first["time_train"] > 0
+    calls[:] = []  # another seed is another key: nothing is read back
+    run_method(name, task, budget=61, seed=4, config=work)
+    assert len(calls) == 2
+
+
 @pytest.mark.parametrize(("name", "field", "value", "error"), [
     ("nle", "density_estimator", "mdn", ValueError),
     ("nle", "num_transforms", 0, ValueError),
@@ -114,6 +153,8 @@ def test_tsnpe_spends_each_task_budget_in_rounds_and_never_hangs(task):
     ("tsnpe", "device", "no-such-device", ValueError),
     ("nle", "smc_max_stages", 0, ValueError),
     ("fmpe", "validation_fraction", 0.6, ValueError),
+    ("nle", "workdir", 3, TypeError),
+    ("tsnpe", "workdir", 3.0, TypeError),
 ])
 def test_configs_refuse_bad_values_naming_the_field(name, field, value, error):
     with pytest.raises(error, match=f"^{field}:"):

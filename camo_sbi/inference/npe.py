@@ -65,11 +65,12 @@ from camo_sbi._validation import (
     check_point_estimate,
     check_positive_float,
     check_positive_int,
+    check_workdir,
     renamed_fields,
 )
 from camo_sbi.budget import charge
 from camo_sbi.distributed import parse_scheduler, run_chunks
-from camo_sbi.inference import npe_checkpoint, samplers, sbi_adapter
+from camo_sbi.inference import samplers, sbi_adapter, task_checkpoint
 from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.flow_space import to_unconstrained, torch_threads, trajectory_summary
 from camo_sbi.inference.npe_posterior import TRANSFORMS, NpePosterior
@@ -130,7 +131,7 @@ class NpeConfig:
         workdir: None, or a directory (created) receiving ``npe_posterior_k{k}_seed{seed}.pt``
             (tensors) and its ``.pt.json`` metadata with the sha256 (reload with
             `npe_posterior.load_posterior`), and each task's flow as soon as it is trained
-            (`npe_checkpoint`): a run killed after task i, re-run with the same settings and
+            (`task_checkpoint`): a run killed after task i, re-run with the same settings and
             workdir, reads tasks 0..i back instead of training them again (same numbers;
             their recorded simulations and seconds are still counted).
         device: torch device for training ("cpu").
@@ -186,8 +187,7 @@ class NpeConfig:
         check_positive_int(self.n_posterior_samples, "n_posterior_samples", minimum=2)
         check_sampling_settings(self)
         check_bool(self.reuse_mixture_draws, "reuse_mixture_draws")
-        if self.workdir is not None and not isinstance(self.workdir, (str, os.PathLike)):
-            raise TypeError(f"workdir: expected a path or None, got {type(self.workdir).__name__}")
+        check_workdir(self.workdir)
 
 
 def check_sampling_settings(config) -> None:
@@ -250,6 +250,22 @@ def _train_flow(theta_z: torch.Tensor, x: torch.Tensor, config: NpeConfig, seed:
     )
 
 
+def flow_architecture(config) -> dict:
+    """What `build_flow` needs to rebuild a config's per-task flow (NPE, TSNPE: sbi's ``posterior_nn``)."""
+    return {"density_estimator": config.density_estimator, "hidden_features": config.hidden_features,
+            "num_transforms": config.num_transforms,
+            "embedding_dim": config.embedding_dim if getattr(config, "embedding", "none") == "mlp" else None}
+
+
+def build_flow(n_free: int, n_x: int, architecture: dict):
+    """An untrained per-task flow of ``architecture`` (`flow_architecture`), for a checkpoint's state dict."""
+    emb = architecture["embedding_dim"]
+    return sbi_adapter.new_npe_estimator(
+        n_free, n_x, density_estimator=architecture["density_estimator"],
+        hidden_features=int(architecture["hidden_features"]), num_transforms=int(architecture["num_transforms"]),
+        embedding_dim=None if emb is None else int(emb))
+
+
 def _check_run_args(task, observations, budget, seed, config):
     config, budget, seed, observations, prior = check_run_args(task, observations, budget, seed, config,
                                                                NpeConfig)
@@ -293,9 +309,9 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
     for i, obs in enumerate(observations):
         key = None
         if config.workdir is not None:
-            key = npe_checkpoint.task_key(task, obs, index=i, budget=budget, seed=seed, config=config,
-                                          previous=previous_key if config.warm_start else None)
-            stored = npe_checkpoint.load_task(config.workdir, i, key)
+            key = task_checkpoint.task_key("npe", task, obs, index=i, budget=budget, seed=seed, config=config,
+                                           previous=previous_key if config.warm_start else None)
+            stored = task_checkpoint.load_task(config.workdir, "npe", i, key, build_flow)
             if stored is not None:  # trained by an earlier (killed) run with these very settings
                 est, xo, info = stored
                 charge(sim, budget)  # those simulations were run, in that earlier process
@@ -333,8 +349,8 @@ def _train_tasks(task, observations, budget: int, seed: int, config: NpeConfig):
         info.update(task=i, n_features=int(keep.sum()), n_invalid=int((~finite).sum()),
                     time_simulate=t_sim, warm_start=bool(config.warm_start and i > 0))
         if key is not None:
-            npe_checkpoint.save_task(config.workdir, i, key, est, xo.float(), info, n_free=int(prior.n_free),
-                                     config=config)
+            task_checkpoint.save_task(config.workdir, "npe", i, key, est, xo.float(), info,
+                                      n_free=int(prior.n_free), architecture=flow_architecture(config))
         previous_key = key
         yield est, xo.float(), {**info, "resumed": False}
 

@@ -616,7 +616,7 @@ register(MethodSpec("exact-likelihood", "NOT simulation-based: tempered SMC on t
                     "model, the Bayes limit with these data (simulations counted, exempt from the budget)", _exact,
                     Capabilities(exact=True)))
 register(MethodSpec("nle", "neural likelihood estimation (sbi NLE_A), one likelihood per task, summed, sampled by "
-                    "tempered SMC", _nle, Capabilities(continual=True)))
+                    "tempered SMC", _nle, Capabilities(continual=True, workdir=True)))
 register(MethodSpec("nre", "neural ratio estimation (sbi NRE_C), one ratio per task, summed, sampled by tempered SMC",
                     _nre, Capabilities(continual=True)))
 register(MethodSpec("fmpe", "flow-matching posterior estimation (sbi FMPE), one posterior per task, combined as "
@@ -624,4 +624,4 @@ register(MethodSpec("fmpe", "flow-matching posterior estimation (sbi FMPE), one 
 register(MethodSpec("npse", "neural posterior score estimation (sbi NPSE, ODE density), one posterior per task, "
                     "combined as npe's flows", _npse, Capabilities(continual=True)))
 register(MethodSpec("tsnpe", "truncated sequential NPE (sbi NPE_C + RestrictedPrior, 3 rounds per task), "
-                    "combined as npe's flows", _tsnpe, Capabilities(continual=True)))
+                    "combined as npe's flows", _tsnpe, Capabilities(continual=True, workdir=True)))

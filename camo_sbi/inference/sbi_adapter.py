@@ -744,6 +744,24 @@ def train_nle(theta: torch.Tensor, x: torch.Tensor, *, seed: int, density_estima
     return est.to("cpu").eval(), info
 
 
+def new_nle_estimator(n_theta: int, n_x: int, *, density_estimator: str = "maf", hidden_features: int = 50,
+                      num_transforms: int = 5) -> nn.Module:
+    """An untrained estimator of the very architecture `train_nle` builds for these sizes, to receive
+    a trained one's state dict (z-scoring statistics included: they are buffers). Built on stand-in
+    data (fixed seed, global torch RNG untouched)."""
+    check_sbi_version()
+    check_choice(density_estimator, FLOW_KINDS, "density_estimator")
+    from sbi.neural_nets import likelihood_nn
+
+    n_theta, n_x = check_positive_int(n_theta, "n_theta"), check_positive_int(n_x, "n_x")
+    with torch.random.fork_rng(devices=[]), _quiet():
+        torch.manual_seed(0)
+        builder = likelihood_nn(model=density_estimator, hidden_features=hidden_features,
+                                num_transforms=num_transforms)
+        net = builder(torch.randn(8, n_theta), torch.randn(8, n_x))
+    return net.to("cpu").eval()
+
+
 @torch.no_grad()
 def nle_log_likelihood(estimator: nn.Module, x_obs: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     """(N,) float64 log q(x_obs | theta_j) of a `train_nle` estimator for theta (N, d), x_obs (F,)."""

@@ -25,7 +25,9 @@ module does the rest, the same way for all five and the same way per-task NPE (`
 
 3. Continual use: task i's draws, noise and training are seeded by (seed, i) only and the
    sampler by ``seed``, so `run_sequence` simulates and trains each task once and its k-th
-   result equals `run` on the first k tasks.
+   result equals `run` on the first k tasks. For the same reason a family that says how to
+   save and rebuild its estimator (`Checkpoint`: NLE, TSNPE) and is given a ``workdir`` saves
+   each trained task there, and a killed run resumes at its next task (`task_checkpoint`).
 
 A sampler that cannot produce draws at all (every importance weight zero, e.g. an FMPE or NPSE
 density that is NaN everywhere; sbi's ODE solver raising on a diverged vector field) is not an
@@ -36,14 +38,17 @@ estimate, as CAMO and ABC-SMC do. Too few effective draws is a ``fallback`` (the
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from camo_sbi._validation import check_bool, check_choice, check_positive_float, check_positive_int
+from camo_sbi.budget import charge
 from camo_sbi.distributed import run_chunks
-from camo_sbi.inference import samplers, sbi_adapter
+from camo_sbi.inference import samplers, sbi_adapter, task_checkpoint
 from camo_sbi.inference.contract import check_run_args
 from camo_sbi.inference.flow_space import (
     from_unconstrained,
@@ -66,7 +71,7 @@ from camo_sbi.task import SPACES
 
 # a config with a ``rounds`` field (TSNPE) splits each task's budget over that many rounds
 
-__all__ = ["KINDS", "FamilyConfig", "VectorFieldConfig", "run", "run_sequence", "train_vector_field"]
+__all__ = ["KINDS", "Checkpoint", "FamilyConfig", "VectorFieldConfig", "run", "run_sequence", "train_vector_field"]
 
 KINDS = ("likelihood", "posterior")
 _U_EPS = 1e-6
@@ -186,11 +191,35 @@ def _check(task, observations, budget, seed, config, config_cls):
     return config, budget, seed, observations, prior
 
 
-def _tasks(task, observations, budget: int, seed: int, config, train):
-    """Yield (estimator, observed summary, info) per task, in order: simulate, summarise, train."""
+class Checkpoint(NamedTuple):
+    """How a family's per-task estimator is saved and rebuilt (`task_checkpoint`), for a config
+    with a ``workdir``: ``module_of(estimator)`` is the network saved, ``wrap(network)`` the
+    estimator again, ``build(n_free, n_x, architecture)`` an untrained network of
+    ``architecture(config)``."""
+
+    module_of: Callable
+    wrap: Callable
+    build: Callable
+    architecture: Callable
+
+
+def _tasks(task, observations, budget: int, seed: int, config, train, method: str, checkpoint: Checkpoint | None):
+    """Yield (estimator, observed summary, info) per task, in order: simulate, summarise, train
+    (or read back a task an earlier run trained, with ``checkpoint`` and a ``workdir``)."""
     prior, sim, dtype = task.prior, task.simulator, _DTYPES[config.sim_dtype]
     lo, width = prior.low[prior.free_mask], (prior.high - prior.low)[prior.free_mask]
+    workdir = getattr(config, "workdir", None) if checkpoint is not None else None
     for i, obs in enumerate(observations):
+        key = None
+        if workdir is not None:
+            key = task_checkpoint.task_key(method, task, obs, index=i, budget=budget, seed=seed, config=config)
+            stored = task_checkpoint.load_task(workdir, method, i, key, checkpoint.build)
+            if stored is not None:  # trained by an earlier (killed) run with these very settings
+                module, xo, info = stored
+                charge(sim, int(info["n_simulations"]))  # run in that earlier process
+                yield checkpoint.wrap(module), xo.float(), {**info, "resumed": True}
+                continue
+        counted_before = getattr(sim, "n_simulations", None)
         start = torch.as_tensor(obs.start, dtype=torch.float64).cpu()
         goal = torch.as_tensor(obs.goal, dtype=torch.float64).cpu()
         traj = torch.as_tensor(obs.trajectory(config.space), dtype=torch.float64).cpu()
@@ -232,13 +261,27 @@ def _tasks(task, observations, budget: int, seed: int, config, train):
                               budget=budget)
         info = {**info, "task": i, "n_features": int(keep.sum()), "n_invalid": int((~finite).sum())}
         info["time_simulate"] = t_sim
-        yield est, xo[keep].float(), info
+        info["n_simulations"] = budget if counted_before is None else int(sim.n_simulations - counted_before)
+        if key is not None:
+            task_checkpoint.save_task(workdir, method, i, key, checkpoint.module_of(est), xo[keep].float(), info,
+                                      n_free=int(prior.n_free), architecture=checkpoint.architecture(config))
+        yield est, xo[keep].float(), {**info, "resumed": False}
+
+
+def _resumed(infos) -> dict:
+    """Which tasks were read back from checkpoints and their recorded seconds (counted in the
+    wall time, by the registry too: resuming never makes a method look faster)."""
+    back = [t for t in infos if t.get("resumed")]
+    return {"resumed_tasks": [t["task"] for t in back],
+            "resumed_seconds": sum(t["time_simulate"] + t["time_train"] for t in back)}
 
 
 def _failed(task, why: str, method: str, infos, t_start) -> PosteriorResult:
+    resumed = _resumed(infos)
     return failed_at_prior_centre(method, task.prior, len(infos), why,
                                   n_simulations=int(getattr(task.simulator, "n_simulations", 0)),
-                                  wall_time=time.perf_counter() - t_start, extras={"tasks": list(infos)})
+                                  wall_time=time.perf_counter() - t_start + resumed["resumed_seconds"],
+                                  extras={"tasks": list(infos), **resumed})
 
 
 def _likelihood_draws(prior, terms, config, seed):
@@ -292,43 +335,48 @@ def _result(task, kind: str, method: str, estimators, x_obs, infos, config, seed
         return _failed(task, why, method, infos, t_start)
     extras = {"ess": draws.ess, "sampler": draws.sampler, "sampler_diagnostics": dict(draws.diagnostics),
               "tasks": list(infos), "time_simulate": sum(t["time_simulate"] for t in infos),
-              "time_train": sum(t["time_train"] for t in infos), "time_sample": time.perf_counter() - t0}
+              "time_train": sum(t["time_train"] for t in infos), "time_sample": time.perf_counter() - t0,
+              **_resumed(infos)}
     return PosteriorResult(
         method=method, samples=draws.samples.numpy(), weights=draws.weights.numpy(),
         estimate=point_estimate(draws, config.point_estimate, prior),
-        n_simulations=int(getattr(task.simulator, "n_simulations", 0)), wall_time=time.perf_counter() - t_start,
+        n_simulations=int(getattr(task.simulator, "n_simulations", 0)),
+        wall_time=time.perf_counter() - t_start + extras["resumed_seconds"],
         n_tasks=len(infos), extras=extras, status=draws.status(config.min_ess), density=density,
     )
 
 
-def _accumulate(task, observations, budget, seed, config, config_cls, train, kind):
+def _accumulate(task, observations, budget, seed, config, config_cls, train, kind, method, checkpoint):
     """Check the arguments, then yield (config, estimators, summaries, infos, t_start) after each task."""
     check_choice(kind, KINDS, "kind")
     config, budget, seed, observations, _ = _check(task, observations, budget, seed, config, config_cls)
     t_start = time.perf_counter()
     ests, xs, infos = [], [], []
-    for est, xo, info in _tasks(task, observations, budget, seed, config, train):
+    for est, xo, info in _tasks(task, observations, budget, seed, config, train, method, checkpoint):
         ests.append(est)
         xs.append(xo)
         infos.append(info)
         yield config, ests, xs, infos, t_start
 
 
-def run_sequence(task, observations, *, budget: int, seed: int, config, config_cls, train, kind: str, method: str):
+def run_sequence(task, observations, *, budget: int, seed: int, config, config_cls, train, kind: str, method: str,
+                 checkpoint: Checkpoint | None = None):
     """Yield the result conditioned on the first 1, 2, ..., K tasks (each task trained once).
 
     ``train(z, x, x_obs, simulate, seed, config, budget=budget) -> (estimator, info)``: a
     ``"likelihood"`` estimator is a callable ``(x_obs, z) -> (N,)`` log term, a ``"posterior"``
     one a flow-like module (``log_prob``, ``sample``); ``info`` has ``time_train``.
+    ``checkpoint``: how to save and rebuild an estimator (`Checkpoint`); with it and a config
+    whose ``workdir`` is set, each trained task is saved there and a re-run reads it back.
     """
     for checked, ests, xs, infos, t_start in _accumulate(task, observations, budget, seed, config, config_cls,
-                                                         train, kind):
+                                                         train, kind, method, checkpoint):
         yield _result(task, kind, method, ests, xs, infos, checked, seed, t_start)
 
 
 def run(task, observations, *, budget: int, seed: int, config, config_cls, train, kind: str,
-        method: str) -> PosteriorResult:
+        method: str, checkpoint: Checkpoint | None = None) -> PosteriorResult:
     """The result conditioned on every task in ``observations`` (the last of `run_sequence`)."""
-    *_, last = _accumulate(task, observations, budget, seed, config, config_cls, train, kind)
+    *_, last = _accumulate(task, observations, budget, seed, config, config_cls, train, kind, method, checkpoint)
     config, ests, xs, infos, t_start = last
     return _result(task, kind, method, ests, xs, infos, config, seed, t_start)

@@ -11,10 +11,11 @@ Sequential within a task, continual over tasks. Shared machinery: `sbi_family`.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
-from camo_sbi._validation import check_choice, check_positive_float, check_positive_int
-from camo_sbi.inference import sbi_adapter, sbi_family
+from camo_sbi._validation import check_choice, check_positive_float, check_positive_int, check_workdir
+from camo_sbi.inference import npe, sbi_adapter, sbi_family
 
 __all__ = ["TsnpeConfig", "run", "run_sequence"]
 
@@ -26,7 +27,9 @@ class TsnpeConfig(sbi_family.FamilyConfig):
     ``quantile`` (posterior mass left out of the truncated region), ``support_samples``
     (posterior draws that set the threshold, and prior draws that measure its acceptance),
     ``min_acceptance`` (below it the truncated prior is drawn by SIR from the posterior instead
-    of by rejection from the prior)."""
+    of by rejection from the prior); ``workdir``: None, or a folder where each task's last-round
+    flow is saved as soon as it is trained, so that a killed run resumes at its next task
+    (`task_checkpoint`; same numbers, the earlier tasks' simulations and seconds still counted)."""
 
     density_estimator: str = "maf"
     num_transforms: int = 5
@@ -34,6 +37,7 @@ class TsnpeConfig(sbi_family.FamilyConfig):
     quantile: float = 1e-4
     support_samples: int = 10000
     min_acceptance: float = 1e-3
+    workdir: str | os.PathLike | None = None
 
     def __post_init__(self):
         super().__post_init__()
@@ -45,6 +49,7 @@ class TsnpeConfig(sbi_family.FamilyConfig):
             raise ValueError(f"quantile: must be in (0, 1), got {self.quantile}")
         check_positive_int(self.support_samples, "support_samples", minimum=100)
         check_positive_float(self.min_acceptance, "min_acceptance")
+        check_workdir(self.workdir)
 
 
 def _train(z, x, x_obs, simulate, seed, config: TsnpeConfig, budget):
@@ -57,7 +62,10 @@ def _train(z, x, x_obs, simulate, seed, config: TsnpeConfig, budget):
         stop_after_epochs=config.stop_after_epochs, max_epochs=config.max_epochs, device=config.device)
 
 
-_ARGS = {"config_cls": TsnpeConfig, "train": _train, "kind": "posterior", "method": "tsnpe"}
+_CHECKPOINT = sbi_family.Checkpoint(module_of=lambda flow: flow, wrap=lambda flow: flow, build=npe.build_flow,
+                                    architecture=npe.flow_architecture)
+_ARGS = {"config_cls": TsnpeConfig, "train": _train, "kind": "posterior", "method": "tsnpe",
+         "checkpoint": _CHECKPOINT}
 
 
 def run(task, observations, *, budget: int, seed: int, config: TsnpeConfig | None = None):
