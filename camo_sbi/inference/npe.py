@@ -425,7 +425,8 @@ def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed:
     return PosteriorResult(
         method="npe", samples=draws.samples.numpy(), weights=draws.weights.numpy(), estimate=estimate,
         n_simulations=int(getattr(task.simulator, "n_simulations", budget * posterior.n_tasks)),
-        wall_time=time.perf_counter() - t_start + extras["resumed_seconds"], n_tasks=posterior.n_tasks, extras=extras,
+        wall_time=time.perf_counter() - t_start + extras["resumed_seconds"], n_tasks=posterior.n_tasks,
+        extras=extras,
         status=draws.status(config.min_ess), density=posterior.log_prob,
     )
 

@@ -37,8 +37,8 @@ class PosteriorResult:
         n_simulations: simulations actually consumed, as counted by the budget wrapper.
         wall_time: seconds spent in ``run``, without JIT compilation (``compile_time``) or
             imports (``import_time``), plus the recorded seconds of work read back from an
-            earlier, killed run's checkpoints (``extras["resumed_seconds"]``, NPE's per-task
-            flows), so that resuming never makes a method look faster.
+            earlier, killed run's checkpoints (``extras["resumed_seconds"]``: the per-task
+            networks of npe, nle and tsnpe), so that resuming never makes a method look faster.
         n_tasks: number of observed tasks the posterior conditions on.
         extras: method-specific data (e.g. per-task acceptance counts, epsilons).
         status: ``"ok"``; ``"fallback: <reason>"`` when the method could not do what it

@@ -14,7 +14,12 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from camo_sbi._validation import check_choice, check_positive_float, check_positive_int, check_workdir
+from camo_sbi._validation import (
+    check_choice,
+    check_positive_float,
+    check_positive_int,
+    check_workdir,
+)
 from camo_sbi.inference import npe, sbi_adapter, sbi_family
 
 __all__ = ["TsnpeConfig", "run", "run_sequence"]
