@@ -8,11 +8,10 @@ notebooks/*.ipynb inherit them:
 * ``MPLBACKEND=Agg``: no GUI backend, whatever the developer's environment says.
 
 The default tier executes only the quickstart notebook; the other notebooks are in the slow
-tier (`SLOW_NOTEBOOKS`, marked here because nbmake items carry no marks of their own). Each
-starts a Jupyter kernel that imports torch and sbi and runs a small study: together about 140 s
-of the default tier's 770 s of test time on a 2-core machine whose imports are slow (an AVX2-only
-EPYC, 2026-12-07), where the default tier took over 7 minutes against CI's 4. `.ci/run` still
-runs them.
+tier (`SLOW_NOTEBOOKS`, marked here because nbmake items carry no marks of their own): each
+starts a Jupyter kernel that imports torch and sbi and runs a small study, a large share of the
+default tier's time on a machine whose imports are slow (measured in
+docs/getting-started/install.md). `.ci/run` still runs them.
 """
 
 import os
