@@ -97,6 +97,7 @@ from camo_sbi._validation import (
     check_point_estimate,
     check_positive_float,
     check_positive_int,
+    check_workdir,
     renamed_fields,
 )
 from camo_sbi.distributed import parse_scheduler, run_chunks
@@ -236,8 +237,7 @@ class AbcSmcConfig:
         check_choice(self.sim_dtype, _DTYPES, "sim_dtype")
         if self.log_level not in ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"):
             raise ValueError(f"log_level: expected a logging level name, got {self.log_level!r}")
-        if self.workdir is not None and not isinstance(self.workdir, (str, os.PathLike)):
-            raise TypeError(f"workdir: expected a path or None, got {type(self.workdir).__name__}")
+        check_workdir(self.workdir)
         check_positive_int(self.chunk_size, "chunk_size")
         parse_scheduler(self.scheduler)
         check_positive_float(self.min_ess_fraction, "min_ess_fraction", allow_zero=True)

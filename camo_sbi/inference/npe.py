@@ -416,11 +416,7 @@ def _result(task, posterior: NpePosterior, config: NpeConfig, budget: int, seed:
         "time_train": sum(t["time_train"] for t in tasks),
         "time_sample": t_sample,
         "posterior_path": None if path is None else str(path),
-        "resumed_tasks": [t["task"] for t in tasks if t.get("resumed")],
-        # a task read from a checkpoint cost its recorded simulation and training time in an
-        # earlier process: the wall time counts it (here and in the registry's clock), so
-        # resuming never makes a method look faster
-        "resumed_seconds": sum(t["time_simulate"] + t["time_train"] for t in tasks if t.get("resumed")),
+        **task_checkpoint.resumed_summary(tasks),
     }
     return PosteriorResult(
         method="npe", samples=draws.samples.numpy(), weights=draws.weights.numpy(), estimate=estimate,

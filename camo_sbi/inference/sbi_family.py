@@ -268,16 +268,8 @@ def _tasks(task, observations, budget: int, seed: int, config, train, method: st
         yield est, xo[keep].float(), {**info, "resumed": False}
 
 
-def _resumed(infos) -> dict:
-    """Which tasks were read back from checkpoints and their recorded seconds (counted in the
-    wall time, by the registry too: resuming never makes a method look faster)."""
-    back = [t for t in infos if t.get("resumed")]
-    return {"resumed_tasks": [t["task"] for t in back],
-            "resumed_seconds": sum(t["time_simulate"] + t["time_train"] for t in back)}
-
-
 def _failed(task, why: str, method: str, infos, t_start) -> PosteriorResult:
-    resumed = _resumed(infos)
+    resumed = task_checkpoint.resumed_summary(infos)
     return failed_at_prior_centre(method, task.prior, len(infos), why,
                                   n_simulations=int(getattr(task.simulator, "n_simulations", 0)),
                                   wall_time=time.perf_counter() - t_start + resumed["resumed_seconds"],
@@ -336,7 +328,7 @@ def _result(task, kind: str, method: str, estimators, x_obs, infos, config, seed
     extras = {"ess": draws.ess, "sampler": draws.sampler, "sampler_diagnostics": dict(draws.diagnostics),
               "tasks": list(infos), "time_simulate": sum(t["time_simulate"] for t in infos),
               "time_train": sum(t["time_train"] for t in infos), "time_sample": time.perf_counter() - t0,
-              **_resumed(infos)}
+              **task_checkpoint.resumed_summary(infos)}
     return PosteriorResult(
         method=method, samples=draws.samples.numpy(), weights=draws.weights.numpy(),
         estimate=point_estimate(draws, config.point_estimate, prior),

@@ -40,7 +40,7 @@ from camo_sbi._files import read_json
 from camo_sbi._io import atomic_write_bytes, atomic_write_text
 from camo_sbi.inference import sbi_adapter
 
-__all__ = ["file_format", "load_task", "save_task", "task_key"]
+__all__ = ["file_format", "load_task", "resumed_summary", "save_task", "task_key"]
 
 _NOT_IN_KEY = ("workdir", "scheduler")
 
@@ -131,3 +131,13 @@ def load_task(workdir, method: str, index: int, key: str,
                       f"task {index} is trained again", RuntimeWarning, stacklevel=3)
         return None
     return module.eval(), x_obs, info
+
+
+def resumed_summary(infos) -> dict:
+    """Which of a run's per-task ``infos`` were read back (``"resumed"``) and their recorded
+    simulation and training seconds: a result's ``extras["resumed_tasks"]`` and
+    ``extras["resumed_seconds"]`` (added to its wall time, by the registry too, so that
+    resuming never makes a method look faster)."""
+    back = [t for t in infos if t.get("resumed")]
+    return {"resumed_tasks": [t["task"] for t in back],
+            "resumed_seconds": sum(t["time_simulate"] + t["time_train"] for t in back)}
