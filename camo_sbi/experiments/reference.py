@@ -37,7 +37,8 @@ budget and observation the usual metrics plus ``c2st`` and ``mmd`` against the r
 (`calibration.reference_distances`), ``reference_check_c2st`` (the reference's own check) and
 ``posterior_distinct_draws``; point estimates (naive, nominal, oracle) get NaN and the status
 "not a posterior" in ``c2st_status``, never a number. ``exact-likelihood`` is not
-simulation-based (registry ``Capabilities.exact``): its rows are the same SMC at every budget,
+simulation-based (registry ``Capabilities.exact``): its run does not depend on the budget, so it
+runs once per observation and its rows are filed under the smallest budget (`registry.grid_budgets`),
 sampled as the set was (its ``--draws``, ``--moves`` and ``--mcmc-steps`` from reference.json)
 unless ``--config`` says otherwise. It also writes ``claims.csv`` (`claims.reference_claims`:
 within C2ST 0.65 of the reference, or for the exact method indistinguishable at 0.55) and,
@@ -416,7 +417,7 @@ def compare_main(args, methods: list[str], budgets: list[int]) -> int:
     from camo_sbi.experiments.method_configs import parse_configs
     from camo_sbi.experiments.models import ModelSpec
     from camo_sbi.experiments.rundir import RunDirectory, run_settings
-    from camo_sbi.inference.registry import capabilities
+    from camo_sbi.inference.registry import capabilities, grid_budgets
 
     t0 = time.perf_counter()
     refs = Path(args.reference)
@@ -445,7 +446,7 @@ def compare_main(args, methods: list[str], budgets: list[int]) -> int:
     cells = []
     for entry in prov["observations"]:
         for method in methods:
-            for budget in budgets:
+            for budget in grid_budgets(method, budgets):  # an exact method: once, at the smallest
                 extras = {"reference": str(refs.resolve()), "entry": json.dumps(entry, sort_keys=True),
                           "space": space, "base_seed": args.seed}
                 if method in overrides:

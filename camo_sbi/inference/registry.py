@@ -190,6 +190,14 @@ def capabilities(name: str) -> Capabilities:
     return get_method(name).capabilities
 
 
+def grid_budgets(name: str, budgets: Sequence[int]) -> list[int]:
+    """The budgets a grid runs method ``name`` at: every one of ``budgets``, or for a method
+    exempt from the budget (`Capabilities.exact`: its run does not depend on the budget, so
+    every budget would repeat the same run) only the smallest, where its rows are filed."""
+    budgets = list(budgets)
+    return [min(budgets)] if budgets and capabilities(name).exact else budgets
+
+
 def make_config(name: str, config=None, **overrides):
     """The method's frozen config, from defaults, an existing config, or a dict, plus overrides.
 
