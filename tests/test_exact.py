@@ -117,11 +117,8 @@ def test_noise_free_task_is_a_failed_run_not_a_posterior(arm1):
 
 
 def test_the_run_does_not_depend_on_the_budget_so_a_grid_runs_it_once(arm1):
-    """Why `registry.grid_budgets` may run exact-likelihood at one budget only: the same seed gives
-    the same draws at any budget, while a simulation-based method keeps every budget."""
-    import argparse
-
-    from camo_sbi.experiments import compare
+    """Why `compare --reference` may run exact-likelihood at one budget only (`registry.grid_budgets`;
+    its cells: tests/test_reference.py): the same seed gives the same draws at any budget."""
     from camo_sbi.inference.registry import grid_budgets, run_method
 
     goal = torch.tensor([0.0, R, 0.0], dtype=torch.float64)
@@ -135,14 +132,6 @@ def test_the_run_does_not_depend_on_the_budget_so_a_grid_runs_it_once(arm1):
     assert small.n_simulations == large.n_simulations > 10  # counted, never capped by the budget
     assert grid_budgets("exact-likelihood", [1000, 100, 10_000]) == [100]
     assert grid_budgets("camo-seq", [1000, 100]) == [1000, 100] and grid_budgets("exact-likelihood", []) == []
-    p = argparse.ArgumentParser()
-    compare.add_arguments(p)
-    args = p.parse_args(["--model", "panda", "--methods", "camo-seq,exact-likelihood", "--budgets", "500,60",
-                         "--seeds", "2"])
-    cells = compare.grid_cells(args, build=False)
-    per = {m: sorted({c.budget for c in cells if c.method == m}) for m in {c.method for c in cells}}
-    assert per["exact-likelihood"] == [60] and per["camo-seq"] == per["naive"] == [60, 500]
-    assert sum(c.method == "exact-likelihood" for c in cells) == 2  # once per seed
 
 
 def test_bad_input_names_the_argument(arm1):

@@ -106,7 +106,7 @@ def grid_cells(args, *, build: bool = True) -> list:
     # keys it always had, any other adds its settings as "model"
     model_key = (("task", model.name),) + (() if model.is_default else
                                            (("model", json.dumps(model.key(), sort_keys=True)),))
-    from camo_sbi.inference.registry import capabilities, grid_budgets
+    from camo_sbi.inference.registry import capabilities
 
     amortized = {m for m in methods if capabilities(m).amortized}
     amortized_path = getattr(args, "amortized", None)
@@ -117,7 +117,7 @@ def grid_cells(args, *, build: bool = True) -> list:
     cells = []
     for subject in subjects:
         for method in methods:
-            for budget in grid_budgets(method, budgets):  # an exact method: once, at the smallest
+            for budget in budgets:
                 for seed in range(args.seeds):
                     extras = {"test_goals": args.test_goals, "space": args.space, "base_seed": args.seed}
                     if method in amortized:

@@ -466,7 +466,8 @@ def compare_main(args, methods: list[str], budgets: list[int]) -> int:
         df = store.write_table(keys=[c.key for c in cells])
     shown = ["c2st", "mmd", "limit_error_binding_deg", "coverage90", "n_simulations"]
     print(summary_table(df[df.metric.isin(shown)], shown, unit="observations", block="budget"))
-    print("exact-likelihood is not simulation-based (the Bayes limit with these data); point estimates have no C2ST")
+    print("exact-likelihood is not simulation-based (the Bayes limit with these data; run once, under the smallest "
+          "budget); point estimates have no C2ST")
     claims = reference_claims(df, setting=f"reference: {prov['model']['kind']}, {prov['settings']['setting']}")
     atomic_write_text(out / "claims.csv", claims.to_csv(index=False))
     for _, r in claims.iterrows():
