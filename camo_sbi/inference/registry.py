@@ -191,9 +191,11 @@ def capabilities(name: str) -> Capabilities:
 
 
 def grid_budgets(name: str, budgets: Sequence[int]) -> list[int]:
-    """The budgets a grid runs method ``name`` at: every one of ``budgets``, or for a method
-    exempt from the budget (`Capabilities.exact`: its run does not depend on the budget, so
-    every budget would repeat the same run) only the smallest, where its rows are filed."""
+    """The budgets ``compare --reference`` runs method ``name`` at: every one of ``budgets``, or
+    for a method exempt from the budget (`Capabilities.exact`: its run does not depend on the
+    budget, so every budget would repeat the same run) only the smallest, where its rows are
+    filed. The plain ``compare`` grid does not use it: its figures and summary are drawn at the
+    largest budget, so it runs an exact method at every budget."""
     budgets = list(budgets)
     return [min(budgets)] if budgets and capabilities(name).exact else budgets
 
