@@ -38,11 +38,12 @@ The method ``exact-likelihood`` samples this posterior by tempered SMC (`sampler
 prior box (as base) to the posterior, moving in theta's free coordinates (or, optionally, the
 logit coordinates of the box, `flow_space`), then ``mcmc_steps`` sweeps of population MCMC
 (`samplers.mcmc`) from its particles (`ExactConfig`). Each target evaluation simulates every
-observed reach once per particle, through the task's counting simulator: its simulations are counted (``n_simulations``) like any other method's,
-but the registry does not cap them (`Capabilities.exact`): the exact likelihood is not an
-estimator of a budget, so it is exempt from the budget comparisons: ``compare --reference`` runs
-it once, at the smallest of its budgets (`registry.grid_budgets`), instead of repeating the same
-SMC per budget; the plain ``compare`` grid repeats it, so each budget's figures and tables hold it.
+observed reach once per particle, through the task's counting simulator: its simulations are
+counted (``n_simulations``) like any other method's, but the registry does not cap them
+(`Capabilities.exact`): the exact likelihood is not an estimator of a budget, so it is exempt
+from the budget comparisons: ``compare --reference`` runs it once, at the smallest of its
+budgets (`registry.grid_budgets`), instead of repeating the same SMC per budget; the plain
+``compare`` grid repeats it, so each budget's figures and tables hold it.
 """
 
 from __future__ import annotations
